@@ -1,0 +1,119 @@
+"""Image -> LandmarkSet: frozen backbone + LLN head + landmark selection.
+
+    extractor = Extractor({'top_n': 50, 'method': 'lln'})
+    landmarks = extractor(image)            # uint8 (H, W) or (H, W, 3|4), RGB unless channel_order='bgr'
+    many = extractor.extract_batch(images)  # same result, batched through the network
+"""
+from __future__ import annotations
+
+import os
+from importlib import resources
+
+import numpy as np
+import torch
+
+from . import backbones
+from .errors import ModelError
+from .image import check_image, resize_for_network
+from .landmarks import METHODS, LandmarkSet, l2_normalize, select_landmarks
+from .lln import LLNHead, head_fingerprint, load_checkpoint
+
+default_conf = {
+    'backbone': backbones.default_conf,
+    'weights': '',         # LLN head checkpoint; '' = the one shipped for this backbone/layer
+    'top_n': 50,
+    'input_height': 288,
+    'method': 'lln',
+    'rand_seed': 0,
+    'num_threads': 0,      # torch intra-op threads; 0 = leave torch's default
+}
+
+
+def shipped_weights(backbone: str, layer: str) -> str | None:
+    """Path of the head checkpoint shipped in the package for this backbone/layer, if any."""
+    path = resources.files('lln_ros') / 'weights' / f'lln_{backbone}_{layer}.pt'
+    return str(path) if path.is_file() else None
+
+
+class Extractor:
+    def __init__(self, conf: dict | None = None):
+        conf = dict(conf or {})
+        conf['backbone'] = {**backbones.default_conf, **(conf.get('backbone') or {})}
+        self.conf = conf = {**default_conf, **conf}
+        if conf['method'] not in METHODS:
+            raise ModelError(f'unknown method {conf["method"]!r}; choose one of {METHODS}')
+        if int(conf['top_n']) < 1:
+            raise ModelError(f'top_n must be at least 1, got {conf["top_n"]}')
+        if conf['num_threads']:
+            torch.set_num_threads(int(conf['num_threads']))
+        self.backbone = backbones.build_backbone(conf['backbone'])
+        name, layer = conf['backbone']['name'], self.backbone.layer
+        weights = conf['weights'] or shipped_weights(name, layer)
+        if weights:
+            self.head, self.head_meta = load_checkpoint(os.path.expanduser(weights), name, layer,
+                                                        self.backbone.dim)
+        else:
+            # no trained head for this backbone/layer: a seeded Xavier head, and the metadata says so
+            self.head = LLNHead(self.backbone.dim).eval()
+            self.head_meta = {'trained': False}
+        for p in self.head.parameters():
+            p.requires_grad_(False)
+        self.descriptor_space = f'{name}/{layer}/{self.backbone.dim}'
+        self.model_info = {
+            'backbone': name, 'layer': layer, 'descriptor_dim': self.backbone.dim,
+            'descriptor_space': self.descriptor_space,
+            'head': head_fingerprint(self.head), 'head_trained': bool(self.head_meta.get('trained', True)),
+            'weights': weights or '', 'input_height': int(conf['input_height']),
+        }
+
+    @torch.inference_mode()
+    def features(self, rgb_batch: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """RGB uint8 (B, H, W, 3), already at network size -> (features (B, D, h, w), activation (B, h, w))."""
+        x = torch.from_numpy(rgb_batch).permute(0, 3, 1, 2).float().div_(255.0)
+        feats = self.backbone(x)
+        return feats, self.head(feats)
+
+    def __call__(self, image: np.ndarray, channel_order: str = 'rgb') -> LandmarkSet:
+        return self.extract_batch([image], channel_order)[0]
+
+    def extract_batch(self, images: list, channel_order: str = 'rgb',
+                      batch_size: int = 8) -> list[LandmarkSet]:
+        """Extract many images; images of the same network size go through the network together."""
+        rgb = [check_image(im, channel_order) for im in images]
+        net = [resize_for_network(im, int(self.conf['input_height'])) for im in rgb]
+        out: list[LandmarkSet | None] = [None] * len(rgb)
+        by_size: dict[tuple, list[int]] = {}
+        for i, im in enumerate(net):
+            by_size.setdefault(im.shape, []).append(i)
+        for idx in by_size.values():
+            for start in range(0, len(idx), batch_size):
+                chunk = idx[start:start + batch_size]
+                feats, act = self.features(np.stack([net[i] for i in chunk]))
+                for j, i in enumerate(chunk):
+                    h, w = rgb[i].shape[:2]
+                    out[i] = self._landmarks(feats[j].numpy(), act[j].numpy(), (w, h))
+        return out
+
+    def _landmarks(self, feats: np.ndarray, activation: np.ndarray, image_size: tuple) -> LandmarkSet:
+        """feats (D, rows, cols), activation (rows, cols) -> LandmarkSet in original image pixels."""
+        d, rows, cols = feats.shape
+        local = feats.reshape(d, rows * cols).T                       # (rows*cols, D)
+        method = self.conf['method']
+        rank_by = np.linalg.norm(local, axis=1).reshape(rows, cols) if method == 'act' else activation
+        cells_flat = select_landmarks(rank_by, int(self.conf['top_n']), method, int(self.conf['rand_seed']))
+        cells = np.stack([cells_flat % cols, cells_flat // cols], axis=1).astype(np.int32)
+        cell_size = np.array([image_size[0] / cols, image_size[1] / rows], np.float32)
+        centers = ((cells + 0.5) * cell_size).astype(np.float32)
+        return LandmarkSet(
+            global_descriptor=l2_normalize(local.max(axis=0)).astype(np.float32),
+            descriptors=l2_normalize(local[cells_flat]).astype(np.float32),
+            cells=cells,
+            centers=centers,
+            scores=rank_by.ravel()[cells_flat].astype(np.float32),
+            cell_size=cell_size,
+            image_size=np.array(image_size, np.float32),
+            grid=(rows, cols),
+            activation=activation.astype(np.float32),
+            descriptor_space=self.descriptor_space,
+        )
+

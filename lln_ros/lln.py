@@ -1,0 +1,106 @@
+"""The Landmark Localization Network head (Xin et al., ICRA 2019, Sec. III-A) and its checkpoints.
+
+    features (B, D, h, w)  ->  parallel convs (k x k, one per kernel size, `channels` each)
+                           ->  concat (B, K*channels, h, w) -> ReLU -> 1x1 conv -> ReLU
+                           ->  activation (B, h, w), non-negative
+
+A checkpoint is one torch file holding the head's state dict and the metadata that says which
+descriptor space it belongs to (backbone, layer, descriptor size), so a head, or a map built with it,
+is never silently combined with features from another model.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+
+import torch
+from torch import nn
+
+from .errors import ModelError
+
+CHECKPOINT_VERSION = 1
+
+default_conf = {
+    'kernel_sizes': (1, 3, 5),  # multi-scale: robustness to viewpoint change and occlusion
+    'channels': 64,             # per branch
+    'seed': 0,                  # Xavier init is seeded so an untrained head is the same everywhere
+}
+
+
+class LLNHead(nn.Module):
+    def __init__(self, in_dim: int, conf: dict | None = None):
+        super().__init__()
+        self.conf = conf = {**default_conf, **(conf or {})}
+        self.in_dim = int(in_dim)
+        self.branches = nn.ModuleList(
+            nn.Conv2d(in_dim, conf['channels'], k, padding=k // 2) for k in conf['kernel_sizes'])
+        self.fuse = nn.Conv2d(conf['channels'] * len(conf['kernel_sizes']), 1, 1)
+        generator = torch.Generator().manual_seed(int(conf['seed']))
+        for conv in [*self.branches, self.fuse]:
+            # Xavier-uniform drawn from our own generator: reproducible without touching global RNG
+            fan_in = conv.in_channels * conv.kernel_size[0] * conv.kernel_size[1]
+            fan_out = conv.out_channels * conv.kernel_size[0] * conv.kernel_size[1]
+            bound = (6.0 / (fan_in + fan_out)) ** 0.5
+            with torch.no_grad():
+                conv.weight.copy_(torch.rand(conv.weight.shape, generator=generator) * 2 * bound - bound)
+                conv.bias.zero_()
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        """features (B, D, h, w) -> activation (B, h, w) >= 0."""
+        # a nonlinearity between the branches and the 1x1 fuse; without it the parallel convs and
+        # the fuse collapse into one linear 5x5 conv and the multi-scale design buys nothing
+        x = torch.relu(torch.cat([b(features) for b in self.branches], dim=1))
+        return torch.relu(self.fuse(x))[:, 0]
+
+
+def head_fingerprint(head: LLNHead) -> str:
+    """Short content hash of the head's parameters: names the selection model in map metadata."""
+    h = hashlib.sha256()
+    for name, t in sorted(head.state_dict().items()):
+        h.update(name.encode())
+        h.update(t.detach().cpu().numpy().tobytes())
+    return h.hexdigest()[:12]
+
+
+def save_checkpoint(path: str, head: LLNHead, backbone: str, layer: str, **extra) -> None:
+    """Write the head and its metadata. `extra` (e.g. training command, data split) is kept as is."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    meta = {
+        'version': CHECKPOINT_VERSION,
+        'backbone': backbone,
+        'layer': layer,
+        'descriptor_dim': head.in_dim,
+        'head_conf': {k: (list(v) if isinstance(v, tuple) else v) for k, v in head.conf.items()},
+        **extra,
+    }
+    tmp = path + '.tmp'
+    torch.save({'meta': meta, 'state_dict': head.state_dict()}, tmp)
+    os.replace(tmp, path)  # never leave a half-written checkpoint under the real name
+
+
+def load_checkpoint(path: str, backbone: str | None = None, layer: str | None = None,
+                    descriptor_dim: int | None = None) -> tuple[LLNHead, dict]:
+    """Load a head; when backbone / layer / descriptor_dim are given they must match its metadata."""
+    if not os.path.isfile(path):
+        raise ModelError(f'LLN checkpoint not found: {path!r}')
+    try:
+        blob = torch.load(path, map_location='cpu', weights_only=True)
+        meta, state = blob['meta'], blob['state_dict']
+    except Exception as e:
+        raise ModelError(f'{path!r} is not an lln_ros checkpoint: {e}') from e
+    if meta.get('version') != CHECKPOINT_VERSION:
+        raise ModelError(f'{path!r}: checkpoint version {meta.get("version")} is not supported '
+                         f'(this lln_ros reads version {CHECKPOINT_VERSION})')
+    for key, want in (('backbone', backbone), ('layer', layer), ('descriptor_dim', descriptor_dim)):
+        if want is not None and meta.get(key) != want:
+            raise ModelError(f'{path!r} was trained for {key}={meta.get(key)!r}, but the model is '
+                             f'configured with {key}={want!r}')
+    conf = dict(meta['head_conf'])
+    conf['kernel_sizes'] = tuple(conf['kernel_sizes'])
+    head = LLNHead(meta['descriptor_dim'], conf)
+    try:
+        head.load_state_dict(state, strict=True)
+    except RuntimeError as e:
+        raise ModelError(f'{path!r}: weights do not fit the head shape in its metadata: '
+                         f'{str(e).splitlines()[0]}') from e
+    return head.eval(), meta

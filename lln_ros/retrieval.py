@@ -1,0 +1,97 @@
+"""Two-stage retrieval: holistic top-K by cosine (FAISS), then rerank by the landmark similarity S.
+
+    db = LandmarkDatabase()
+    db.add(map_sets)                                   # list of LandmarkSet
+    candidates = db.retrieve(query_set, prefilter_k=30)
+    candidates[0].index, .score, .holistic_score, .pairs
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import faiss
+import numpy as np
+
+from .errors import DescriptorError
+from .landmarks import LandmarkBatch, LandmarkSet, stack_landmarks
+from .similarity import match_batch
+
+default_conf = {
+    'prefilter_k': 30,  # holistic candidates reranked by S (the paper's 30)
+    'scale': 1.0,       # offset-weight Gaussian width, in grid cells
+}
+
+
+@dataclass
+class Candidate:
+    """One map entry proposed for a query. `pairs`: query_index, map_index, similarity, weight
+    (arrays of M matched landmark pairs); `offset`: the mode (dx, dy) in grid cells."""
+    index: int
+    score: float
+    holistic_score: float
+    offset: tuple = (0, 0)
+    pairs: dict = field(default_factory=dict)
+
+
+def rerank(query: LandmarkSet, batch: LandmarkBatch, indices: np.ndarray, holistic: np.ndarray,
+           scale: float = 1.0) -> list[Candidate]:
+    """Score `batch` (the prefiltered candidates, in `indices` order) against the query; sort by S."""
+    result = match_batch(query, batch, scale)
+    order = np.argsort(-result.scores, kind='stable')
+    return [Candidate(int(indices[k]), float(result.scores[k]), float(holistic[k]),
+                      tuple(int(v) for v in result.offsets[k]), result.pairs(k)) for k in order]
+
+
+class LandmarkDatabase:
+    """An in-memory map of landmark sets with a FAISS inner-product index of the global descriptors."""
+
+    def __init__(self, conf: dict | None = None):
+        self.conf = {**default_conf, **(conf or {})}
+        self.sets: list[LandmarkSet] = []
+        self.index: faiss.Index | None = None
+        self.descriptor_space: str | None = None
+
+    def __len__(self) -> int:
+        return len(self.sets)
+
+    def add(self, sets: list[LandmarkSet]) -> None:
+        for s in sets:
+            s.validate()
+            if self.descriptor_space is None:
+                self.descriptor_space = s.descriptor_space
+                self.index = faiss.IndexFlatIP(s.dim)
+            elif s.descriptor_space != self.descriptor_space or s.dim != self.index.d:
+                raise DescriptorError(f'map holds {self.descriptor_space!r} descriptors (D={self.index.d}); '
+                                      f'refusing {s.descriptor_space!r} (D={s.dim})')
+        if sets:
+            self.index.add(np.stack([s.global_descriptor for s in sets]).astype(np.float32))
+            self.sets.extend(sets)
+
+    def holistic(self, query: LandmarkSet, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Top-k map indices by global-descriptor cosine, with their scores."""
+        if not self.sets:
+            return np.zeros(0, np.int64), np.zeros(0, np.float32)
+        self._check_query(query)
+        scores, idx = self.index.search(query.global_descriptor[None].astype(np.float32),
+                                        min(int(k), len(self.sets)))
+        keep = idx[0] >= 0
+        return idx[0][keep], scores[0][keep]
+
+    def retrieve(self, query: LandmarkSet, prefilter_k: int | None = None,
+                 rerank_local: bool = True) -> list[Candidate]:
+        """Holistic top-K reranked by S (rerank_local=False: the holistic ranking alone)."""
+        k = int(prefilter_k or self.conf['prefilter_k'])
+        idx, hol = self.holistic(query, k)
+        if not rerank_local:
+            return [Candidate(int(i), float(h), float(h)) for i, h in zip(idx, hol)]
+        if len(idx) == 0:
+            return []
+        batch = stack_landmarks([self.sets[i] for i in idx])
+        return rerank(query, batch, idx, hol, self.conf['scale'])
+
+    def _check_query(self, query: LandmarkSet) -> None:
+        query.validate()
+        if query.dim != self.index.d or (query.descriptor_space and
+                                         query.descriptor_space != self.descriptor_space):
+            raise DescriptorError(f'query descriptors are {query.descriptor_space!r} (D={query.dim}); '
+                                  f'the map holds {self.descriptor_space!r} (D={self.index.d})')
