@@ -4,7 +4,7 @@ The algorithm is importable without rclpy:
 
     from lln_ros import Extractor, LandmarkDatabase, match_pair, load_image
 """
-from .errors import DescriptorError, ImageError, LLNError, ModelError
+from .errors import DatasetError, DescriptorError, ImageError, LLNError, MapError, MessageError, ModelError
 from .extractor import Extractor
 from .image import load_image
 from .landmarks import LandmarkBatch, LandmarkSet, select_landmarks, stack_landmarks
@@ -14,4 +14,5 @@ from .similarity import MatchResult, match_batch, match_pair
 __version__ = '0.1.0'
 __all__ = ['Extractor', 'LandmarkDatabase', 'Candidate', 'LandmarkSet', 'LandmarkBatch', 'MatchResult',
            'match_pair', 'match_batch', 'select_landmarks', 'stack_landmarks', 'load_image',
-           'LLNError', 'ImageError', 'ModelError', 'DescriptorError']
+           'LLNError', 'ImageError', 'ModelError', 'DescriptorError', 'MapError', 'MessageError',
+           'DatasetError']

@@ -16,3 +16,15 @@ class ModelError(LLNError):
 
 class DescriptorError(LLNError):
     """Descriptors that cannot be compared: wrong size, non-finite, from another model."""
+
+
+class MapError(LLNError):
+    """A map file that cannot be opened or used: corrupt, truncated, from another model."""
+
+
+class MessageError(LLNError):
+    """A ROS message that cannot be decoded: missing fields, wrong sizes, truncated data."""
+
+
+class DatasetError(LLNError):
+    """A dataset that cannot be read: missing folders, unequal lengths, bad ground truth."""
