@@ -22,7 +22,7 @@ from .errors import ModelError
 
 default_conf = {
     'name': 'efficientnet_lite0',
-    'layer': 'stage7',
+    'layer': '',          # '' = the backbone's default layer (BACKBONES below)
     'weights_path': '',
 }
 
@@ -139,13 +139,10 @@ class ResNet101Block3(nn.Module):
     a block's stride in its first unit (layer3 at stride 16); the paper's TF-slim model puts it in the
     last unit, so the last unit of layer3 gets stride 2 and a subsampled identity shortcut.
     """
-    def __init__(self, layer: str = 'block3', weights_path: str = ''):
+    def __init__(self, layer: str = 'block3', weights_path: str | None = ''):
         super().__init__()
         if layer != 'block3':
             raise ModelError(f"resnet101: unknown layer {layer!r}; choose 'block3'")
-        if not weights_path:
-            raise ModelError('resnet101: no ImageNet weights ship with lln_ros; set weights_path to a '
-                             'local torchvision resnet101 state dict (e.g. resnet101-63fe2227.pth)')
         self.conv1 = nn.Conv2d(3, 64, 7, stride=2, padding=3, bias=False)
         self.bn1 = nn.BatchNorm2d(64)
         self.relu = nn.ReLU(inplace=True)
@@ -160,6 +157,15 @@ class ResNet101Block3(nn.Module):
         last = self.layer3[-1]
         last.conv2.stride = (2, 2)
         last.shortcut_stride = 2
+        self.dim = 1024
+        # not persistent: the state dict keys stay exactly torchvision's
+        self.register_buffer('mean', torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer('std', torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1), persistent=False)
+        if weights_path is None:
+            return  # architecture only (tests, or loading a state dict later)
+        if not weights_path:
+            raise ModelError('resnet101: no ImageNet weights ship with lln_ros; set weights_path to a '
+                             'local torchvision resnet101 state dict (e.g. resnet101-63fe2227.pth)')
         state = _load_state_dict(weights_path, 'resnet101')
         state = {k: v for k, v in state.items() if not k.startswith(('layer4.', 'fc.'))}
         try:
@@ -167,9 +173,6 @@ class ResNet101Block3(nn.Module):
         except RuntimeError as e:
             raise ModelError(f'resnet101: {weights_path!r} is not a torchvision resnet101 state dict: '
                              f'{str(e).splitlines()[0]}') from e
-        self.dim = 1024
-        self.register_buffer('mean', torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1))
-        self.register_buffer('std', torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1))
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         x = (images - self.mean) / self.std

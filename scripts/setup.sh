@@ -14,6 +14,7 @@ if [ ! -x "$VENV/bin/python" ]; then
   echo "setup: creating $VENV with $PY"
   "$PY" -m venv "$VENV"
 fi
+touch "$VENV/COLCON_IGNORE"  # colcon must not crawl the venv (the ROS wheels ship package.xml files)
 stamp="$VENV/.lln_ros_setup"
 want=$(cat requirements.txt setup.py | sha256sum | cut -d' ' -f1)
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then

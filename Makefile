@@ -1,0 +1,20 @@
+# One-command entry points. Setup is idempotent (scripts/setup.sh keeps a stamp in .venv).
+VENV ?= .venv
+PY := $(VENV)/bin/python
+
+.PHONY: setup test bench colcon clean
+
+setup:
+	bash scripts/setup.sh
+
+test: setup
+	$(PY) -m pytest -q test
+
+bench: setup
+	$(PY) bench/bench_core.py
+
+colcon: setup
+	$(VENV)/bin/colcon build --base-paths . --build-base build --install-base install
+
+clean:
+	rm -rf build install log .pytest_cache

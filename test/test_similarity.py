@@ -1,0 +1,158 @@
+"""Spatially weighted cross matching, checked against a plain-loop reference of the paper's
+definition, on synthetic sets with known structure and on real image pairs with known shifts."""
+import numpy as np
+import pytest
+
+from lln_ros.errors import DescriptorError
+from lln_ros.landmarks import LandmarkSet, l2_normalize, stack_landmarks
+from lln_ros.similarity import match_batch, match_pair, offset_mode, offset_weights
+
+
+def make_set(desc, cells, grid=(9, 12), space='test/x/8'):
+    desc = l2_normalize(np.asarray(desc, np.float32))
+    cells = np.asarray(cells, np.int32)
+    cell = np.array([32.0, 32.0], np.float32)
+    return LandmarkSet(global_descriptor=l2_normalize(desc.max(0)), descriptors=desc, cells=cells,
+                       centers=(cells + 0.5) * cell, scores=np.linspace(1, 0, len(desc), dtype=np.float32),
+                       cell_size=cell, image_size=np.array([384, 288], np.float32), grid=grid,
+                       descriptor_space=space)
+
+
+def reference_similarity(a, b, scale=1.0):
+    """The paper's S written as loops, independently of the vectorised code."""
+    sims = a.descriptors @ b.descriptors.T
+    pairs = []
+    for i in range(len(a)):
+        j = int(np.argmax(sims[i]))
+        if int(np.argmax(sims[:, j])) == i:
+            pairs.append((i, j, sims[i, j], tuple(a.cells[i] - b.cells[j])))
+    if not pairs:
+        return 0.0, (0, 0)
+    counts = {}
+    for _, _, s, d in pairs:
+        c, t = counts.get(d, (0, 0.0))
+        counts[d] = (c + 1, t + max(s, 0))
+    mode = max(counts, key=lambda d: (counts[d][0], counts[d][1]))
+    total = sum(s * np.exp(-0.5 * ((d[0] - mode[0]) ** 2 + (d[1] - mode[1]) ** 2) / scale ** 2)
+                for _, _, s, d in pairs)
+    return total, mode
+
+
+def random_set(rng, n=50, d=8, grid=(9, 12)):
+    flat = rng.choice(grid[0] * grid[1], n, replace=False)
+    return make_set(rng.normal(size=(n, d)), np.stack([flat % grid[1], flat // grid[1]], 1), grid)
+
+
+def test_self_match_every_landmark_offset_zero():
+    rng = np.random.default_rng(0)
+    a = random_set(rng)
+    r = match_pair(a, a)
+    assert (r.match[0] == np.arange(50)).all()
+    assert tuple(r.offsets[0]) == (0, 0)
+    np.testing.assert_allclose(r.weight[0], 1.0)
+    assert r.scores[0] == pytest.approx(50.0, abs=1e-4)
+
+
+def test_known_shift_recovered():
+    rng = np.random.default_rng(1)
+    a = random_set(rng, n=30, grid=(9, 12))
+    shifted = a.cells + np.array([3, 2])  # the same features 3 cells right and 2 lower, larger image
+    b = make_set(a.descriptors + 0.05 * rng.normal(size=a.descriptors.shape), shifted, grid=(11, 15))
+    r = match_pair(a, b)
+    assert tuple(r.offsets[0]) == (-3, -2)
+    assert (r.match[0] >= 0).sum() == 30
+
+
+@pytest.mark.parametrize('seed', range(5))
+@pytest.mark.parametrize('scale', [0.5, 1.0, 2.0])
+def test_matches_reference_definition(seed, scale):
+    rng = np.random.default_rng(seed)
+    a = random_set(rng, n=20, d=4)
+    for _ in range(4):
+        b = random_set(rng, n=25, d=4)
+        got = match_pair(a, b, scale)
+        want, mode = reference_similarity(a, b, scale)
+        assert got.scores[0] == pytest.approx(want, rel=1e-5, abs=1e-6)
+        assert tuple(got.offsets[0]) == mode
+
+
+def test_batched_equals_single_pairs_with_padding():
+    rng = np.random.default_rng(2)
+    q = random_set(rng, n=40)
+    cands = [random_set(rng, n=n) for n in (50, 12, 108 - 8, 40, 1)]
+    cands[3] = make_set(q.descriptors + 0.1 * rng.normal(size=q.descriptors.shape), q.cells + 1, grid=(10, 13))
+    batch = match_batch(q, stack_landmarks(cands))
+    for k, c in enumerate(cands):
+        single = match_pair(q, c)
+        assert batch.scores[k] == pytest.approx(single.scores[0], rel=1e-6)
+        np.testing.assert_array_equal(batch.match[k], single.match[0])
+        np.testing.assert_array_equal(batch.offsets[k], single.offsets[0])
+    assert np.argmax(batch.scores) == 3
+
+
+def test_pairs_and_weights():
+    rng = np.random.default_rng(3)
+    a = random_set(rng, n=10)
+    cells = a.cells.copy()
+    cells[:7] -= [1, 0]   # seven landmarks agree on offset (1, 0)
+    cells[7:] -= [0, 3]   # three are displaced by (0, 3): down-weighted by exp(-(1+9)/2)
+    cells = np.clip(cells, 0, [11, 8])
+    b = make_set(a.descriptors, cells)
+    r = match_pair(a, b)
+    p = r.pairs(0)
+    assert tuple(r.offsets[0]) == (1, 0)
+    w = dict(zip(p['query_index'], p['weight']))
+    assert all(w[i] == pytest.approx(1.0) for i in range(7) if tuple(a.cells[i] - cells[i]) == (1, 0))
+    assert min(w.values()) < 0.05
+    assert r.scores[0] == pytest.approx(float((p['weight'] * p['similarity']).sum()), rel=1e-6)
+
+
+def test_offset_mode_ties_and_empty():
+    offsets = np.array([[[1, 0], [1, 0], [2, 2], [2, 2], [5, 5]]])
+    matched = np.ones((1, 5), bool)
+    sims = np.array([[0.5, 0.5, 0.9, 0.9, 1.0]], np.float32)
+    assert tuple(offset_mode(offsets, matched, sims)[0]) == (2, 2)  # tie on count, larger cosine sum
+    assert tuple(offset_mode(offsets, np.zeros((1, 5), bool), sims)[0]) == (0, 0)
+    w = offset_weights(np.array([[[0, 0], [1, 0], [1, 1]]]), np.array([[0, 0]]), 1.0)
+    np.testing.assert_allclose(w[0], [1, np.exp(-0.5), np.exp(-1)], rtol=1e-6)
+    with pytest.raises(ValueError):
+        offset_weights(offsets, np.zeros((1, 2), int), 0.0)
+
+
+def test_bad_descriptors():
+    rng = np.random.default_rng(4)
+    a = random_set(rng, d=8)
+    b = random_set(rng, d=16)
+    with pytest.raises(DescriptorError, match='size mismatch'):
+        match_pair(a, b)
+    c = random_set(rng)
+    c.descriptors[3, 2] = np.nan
+    with pytest.raises(DescriptorError, match='NaN'):
+        match_pair(a, c)
+    d = random_set(rng)
+    d.global_descriptor[0] = np.inf
+    with pytest.raises(DescriptorError, match='NaN or inf'):
+        match_pair(d, a)
+    e = make_set(a.descriptors, a.cells, space='other/y/8')
+    with pytest.raises(DescriptorError, match='different models'):
+        match_pair(a, e)
+    with pytest.raises(DescriptorError, match='different models'):
+        stack_landmarks([a, e])
+    f = random_set(rng)
+    f.cells[0] = [40, 0]
+    with pytest.raises(DescriptorError, match='outside'):
+        match_pair(a, f)
+
+
+def test_real_image_against_itself_and_a_shifted_copy(extractor, photo):
+    view = photo[100:388, 0:384]                # 384x288: 32 px cells, the paper's grid
+    a = extractor(view)
+    r = match_pair(a, a)
+    assert (r.match[0] == np.arange(len(a))).all() and tuple(r.offsets[0]) == (0, 0)
+    # the same scene with the camera moved: content 64 px (2 cells) left and 32 px (1 cell) up
+    moved = extractor(photo[132:420, 64:448])
+    r = match_pair(a, moved)
+    assert tuple(r.offsets[0]) == (2, 1)
+    assert (r.match[0] >= 0).sum() >= 10
+    other = extractor(np.ascontiguousarray(photo[100:388, 0:384][::-1, ::-1]))
+    assert match_pair(a, other).scores[0] < r.scores[0]
