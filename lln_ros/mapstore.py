@@ -1,0 +1,788 @@
+"""The persistent map behind the matcher node: keyframes' landmark sets in one SQLite file.
+
+    with MapStore.open('~/.ros/lln/map.db', model=extractor.model_info) as store:
+        kf = store.add(landmarks, stamp=(sec, nanosec))           # durable when it returns
+        for c in store.query(landmarks, exclude_recent=20):       # online loop closure
+            c.keyframe_id, c.score, c.stamp, c.pairs['map_u'], ...
+
+No rclpy here: the node wraps this class, tests use it directly.
+
+Storage
+-------
+One SQLite file in WAL mode with ``synchronous=FULL``: ``add`` commits one transaction and fsyncs
+the WAL before it returns, so an acknowledged keyframe survives ``kill -9`` and power loss. New files
+are built under a temporary name and linked into place, so a file at the map path is always either a
+complete map or not ours (never half-created). Schema version 1::
+
+    meta       key TEXT PRIMARY KEY, value TEXT
+               format='lln_ros-map', schema_version='1', created (unix s), created_by,
+               model (JSON of Extractor.model_info, or {descriptor_space, descriptor_dim}; written on
+               first use), descriptor_space, descriptor_dim
+    keyframes  id INTEGER PRIMARY KEY AUTOINCREMENT   -- never reused, not even after clear()
+               stamp_sec INTEGER, stamp_nanosec INTEGER
+               image_w REAL, image_h REAL              -- original image pixels
+               grid_rows INTEGER, grid_cols INTEGER
+               cell_w REAL, cell_h REAL                -- one grid cell in original pixels
+               n INTEGER                               -- number of landmarks (>= 1)
+               global_descriptor BLOB                  -- float32 little-endian (D,)
+    landmarks  keyframe_id INTEGER PRIMARY KEY REFERENCES keyframes(id) ON DELETE CASCADE
+               cells BLOB        -- int16 LE (n, 2), (col, row)
+               centers BLOB      -- float32 LE (n, 2), (u, v) region centre in original pixels
+               scores BLOB       -- float32 LE (n,)
+               descriptors BLOB  -- float16 LE (n, D), L2-normalised (float16: ~1e-3 relative)
+
+All landmarks of a keyframe are one row (a row per landmark would be ~50x more rows and far slower to
+insert and fetch). ``landmarks`` is its own table so the scan at open, which rebuilds the FAISS index,
+reads only the small ``keyframes`` rows; the large ``descriptors`` blob is the LAST column so the small
+blobs are read without touching its overflow pages. The activation map and ``LandmarkSet.meta`` are
+not stored.
+
+Bytes per keyframe at n=50, D=320: blobs 1,280 (global) + 32,000 (descriptors) + 200 (cells)
++ 400 (centers) + 200 (scores) = 34,080; measured ~34.7-34.9 KB per keyframe in the .db file after
+a checkpoint (4 KiB pages; record headers, b-tree and overflow-page slack add ~2%), i.e. ~30
+keyframes per MB, ~350 MB per 10,000 keyframes. (float32 descriptors would double that.)
+
+Migrations: ``MIGRATIONS[v]`` upgrades a map from schema v to v+1 inside one transaction at open.
+A map newer than this code is refused, never modified.
+
+In memory: a FAISS ``IndexIDMap(IndexFlatIP(D))`` over the global descriptors, keyed by keyframe id,
+rebuilt from SQLite at open and checked against it (count and ids). Landmarks stay on disk; a query
+fetches the prefiltered keyframes' landmarks with one ``SELECT ... WHERE id IN (...)``. If another
+connection (another process) commits to the file, the next call notices (``PRAGMA data_version``)
+and rebuilds the index.
+
+Thread safety: every call takes one lock (the connection is shared, ``check_same_thread=False``);
+the landmark reranking of ``query`` runs outside the lock.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import sqlite3
+import struct
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+
+import faiss
+import numpy as np
+
+from .errors import DescriptorError, MapError
+from .landmarks import LandmarkSet, stack_landmarks
+from .retrieval import Candidate, rerank
+
+log = logging.getLogger(__name__)
+
+FORMAT = 'lln_ros-map'
+SCHEMA_VERSION = 1
+SQLITE_MAGIC = b'SQLite format 3\x00'
+
+SCHEMA = """
+CREATE TABLE meta (
+    key   TEXT PRIMARY KEY,
+    value TEXT NOT NULL
+);
+CREATE TABLE keyframes (
+    id                INTEGER PRIMARY KEY AUTOINCREMENT,
+    stamp_sec         INTEGER NOT NULL,
+    stamp_nanosec     INTEGER NOT NULL,
+    image_w           REAL    NOT NULL,
+    image_h           REAL    NOT NULL,
+    grid_rows         INTEGER NOT NULL,
+    grid_cols         INTEGER NOT NULL,
+    cell_w            REAL    NOT NULL,
+    cell_h            REAL    NOT NULL,
+    n                 INTEGER NOT NULL,
+    global_descriptor BLOB    NOT NULL
+);
+CREATE TABLE landmarks (
+    keyframe_id INTEGER PRIMARY KEY REFERENCES keyframes(id) ON DELETE CASCADE,
+    cells       BLOB NOT NULL,
+    centers     BLOB NOT NULL,
+    scores      BLOB NOT NULL,
+    descriptors BLOB NOT NULL
+);
+"""
+
+# schema version v -> function(conn) that upgrades a v map to v + 1 (called inside a transaction)
+MIGRATIONS: dict = {}
+
+_KF_COLS = 'k.id, k.stamp_sec, k.stamp_nanosec, k.image_w, k.image_h, k.grid_rows, k.grid_cols, ' \
+           'k.cell_w, k.cell_h, k.n, k.global_descriptor'
+_LM_COLS = 'l.cells, l.centers, l.scores, l.descriptors'
+_SQL_CHUNK = 900  # ids per IN (...) list, below SQLite's oldest variable limit (999)
+
+
+@dataclass
+class MapCandidate:
+    """A map keyframe proposed for a query.
+
+    score: the landmark similarity S (the holistic cosine when reranking is off); holistic_score:
+    global-descriptor cosine; stamp (sec, nanosec) of the keyframe; offset (dx, dy): the mode of
+    the query-minus-map cell offsets, in grid cells; cell_size / image_size (w, h) of the keyframe.
+    pairs: the M mutually matched landmark regions, a dict of arrays of length M:
+        query_index, map_index   landmark indices in the query set and the keyframe's set
+        query_u, query_v         region centre in the query image, pixels
+        map_u, map_v             region centre in the keyframe image, pixels
+        cell_w, cell_h           region size in the keyframe image, pixels (the query's region is
+                                 the query set's cell_size; equal when the images are the same size)
+        similarity               cosine of the pair
+        weight                   spatial-consistency weight of the pair
+    """
+    keyframe_id: int
+    score: float
+    holistic_score: float
+    stamp: tuple
+    offset: tuple = (0, 0)
+    cell_size: tuple = (0.0, 0.0)
+    image_size: tuple = (0.0, 0.0)
+    pairs: dict = field(default_factory=dict)
+
+    @property
+    def n_pairs(self) -> int:
+        return len(self.pairs.get('query_index', ()))
+
+
+def _empty_pairs() -> dict:
+    ints = ('query_index', 'map_index')
+    floats = ('query_u', 'query_v', 'map_u', 'map_v', 'cell_w', 'cell_h', 'similarity', 'weight')
+    return {**{k: np.zeros(0, np.int64) for k in ints}, **{k: np.zeros(0, np.float32) for k in floats}}
+
+
+def _describe(model: dict | None) -> str:
+    if not model:
+        return '<none>'
+    text = f"{model.get('descriptor_space')!r} (D={model.get('descriptor_dim')}"
+    if model.get('weights'):
+        text += f", weights {model['weights']}"
+    return text + ')'
+
+
+def _stamp(stamp) -> tuple[int, int]:
+    """(sec, nanosec) from a tuple or anything with .sec and .nanosec (builtin_interfaces/Time)."""
+    if hasattr(stamp, 'sec') and hasattr(stamp, 'nanosec'):
+        sec, nsec = stamp.sec, stamp.nanosec
+    else:
+        try:
+            sec, nsec = stamp
+        except (TypeError, ValueError):
+            raise ValueError(f'stamp must be (sec, nanosec) or a builtin_interfaces/Time, got {stamp!r}') from None
+    sec, nsec = int(sec), int(nsec)
+    if not 0 <= nsec < 1_000_000_000:
+        raise ValueError(f'stamp nanosec must be in [0, 1e9), got {nsec}')
+    return sec, nsec
+
+
+class MapStore:
+    """A persistent map of keyframe landmark sets (see the module docstring for the file format).
+
+    MapStore(path, model=None, create=True, verify=True); MapStore.open(...) is the same.
+    model: Extractor.model_info (needs descriptor_space and descriptor_dim). Recorded on first use;
+    a map from another descriptor space is refused with MapError. verify: run SQLite's quick_check
+    at open (reads the whole file once; catches truncation and corruption before they surface as
+    bad answers).
+    """
+
+    def __init__(self, path, model: dict | None = None, create: bool = True, verify: bool = True):
+        self.path = os.path.abspath(os.path.expanduser(os.fspath(path)))
+        self._lock = threading.RLock()
+        self._conn: sqlite3.Connection | None = None
+        self._model: dict | None = None
+        self._index = None
+        self._ids: list[int] = []
+        self._data_version = None
+        if model is not None:
+            model = self._check_model_dict(model)
+        if os.path.isdir(self.path):
+            raise MapError(f'map path {self.path} is a directory, not a map file')
+        if not os.path.exists(self.path):
+            if not create:
+                raise MapError(f'no map at {self.path} (create=False)')
+            self._create_file()
+        else:
+            self._check_file()
+        try:
+            self._conn = sqlite3.connect(self.path, timeout=10.0, isolation_level=None,
+                                         check_same_thread=False)
+        except sqlite3.Error as e:
+            raise MapError(f'cannot open map {self.path}: {e}') from e
+        try:
+            self._identify()          # read-only: never modify a file that is not ours
+            self._configure()
+            self._migrate()
+            if verify:
+                rows = [r[0] for r in self._conn.execute('PRAGMA quick_check(20)')]
+                if rows != ['ok']:
+                    raise MapError(f'map {self.path} is corrupt (SQLite quick_check): ' + '; '.join(rows))
+            self._load()
+            if model is not None:
+                self._adopt_model(model)
+        except sqlite3.OperationalError as e:     # locked, read-only, I/O error
+            self._conn.close()
+            self._conn = None
+            raise MapError(f'cannot open map {self.path}: {e}') from e
+        except sqlite3.DatabaseError as e:        # malformed, not a database
+            self._conn.close()
+            self._conn = None
+            raise MapError(f'map {self.path} is corrupt or truncated: {e}') from e
+        except BaseException:
+            self._conn.close()
+            self._conn = None
+            raise
+
+    @classmethod
+    def open(cls, path, model: dict | None = None, create: bool = True, verify: bool = True) -> 'MapStore':
+        return cls(path, model=model, create=create, verify=verify)
+
+    # ------------------------------------------------------------------ opening
+
+    def _create_file(self) -> None:
+        """Build an empty map under a temporary name, then link it into place (no half-made maps)."""
+        parent = os.path.dirname(self.path)
+        os.makedirs(parent, exist_ok=True)
+        for suffix in ('-wal', '-shm', '-journal'):  # left over from a deleted file: never replay them
+            try:
+                os.remove(self.path + suffix)
+            except FileNotFoundError:
+                pass
+        tmp = f'{self.path}.creating-{os.getpid()}-{uuid.uuid4().hex[:8]}'
+        try:
+            conn = sqlite3.connect(tmp, isolation_level=None)
+            try:
+                conn.execute('BEGIN')
+                for statement in SCHEMA.split(';'):
+                    if statement.strip():
+                        conn.execute(statement)
+                from . import __version__
+                conn.executemany('INSERT INTO meta (key, value) VALUES (?, ?)', [
+                    ('format', FORMAT), ('schema_version', str(SCHEMA_VERSION)),
+                    ('created', str(int(time.time()))), ('created_by', f'lln_ros {__version__}')])
+                conn.execute('COMMIT')
+            finally:
+                conn.close()
+            fd = os.open(tmp, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+            try:
+                os.link(tmp, self.path)        # fails if someone else created the map meanwhile
+            except FileExistsError:
+                pass
+            except OSError:                    # no hard links on this filesystem
+                if not os.path.exists(self.path):
+                    os.replace(tmp, self.path)
+            dfd = os.open(parent, os.O_RDONLY)
+            try:
+                os.fsync(dfd)
+            finally:
+                os.close(dfd)
+        except (OSError, sqlite3.Error) as e:
+            raise MapError(f'cannot create map {self.path}: {e}') from e
+        finally:
+            for f in (tmp, tmp + '-journal'):
+                try:
+                    os.remove(f)
+                except FileNotFoundError:
+                    pass
+
+    def _check_file(self) -> None:
+        """Cheap checks on the raw file before SQLite sees it: header magic and truncation."""
+        try:
+            size = os.path.getsize(self.path)
+            with open(self.path, 'rb') as f:
+                head = f.read(100)
+        except OSError as e:
+            raise MapError(f'cannot read map {self.path}: {e}') from e
+        if size == 0:
+            raise MapError(f'{self.path} is an empty file (0 bytes), not an lln_ros map; '
+                           f'delete it to start a new map')
+        if len(head) < 100 or head[:16] != SQLITE_MAGIC:
+            raise MapError(f'{self.path} is not an lln_ros map: not an SQLite database '
+                           f'(corrupt, truncated or some other file; {size} bytes)')
+        page_size = struct.unpack('>H', head[16:18])[0]
+        page_size = 65536 if page_size == 1 else page_size
+        change, pages, valid_for = (struct.unpack('>I', head[o:o + 4])[0] for o in (24, 28, 92))
+        wal = self.path + '-wal'
+        wal_pending = os.path.exists(wal) and os.path.getsize(wal) > 0
+        # with a pending WAL the main file may legitimately lag behind; quick_check covers that case
+        if pages and change == valid_for and not wal_pending and size < pages * page_size:
+            raise MapError(f'map {self.path} is truncated: {size} bytes, its header says '
+                           f'{pages} pages of {page_size} bytes ({pages * page_size} bytes)')
+
+    def _identify(self) -> None:
+        c = self._conn
+        tables = {r[0] for r in c.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if 'meta' not in tables:
+            raise MapError(f'{self.path} is an SQLite database but not an lln_ros map '
+                           f'(no meta table; tables: {sorted(tables) or "none"})')
+        meta = self._meta()
+        if meta.get('format') != FORMAT:
+            raise MapError(f'{self.path} is an SQLite database but not an lln_ros map '
+                           f'(meta format is {meta.get("format")!r}, expected {FORMAT!r})')
+        try:
+            version = int(meta.get('schema_version', ''))
+        except ValueError:
+            raise MapError(f'map {self.path} has no valid schema_version '
+                           f'({meta.get("schema_version")!r})') from None
+        if version > SCHEMA_VERSION:
+            raise MapError(f'map {self.path} has schema version {version}; this lln_ros reads up to '
+                           f'{SCHEMA_VERSION}: upgrade lln_ros')
+        missing = {'keyframes', 'landmarks'} - tables
+        if missing and version == SCHEMA_VERSION:
+            raise MapError(f'map {self.path} is damaged: missing tables {sorted(missing)}')
+
+    def _configure(self) -> None:
+        c = self._conn
+        mode = c.execute('PRAGMA journal_mode=WAL').fetchone()[0]
+        if str(mode).lower() != 'wal':
+            raise MapError(f'cannot put map {self.path} in WAL mode (got {mode!r}); '
+                           f'is it on a network filesystem or read-only?')
+        c.execute('PRAGMA synchronous=FULL')
+        c.execute('PRAGMA foreign_keys=ON')
+
+    def _migrate(self) -> None:
+        version = int(self._meta()['schema_version'])
+        while version < SCHEMA_VERSION:
+            step = MIGRATIONS.get(version)
+            if step is None:
+                raise MapError(f'map {self.path} has schema version {version} and there is no '
+                               f'migration to {version + 1}')
+            self._conn.execute('BEGIN IMMEDIATE')
+            try:
+                step(self._conn)
+                self._conn.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'",
+                                   (str(version + 1),))
+                self._conn.execute('COMMIT')
+            except BaseException:
+                self._conn.execute('ROLLBACK')
+                raise
+            log.info('migrated map %s from schema %d to %d', self.path, version, version + 1)
+            version += 1
+
+    def _meta(self) -> dict:
+        return {k: v for k, v in self._conn.execute('SELECT key, value FROM meta')}
+
+    def _load(self) -> None:
+        """(Re)read the model record and rebuild the FAISS index from the keyframes table."""
+        c = self._conn
+        self._data_version = c.execute('PRAGMA data_version').fetchone()[0]
+        meta = self._meta()
+        self._model = json.loads(meta['model']) if 'model' in meta else None
+        rows = c.execute('SELECT id, global_descriptor FROM keyframes ORDER BY id').fetchall()
+        self._ids = [int(r[0]) for r in rows]
+        self._index = None
+        if self._model is None:
+            if rows:
+                raise MapError(f'map {self.path} is damaged: {len(rows)} keyframes but no model record')
+            return
+        dim = int(self._model['descriptor_dim'])
+        self._index = faiss.IndexIDMap(faiss.IndexFlatIP(dim))
+        bad = [r[0] for r in rows if len(r[1]) != 4 * dim]
+        if bad:
+            raise MapError(f'map {self.path} is corrupt: global descriptors of keyframes {bad[:10]} are '
+                           f'not {dim} float32 values')
+        if rows:
+            x = np.frombuffer(b''.join(r[1] for r in rows), '<f4').reshape(len(rows), dim)
+            self._index.add_with_ids(np.ascontiguousarray(x, np.float32), np.asarray(self._ids, np.int64))
+        problems = self._faiss_problems()
+        if problems:
+            raise MapError(f'map {self.path}: in-memory index disagrees with the file: {"; ".join(problems)}')
+
+    def _faiss_problems(self) -> list[str]:
+        ids = [r[0] for r in self._conn.execute('SELECT id FROM keyframes ORDER BY id')]
+        if self._index is None:
+            return [f'no FAISS index but {len(ids)} keyframes'] if ids else []
+        problems = []
+        if self._index.ntotal != len(ids):
+            problems.append(f'FAISS index holds {self._index.ntotal} keyframes, SQLite {len(ids)}')
+        faiss_ids = sorted(faiss.vector_to_array(self._index.id_map).tolist())
+        if faiss_ids != ids or self._ids != ids:
+            only_f, only_s = sorted(set(faiss_ids) - set(ids)), sorted(set(ids) - set(faiss_ids))
+            problems.append(f'FAISS and SQLite keyframe ids differ (only in FAISS: {only_f[:10]}, '
+                            f'only in SQLite: {only_s[:10]})')
+        return problems
+
+    # ------------------------------------------------------------------ model
+
+    def _check_model_dict(self, model: dict) -> dict:
+        if not isinstance(model, dict) or not model.get('descriptor_space') or not model.get('descriptor_dim'):
+            raise MapError(f'model for map must be a dict with descriptor_space and descriptor_dim '
+                           f'(Extractor.model_info), got {model!r}')
+        model = dict(model)
+        model['descriptor_dim'] = int(model['descriptor_dim'])
+        return model
+
+    def _mismatch(self, other: dict, what: str) -> MapError:
+        return MapError(f'map {self.path} was built with model {_describe(self._model)}; refusing {what} '
+                        f'from model {_describe(other)}: descriptors from different models cannot be '
+                        f'compared (use a map file made with this model, or delete this one)')
+
+    def _same_space(self, model: dict) -> bool:
+        return (model['descriptor_space'] == self._model['descriptor_space']
+                and int(model['descriptor_dim']) == int(self._model['descriptor_dim']))
+
+    def use_model(self, model: dict) -> None:
+        """Declare the model whose descriptors will arrive (e.g. the extractor's model_info):
+        recorded when the map has none yet, MapError when it is from another descriptor space."""
+        model = self._check_model_dict(model)
+        with self._lock:
+            self._ready()
+            self._adopt_model(model)
+
+    def _adopt_model(self, model: dict) -> None:
+        """Record the model on first use, or refuse one from another descriptor space."""
+        if self._model is None:
+            self._write(lambda c: self._record_model(c, model))
+            self._model = model
+            self._index = faiss.IndexIDMap(faiss.IndexFlatIP(model['descriptor_dim']))
+        elif not self._same_space(model):
+            raise self._mismatch(model, 'the extractor')
+        elif model != self._model:
+            log.info('map %s was built with %s; now used with %s (same descriptor space)',
+                     self.path, self._model, model)
+
+    @staticmethod
+    def _record_model(c: sqlite3.Connection, model: dict) -> None:
+        c.executemany('INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)', [
+            ('model', json.dumps(model, sort_keys=True, default=str)),
+            ('descriptor_space', model['descriptor_space']),
+            ('descriptor_dim', str(model['descriptor_dim']))])
+
+    # ------------------------------------------------------------------ plumbing
+
+    def _ready(self) -> None:
+        if self._conn is None:
+            raise MapError(f'map {self.path} is closed')
+        # another connection (process) committed: our FAISS index may be stale
+        with self._read_errors():
+            if self._conn.execute('PRAGMA data_version').fetchone()[0] != self._data_version:
+                log.info('map %s changed on disk; reloading', self.path)
+                self._load()
+
+    @contextlib.contextmanager
+    def _read_errors(self):
+        try:
+            yield
+        except sqlite3.DatabaseError as e:
+            raise MapError(f'cannot read map {self.path} (corrupt or truncated?): {e}') from e
+
+    def _write(self, fn):
+        """Run fn(conn) in one IMMEDIATE transaction; durable on return (WAL + synchronous=FULL)."""
+        c = self._conn
+        try:
+            c.execute('BEGIN IMMEDIATE')
+            try:
+                result = fn(c)
+                c.execute('COMMIT')
+            except BaseException:
+                if c.in_transaction:
+                    c.execute('ROLLBACK')
+                raise
+        except sqlite3.OperationalError as e:
+            raise MapError(f'cannot write map {self.path}: {e}') from e
+        except sqlite3.DatabaseError as e:
+            raise MapError(f'map {self.path} is corrupt: {e}') from e
+        return result
+
+    def _row_to_set(self, row) -> LandmarkSet:
+        (kid, sec, nsec, iw, ih, rows, cols, cw, ch, n, glob, cells, centers, scores, desc) = row
+        dim = int(self._model['descriptor_dim'])
+        sizes = {'global_descriptor': (glob, 4 * dim), 'cells': (cells, 4 * n), 'centers': (centers, 8 * n),
+                 'scores': (scores, 4 * n), 'descriptors': (desc, 2 * n * dim)}
+        for name, (blob, nbytes) in sizes.items():
+            if blob is None or len(blob) != nbytes:
+                raise MapError(f'map {self.path} is corrupt: keyframe {kid} {name} is '
+                               f'{None if blob is None else len(blob)} bytes, expected {nbytes} (n={n}, D={dim})')
+        return LandmarkSet(
+            global_descriptor=np.frombuffer(glob, '<f4').astype(np.float32),
+            descriptors=np.frombuffer(desc, '<f2').reshape(n, dim).astype(np.float32),
+            cells=np.frombuffer(cells, '<i2').reshape(n, 2).astype(np.int32),
+            centers=np.frombuffer(centers, '<f4').reshape(n, 2).astype(np.float32),
+            scores=np.frombuffer(scores, '<f4').astype(np.float32),
+            cell_size=np.array([cw, ch], np.float32),
+            image_size=np.array([iw, ih], np.float32),
+            grid=(int(rows), int(cols)),
+            activation=None,
+            descriptor_space=self._model['descriptor_space'],
+            meta={'keyframe_id': int(kid), 'stamp': (int(sec), int(nsec))},
+        )
+
+    def _fetch(self, ids) -> dict[int, LandmarkSet]:
+        out = {}
+        ids = [int(i) for i in ids]
+        for start in range(0, len(ids), _SQL_CHUNK):
+            chunk = ids[start:start + _SQL_CHUNK]
+            sql = (f'SELECT {_KF_COLS}, {_LM_COLS} FROM keyframes k LEFT JOIN landmarks l '
+                   f'ON l.keyframe_id = k.id WHERE k.id IN ({",".join("?" * len(chunk))})')
+            with self._read_errors():
+                rows = self._conn.execute(sql, chunk).fetchall()
+            for row in rows:
+                out[int(row[0])] = self._row_to_set(row)
+        return out
+
+    # ------------------------------------------------------------------ public API
+
+    def add(self, lset: LandmarkSet, stamp=(0, 0)) -> int:
+        """Store one keyframe; returns its id once it is durably on disk (one transaction)."""
+        sec, nsec = _stamp(stamp)
+        lset.validate()
+        n, dim = len(lset), lset.dim
+        if n == 0:
+            raise DescriptorError('landmark set has no landmarks; nothing to store')
+        if not lset.descriptor_space:
+            raise MapError(f'landmark set has no descriptor_space; refusing to store it in map {self.path} '
+                           f'(a persistent map must know which model made its descriptors)')
+        rows, cols = (int(v) for v in lset.grid)
+        if not (0 < rows < 32768 and 0 < cols < 32768):
+            raise DescriptorError(f'grid {rows}x{cols} cannot be stored (int16 cells)')
+        values = (sec, nsec, float(lset.image_size[0]), float(lset.image_size[1]), rows, cols,
+                  float(lset.cell_size[0]), float(lset.cell_size[1]), n,
+                  np.ascontiguousarray(lset.global_descriptor, '<f4').tobytes())
+        blobs = (np.ascontiguousarray(lset.cells, '<i2').tobytes(),
+                 np.ascontiguousarray(lset.centers, '<f4').tobytes(),
+                 np.ascontiguousarray(lset.scores, '<f4').tobytes(),
+                 np.ascontiguousarray(lset.descriptors, '<f2').tobytes())
+        given = {'descriptor_space': lset.descriptor_space, 'descriptor_dim': dim}
+        with self._lock:
+            self._ready()
+            new_model = self._model is None
+            if not new_model and not self._same_space(given):
+                raise self._mismatch(given, 'a landmark set')
+
+            def insert(c):
+                if new_model:
+                    self._record_model(c, given)
+                cur = c.execute('INSERT INTO keyframes (stamp_sec, stamp_nanosec, image_w, image_h, grid_rows, '
+                                'grid_cols, cell_w, cell_h, n, global_descriptor) '
+                                'VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)', values)
+                kid = cur.lastrowid
+                c.execute('INSERT INTO landmarks (keyframe_id, cells, centers, scores, descriptors) '
+                          'VALUES (?, ?, ?, ?, ?)', (kid,) + blobs)
+                return int(kid)
+
+            kid = self._write(insert)
+            if new_model:
+                self._model = given
+                self._index = faiss.IndexIDMap(faiss.IndexFlatIP(dim))
+            self._index.add_with_ids(np.ascontiguousarray(lset.global_descriptor, np.float32)[None],
+                                     np.array([kid], np.int64))
+            self._ids.append(kid)
+            return kid
+
+    def query(self, lset: LandmarkSet, prefilter_k: int = 30, k: int = 5, min_score: float | None = None,
+              exclude_recent: int = 0, method_rerank: bool = True, scale: float = 1.0) -> list[MapCandidate]:
+        """The best k keyframes for a query landmark set, best first.
+
+        Holistic top prefilter_k by cosine among the allowed keyframes (the exclude_recent most
+        recently added keyframes are never answers), reranked by the landmark similarity S
+        (method_rerank=False: the holistic ranking alone), those below min_score dropped.
+        """
+        if int(prefilter_k) < 1 or int(k) < 1 or int(exclude_recent) < 0:
+            raise ValueError(f'need prefilter_k >= 1, k >= 1, exclude_recent >= 0; got {prefilter_k}, {k}, '
+                             f'{exclude_recent}')
+        prefilter_k, k, exclude_recent = int(prefilter_k), int(k), int(exclude_recent)
+        lset.validate()
+        if method_rerank and len(lset) == 0:
+            raise DescriptorError('query landmark set has no landmarks; cannot rerank')
+        with self._lock:
+            self._ready()
+            if self._model is None or not self._ids:
+                return []
+            given = {'descriptor_space': lset.descriptor_space or self._model['descriptor_space'],
+                     'descriptor_dim': lset.dim}
+            if not self._same_space(given):
+                raise self._mismatch(given, 'a query')
+            total = len(self._ids)
+            if exclude_recent >= total:
+                return []
+            cutoff = self._ids[-exclude_recent] if exclude_recent else None
+            q = np.ascontiguousarray(lset.global_descriptor, np.float32)[None]
+            hol, ids = self._index.search(q, min(prefilter_k + exclude_recent, total))
+            keep = ids[0] >= 0
+            if cutoff is not None:
+                keep &= ids[0] < cutoff
+            ids, hol = ids[0][keep][:prefilter_k], hol[0][keep][:prefilter_k]
+            sets = self._fetch(ids)
+        # the numeric work runs outside the lock
+        missing = [int(i) for i in ids if int(i) not in sets]
+        if missing:
+            raise MapError(f'map {self.path}: keyframes {missing[:10]} are in the index but not in the file')
+        if method_rerank:
+            batch = stack_landmarks([sets[int(i)] for i in ids])
+            ranked = rerank(lset, batch, ids, hol, scale)
+        else:
+            ranked = [Candidate(int(i), float(h), float(h)) for i, h in zip(ids, hol)]
+        out = []
+        for c in ranked:
+            if min_score is not None and c.score < min_score:
+                continue
+            s = sets[c.index]
+            pairs = _empty_pairs()
+            if c.pairs:
+                qi, mi = c.pairs['query_index'], c.pairs['map_index']
+                m = len(qi)
+                pairs = {'query_index': qi.astype(np.int64), 'map_index': mi.astype(np.int64),
+                         'query_u': lset.centers[qi, 0].astype(np.float32),
+                         'query_v': lset.centers[qi, 1].astype(np.float32),
+                         'map_u': s.centers[mi, 0], 'map_v': s.centers[mi, 1],
+                         'cell_w': np.full(m, s.cell_size[0], np.float32),
+                         'cell_h': np.full(m, s.cell_size[1], np.float32),
+                         'similarity': c.pairs['similarity'].astype(np.float32),
+                         'weight': c.pairs['weight'].astype(np.float32)}
+            out.append(MapCandidate(c.index, float(c.score), float(c.holistic_score), s.meta['stamp'],
+                                    tuple(int(v) for v in c.offset),
+                                    (float(s.cell_size[0]), float(s.cell_size[1])),
+                                    (float(s.image_size[0]), float(s.image_size[1])), pairs))
+            if len(out) == k:
+                break
+        return out
+
+    def get(self, keyframe_id: int) -> LandmarkSet:
+        """The stored landmark set of a keyframe (descriptors back from float16; no activation map)."""
+        with self._lock:
+            self._ready()
+            sets = self._fetch([int(keyframe_id)]) if self._model else {}
+        if int(keyframe_id) not in sets:
+            raise KeyError(f'no keyframe {keyframe_id} in map {self.path}')
+        return sets[int(keyframe_id)]
+
+    def __len__(self) -> int:
+        with self._lock:
+            self._ready()
+            return len(self._ids)
+
+    def __contains__(self, keyframe_id) -> bool:
+        with self._lock:
+            self._ready()
+            return int(keyframe_id) in set(self._ids)
+
+    def ids(self) -> list[int]:
+        """Keyframe ids in insertion order (ascending)."""
+        with self._lock:
+            self._ready()
+            return list(self._ids)
+
+    @property
+    def model(self) -> dict | None:
+        with self._lock:
+            return dict(self._model) if self._model else None
+
+    def clear(self) -> None:
+        """Remove every keyframe; the model record stays, and ids are not reused."""
+        with self._lock:
+            self._ready()
+            self._write(lambda c: (c.execute('DELETE FROM landmarks'), c.execute('DELETE FROM keyframes')))
+            self._ids = []
+            if self._index is not None:
+                self._index.reset()
+
+    def info(self) -> dict:
+        with self._lock:
+            self._ready()
+            with self._read_errors():
+                meta = self._meta()
+            wal = self.path + '-wal'
+            db_bytes = os.path.getsize(self.path)
+            wal_bytes = os.path.getsize(wal) if os.path.exists(wal) else 0
+            return {'path': self.path, 'keyframes': len(self._ids), 'model': self.model,
+                    'descriptor_space': self._model and self._model['descriptor_space'],
+                    'descriptor_dim': self._model and int(self._model['descriptor_dim']),
+                    'schema_version': int(meta['schema_version']),
+                    'first_id': self._ids[0] if self._ids else None,
+                    'last_id': self._ids[-1] if self._ids else None,
+                    'file_bytes': db_bytes + wal_bytes, 'db_bytes': db_bytes, 'wal_bytes': wal_bytes,
+                    'created': int(meta.get('created', 0)), 'created_by': meta.get('created_by', '')}
+
+    def save(self) -> None:
+        """Checkpoint the WAL into the main file and truncate it. Not needed for durability (every
+        add is durable on return); it keeps the WAL small and the .db file self-contained."""
+        with self._lock:
+            self._ready()
+            try:
+                busy, _, _ = self._conn.execute('PRAGMA wal_checkpoint(TRUNCATE)').fetchone()
+            except sqlite3.DatabaseError as e:
+                raise MapError(f'cannot checkpoint map {self.path}: {e}') from e
+            if busy:
+                log.warning('map %s: checkpoint incomplete, another connection is reading', self.path)
+
+    def check(self, limit: int = 20) -> list[str]:
+        """Problems found in the map (empty list = healthy): SQLite integrity_check, format and
+        schema version, model record, blob sizes against n and D, orphan rows, FAISS vs SQLite."""
+        problems: list[str] = []
+
+        def add(items, what):
+            items = list(items)
+            problems.extend(what(x) for x in items[:limit])
+            if len(items) > limit:
+                problems.append(f'... and {len(items) - limit} more like that')
+
+        with self._lock:
+            self._ready()
+            c = self._conn
+            try:
+                rows = [r[0] for r in c.execute(f'PRAGMA integrity_check({int(limit)})')]
+                if rows != ['ok']:
+                    add(rows, lambda r: f'integrity_check: {r}')
+                    return problems
+                meta = self._meta()
+                if meta.get('format') != FORMAT:
+                    problems.append(f'meta format is {meta.get("format")!r}, expected {FORMAT!r}')
+                if meta.get('schema_version') != str(SCHEMA_VERSION):
+                    problems.append(f'schema_version is {meta.get("schema_version")!r}, expected {SCHEMA_VERSION}')
+                n_kf = c.execute('SELECT count(*) FROM keyframes').fetchone()[0]
+                if self._model is None:
+                    if n_kf:
+                        problems.append(f'{n_kf} keyframes but no model record')
+                    return problems
+                dim = int(self._model['descriptor_dim'])
+                if meta.get('descriptor_dim') != str(dim) or \
+                        meta.get('descriptor_space') != self._model['descriptor_space']:
+                    problems.append('meta descriptor_space/descriptor_dim disagree with the model record')
+                sizes = c.execute(
+                    'SELECT k.id, k.n, k.grid_rows, k.grid_cols, k.stamp_nanosec, length(k.global_descriptor), '
+                    'length(l.cells), length(l.centers), length(l.scores), length(l.descriptors), '
+                    'l.keyframe_id IS NULL FROM keyframes k LEFT JOIN landmarks l ON l.keyframe_id = k.id')
+                bad = []
+                for kid, n, rows_, cols_, nsec, lg, lc, lce, ls, ld, orphan in sizes:
+                    if orphan:
+                        bad.append(f'keyframe {kid} has no landmarks row')
+                        continue
+                    want = (4 * dim, 4 * n, 8 * n, 4 * n, 2 * n * dim)
+                    if (lg, lc, lce, ls, ld) != want or n < 1:
+                        bad.append(f'keyframe {kid}: blob sizes (global, cells, centers, scores, descriptors) '
+                                   f'{(lg, lc, lce, ls, ld)} do not fit n={n}, D={dim} (expected {want})')
+                    if rows_ < 1 or cols_ < 1 or not 0 <= nsec < 1_000_000_000:
+                        bad.append(f'keyframe {kid}: bad grid {rows_}x{cols_} or stamp nanosec {nsec}')
+                add(bad, str)
+                orphans = [r[0] for r in c.execute(
+                    'SELECT keyframe_id FROM landmarks WHERE keyframe_id NOT IN (SELECT id FROM keyframes)')]
+                add(orphans, lambda i: f'landmarks row {i} has no keyframe')
+                problems.extend(self._faiss_problems())
+            except sqlite3.DatabaseError as e:
+                problems.append(f'SQLite error while checking: {e}')
+        return problems
+
+    def close(self) -> None:
+        """Close the file (SQLite checkpoints the WAL when the last connection closes). Idempotent."""
+        with self._lock:
+            if self._conn is not None:
+                try:
+                    self._conn.close()
+                finally:
+                    self._conn = None
+                    self._index = None
+                    self._ids = []
+
+    def __enter__(self) -> 'MapStore':
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = 'closed' if self._conn is None else f'{len(self._ids)} keyframes'
+        return f'MapStore({self.path!r}, {state})'
