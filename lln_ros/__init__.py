@@ -2,17 +2,30 @@
 
 The algorithm is importable without rclpy:
 
-    from lln_ros import Extractor, LandmarkDatabase, match_pair, load_image
+    from lln_ros import Extractor, LandmarkDatabase, MapStore, match_pair, load_image
+
+Names are imported on first use, so `import lln_ros.mapstore` (the map server) does not pay for
+torch, which only the extractor needs.
 """
+from importlib import import_module
+
 from .errors import DatasetError, DescriptorError, ImageError, LLNError, MapError, MessageError, ModelError
-from .extractor import Extractor
-from .image import load_image
-from .landmarks import LandmarkBatch, LandmarkSet, select_landmarks, stack_landmarks
-from .retrieval import Candidate, LandmarkDatabase
-from .similarity import MatchResult, match_batch, match_pair
 
 __version__ = '0.1.0'
-__all__ = ['Extractor', 'LandmarkDatabase', 'Candidate', 'LandmarkSet', 'LandmarkBatch', 'MatchResult',
-           'match_pair', 'match_batch', 'select_landmarks', 'stack_landmarks', 'load_image',
-           'LLNError', 'ImageError', 'ModelError', 'DescriptorError', 'MapError', 'MessageError',
+
+_LAZY = {
+    'Extractor': 'extractor', 'load_image': 'image',
+    'LandmarkSet': 'landmarks', 'LandmarkBatch': 'landmarks', 'select_landmarks': 'landmarks',
+    'stack_landmarks': 'landmarks',
+    'Candidate': 'retrieval', 'LandmarkDatabase': 'retrieval',
+    'MatchResult': 'similarity', 'match_batch': 'similarity', 'match_pair': 'similarity',
+    'MapStore': 'mapstore', 'MapCandidate': 'mapstore',
+}
+__all__ = [*_LAZY, 'LLNError', 'ImageError', 'ModelError', 'DescriptorError', 'MapError', 'MessageError',
            'DatasetError']
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        return getattr(import_module(f'.{_LAZY[name]}', __name__), name)
+    raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
