@@ -72,7 +72,7 @@ import numpy as np
 
 from .errors import DescriptorError, MapError
 from .landmarks import LandmarkSet, stack_landmarks
-from .retrieval import Candidate, rerank
+from .retrieval import Candidate, pair_regions, rerank
 
 log = logging.getLogger(__name__)
 
@@ -144,12 +144,6 @@ class MapCandidate:
     @property
     def n_pairs(self) -> int:
         return len(self.pairs.get('query_index', ()))
-
-
-def _empty_pairs() -> dict:
-    ints = ('query_index', 'map_index')
-    floats = ('query_u', 'query_v', 'map_u', 'map_v', 'cell_w', 'cell_h', 'similarity', 'weight')
-    return {**{k: np.zeros(0, np.int64) for k in ints}, **{k: np.zeros(0, np.float32) for k in floats}}
 
 
 def _describe(model: dict | None) -> str:
@@ -621,18 +615,7 @@ class MapStore:
             if min_score is not None and c.score < min_score:
                 continue
             s = sets[c.index]
-            pairs = _empty_pairs()
-            if c.pairs:
-                qi, mi = c.pairs['query_index'], c.pairs['map_index']
-                m = len(qi)
-                pairs = {'query_index': qi.astype(np.int64), 'map_index': mi.astype(np.int64),
-                         'query_u': lset.centers[qi, 0].astype(np.float32),
-                         'query_v': lset.centers[qi, 1].astype(np.float32),
-                         'map_u': s.centers[mi, 0], 'map_v': s.centers[mi, 1],
-                         'cell_w': np.full(m, s.cell_size[0], np.float32),
-                         'cell_h': np.full(m, s.cell_size[1], np.float32),
-                         'similarity': c.pairs['similarity'].astype(np.float32),
-                         'weight': c.pairs['weight'].astype(np.float32)}
+            pairs = pair_regions(lset, s, c.pairs)
             out.append(MapCandidate(c.index, float(c.score), float(c.holistic_score), s.meta['stamp'],
                                     tuple(int(v) for v in c.offset),
                                     (float(s.cell_size[0]), float(s.cell_size[1])),

@@ -42,6 +42,27 @@ def rerank(query: LandmarkSet, batch: LandmarkBatch, indices: np.ndarray, holist
                       tuple(int(v) for v in result.offsets[k]), result.pairs(k)) for k in order]
 
 
+REGION_KEYS = ('query_index', 'map_index', 'query_u', 'query_v', 'map_u', 'map_v', 'cell_w', 'cell_h',
+               'similarity', 'weight')
+
+
+def pair_regions(query: LandmarkSet, keyframe: LandmarkSet, pairs: dict) -> dict:
+    """Matched landmark pairs as image regions, what a SLAM system constrains keypoint matching
+    with. pairs: query_index, map_index, similarity, weight (arrays of M, as MatchResult.pairs).
+    Returns those plus query_u, query_v, map_u, map_v (region centres, pixels of each image) and
+    cell_w, cell_h (the keyframe's cell size; the query's is query.cell_size), all arrays of M."""
+    qi = np.asarray(pairs.get('query_index', ()), np.int64)
+    mi = np.asarray(pairs.get('map_index', ()), np.int64)
+    m = len(qi)
+    return {'query_index': qi, 'map_index': mi,
+            'query_u': query.centers[qi, 0].astype(np.float32), 'query_v': query.centers[qi, 1].astype(np.float32),
+            'map_u': keyframe.centers[mi, 0].astype(np.float32), 'map_v': keyframe.centers[mi, 1].astype(np.float32),
+            'cell_w': np.full(m, keyframe.cell_size[0], np.float32),
+            'cell_h': np.full(m, keyframe.cell_size[1], np.float32),
+            'similarity': np.asarray(pairs.get('similarity', ()), np.float32),
+            'weight': np.asarray(pairs.get('weight', ()), np.float32)}
+
+
 class LandmarkDatabase:
     """An in-memory map of landmark sets with a FAISS inner-product index of the global descriptors."""
 
