@@ -24,7 +24,10 @@ setup(
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
+            'extractor = lln_ros.nodes.extractor:main',
+            'matcher = lln_ros.nodes.matcher:main',
             'lln-match = lln_ros.cli.match:main',
+            'lln-bag = lln_ros.cli.bag:main',
         ],
     },
 )

@@ -31,3 +31,10 @@ def photo() -> np.ndarray:
     with cbook.get_sample_data('grace_hopper.jpg') as f:
         path = f.name
     return load_image(path)
+
+
+@pytest.fixture(scope='session')
+def colcon_install(tmp_path_factory):
+    """The package built by colcon into a fresh workspace, as a ROS user builds it."""
+    from ros_harness import colcon_build
+    return colcon_build(tmp_path_factory.mktemp('ws'))

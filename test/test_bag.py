@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import hashlib
-import itertools
 import json
-import os
 import subprocess
 import sys
 import time
@@ -20,23 +18,11 @@ from sensor_msgs.msg import CompressedImage, Image
 from lln_ros import bag, msgs
 from lln_ros.cli.bag import main
 from lln_ros.errors import ImageError
+from ros_harness import ros_env
 
 DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
 RTABMAP = DATA / 'rtabmap_loop'
 PY = sys.executable
-
-_domains = itertools.count()
-
-
-def ros_env(tmp_path: Path) -> dict:
-    """Environment for child ROS processes: a domain of our own, discovery on this host only."""
-    env = dict(os.environ)
-    env['ROS_DOMAIN_ID'] = str(1 + (os.getpid() * 7 + next(_domains)) % 100)
-    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    env['ROS_LOG_DIR'] = str(tmp_path / 'ros_log')
-    env['PYTHONUNBUFFERED'] = '1'
-    return env
-
 
 def make_images(folder: Path, count: int = 12, size=(64, 48), suffix='.png') -> list[Path]:
     """Distinct, deterministic images named 1..count (so natural and text order differ)."""

@@ -1,0 +1,81 @@
+"""ROS glue shared by the lln_ros nodes: parameter declaration, QoS, counters and diagnostics."""
+from __future__ import annotations
+
+import threading
+from collections import Counter
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.node import Node
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
+                       qos_profile_sensor_data)
+
+RELIABILITY = {'reliable': ReliabilityPolicy.RELIABLE, 'best_effort': ReliabilityPolicy.BEST_EFFORT}
+
+# the extractor's model_info: latched so a matcher started later still learns the model
+MODEL_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def declare(node: Node, spec: dict) -> dict:
+    """Declare every parameter of `spec` {name: (default, description)} and return their values."""
+    values = {}
+    for name, (default, description) in spec.items():
+        node.declare_parameter(name, default, ParameterDescriptor(description=description))
+        values[name] = node.get_parameter(name).value
+    return values
+
+
+def subscription_qos(reliability: str, depth: int) -> QoSProfile:
+    if reliability not in RELIABILITY:
+        raise ValueError(f"reliability must be 'reliable' or 'best_effort', got {reliability!r}")
+    if reliability == 'best_effort':
+        return QoSProfile(depth=depth, history=qos_profile_sensor_data.history,
+                          reliability=ReliabilityPolicy.BEST_EFFORT, durability=qos_profile_sensor_data.durability)
+    return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
+
+
+class Health:
+    """Counters of a node plus 'log each distinct problem once, count all of them'."""
+
+    def __init__(self, node: Node):
+        self.node = node
+        self.counts: Counter = Counter()
+        self._seen: set = set()
+        self._lock = threading.Lock()
+
+    def count(self, key: str, n: int = 1) -> None:
+        with self._lock:
+            self.counts[key] += n
+
+    def problem(self, kind: str, message: str) -> None:
+        """Count a rejected input; the first time a given message is seen, log it as a warning."""
+        with self._lock:
+            self.counts[kind] += 1
+            first = (kind, message) not in self._seen
+            self._seen.add((kind, message))
+            total = self.counts[kind]
+        if first:
+            self.node.get_logger().warning(f'{kind}: {message} (skipped; further identical problems are '
+                                           f'counted, not logged; {total} so far)')
+
+    def snapshot(self) -> dict:
+        with self._lock:
+            return dict(self.counts)
+
+    def diagnostics(self, extra: dict | None = None) -> DiagnosticArray:
+        values = {**self.snapshot(), **(extra or {})}
+        status = DiagnosticStatus(level=DiagnosticStatus.OK, name=self.node.get_fully_qualified_name(),
+                                  message='running', hardware_id='lln_ros',
+                                  values=[KeyValue(key=k, value=str(v)) for k, v in sorted(values.items())])
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        return msg
+
+
+def start_diagnostics(node: Node, health: Health, period: float, extra=lambda: {}) -> None:
+    """Publish health counters on /diagnostics every `period` seconds (0 = off)."""
+    if period <= 0:
+        return
+    pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
+    node.create_timer(period, lambda: pub.publish(health.diagnostics(extra())))

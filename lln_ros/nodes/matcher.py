@@ -1,0 +1,189 @@
+"""lln_matcher: the map server (`ros2 run lln_ros matcher`).
+
+Subscribes  keyframes (PointCloud2 landmark sets to store), query (landmark sets to localize),
+            model_info (std_msgs/String, the extractor's model, latched)
+Publishes   candidates (PointCloud2: keyframe_id, score, holistic_score, stamp_sec, stamp_nanosec),
+            matches (PointCloud2: the matched region pairs of the best candidate), /diagnostics
+Services    ~/save, ~/clear, ~/info (std_srvs/Trigger; info answers JSON)
+
+mode=localization answers queries and leaves the map alone; mode=mapping answers each query, then
+stores it as a keyframe (online loop-closure detection; the newest `exclude_recent` keyframes are
+never answers). A keyframe is committed to the SQLite map before its query's answer is published,
+so whatever a subscriber has seen answered survives kill -9.
+"""
+from __future__ import annotations
+
+import json
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from .. import msgs
+from ..errors import LLNError
+from ..mapstore import MapStore
+from .common import MODEL_QOS, Health, declare, start_diagnostics, subscription_qos
+
+PARAMETERS = {
+    'map_path': ('~/.ros/lln_ros/map.db', 'SQLite map file; created if missing'),
+    'mode': ('localization', 'localization: answer queries only | mapping: answer, then store each query'),
+    'prefilter_k': (30, 'holistic candidates reranked by the landmark similarity'),
+    'k': (5, 'candidates published per query'),
+    'min_score': (0.0, 'candidates scoring below this are not published'),
+    'exclude_recent': (10, 'mapping mode: the newest N keyframes are never answers'),
+    'method': ('lln', 'lln: rerank by landmark similarity S | holistic: global descriptor only'),
+    'offset_scale': (1.0, 'Gaussian width of the offset weights, in grid cells'),
+    'descriptor_space': ('', "expected model, e.g. efficientnet_lite0/stage7/320; '' = the map's or first seen"),
+    'reliability': ('reliable', 'keyframes/query subscriptions: reliable | best_effort'),
+    'queue_depth': (100, 'keyframes/query subscription queue depth'),
+    'diagnostics_period': (1.0, 'seconds between /diagnostics messages; 0 = off'),
+}
+
+
+def space_model(space: str) -> dict:
+    """{'descriptor_space', 'descriptor_dim'} from a 'backbone/layer/D' string."""
+    try:
+        dim = int(space.rsplit('/', 1)[1])
+    except (IndexError, ValueError):
+        raise ValueError(f"descriptor_space must look like 'backbone/layer/D', got {space!r}") from None
+    return {'descriptor_space': space, 'descriptor_dim': dim}
+
+
+class MatcherNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__('lln_matcher', **kwargs)
+        p = self.params = declare(self, PARAMETERS)
+        if p['mode'] not in ('localization', 'mapping'):
+            raise ValueError(f"mode must be 'localization' or 'mapping', got {p['mode']!r}")
+        if p['method'] not in ('lln', 'holistic'):
+            raise ValueError(f"method must be 'lln' or 'holistic', got {p['method']!r}")
+        self.store = MapStore.open(p['map_path'], model=space_model(p['descriptor_space'])
+                                   if p['descriptor_space'] else None)
+        self.health = Health(self)
+        self.refusing = ''  # set when the extractor's model differs from the map's
+        qos = subscription_qos(p['reliability'], p['queue_depth'])
+        self.candidates_pub = self.create_publisher(PointCloud2, 'candidates', 10)
+        self.matches_pub = self.create_publisher(PointCloud2, 'matches', 10)
+        self.create_subscription(PointCloud2, 'keyframes', self.on_keyframe, qos)
+        self.create_subscription(PointCloud2, 'query', self.on_query, qos)
+        self.create_subscription(String, 'model_info', self.on_model_info, MODEL_QOS)
+        self.create_service(Trigger, '~/save', self.on_save)
+        self.create_service(Trigger, '~/clear', self.on_clear)
+        self.create_service(Trigger, '~/info', self.on_info)
+        start_diagnostics(self, self.health, p['diagnostics_period'], lambda: {'keyframes': len(self.store)})
+        model = self.store.model
+        self.get_logger().info(
+            f"map {self.store.path}: {len(self.store)} keyframes, model "
+            f"{model['descriptor_space'] if model else '(none yet)'}; mode {p['mode']}")
+
+    # ------------------------------------------------------------------ inputs
+
+    def on_model_info(self, msg: String) -> None:
+        try:
+            model = json.loads(msg.data)
+            self.store.use_model(model)
+            self.refusing = ''
+        except (ValueError, KeyError, TypeError) as e:
+            self.health.problem('bad_model_info', f'cannot read model_info: {e}')
+        except LLNError as e:
+            self.refusing = str(e)
+            self.get_logger().error(f'{e}; landmark input is refused until the models agree')
+
+    def decode(self, msg: PointCloud2, kind: str):
+        if self.refusing:
+            self.health.problem(kind, self.refusing)
+            return None
+        model = self.store.model
+        try:
+            return msgs.cloud_to_landmarks(msg, expected_dim=model['descriptor_dim'] if model else None,
+                                           descriptor_space=model['descriptor_space'] if model else '')
+        except LLNError as e:
+            self.health.problem(kind, str(e))
+            return None
+
+    def on_keyframe(self, msg: PointCloud2) -> None:
+        lset = self.decode(msg, 'bad_keyframe')
+        if lset is None:
+            return
+        try:
+            self.store.add(lset, msg.header.stamp)
+        except (LLNError, ValueError) as e:
+            self.health.problem('bad_keyframe', str(e))
+            return
+        self.health.count('keyframes_stored')
+
+    def on_query(self, msg: PointCloud2) -> None:
+        lset = self.decode(msg, 'bad_query')
+        if lset is None:
+            return
+        p = self.params
+        mapping = p['mode'] == 'mapping'
+        try:
+            found = self.store.query(lset, prefilter_k=p['prefilter_k'], k=p['k'], min_score=p['min_score'],
+                                     exclude_recent=p['exclude_recent'] if mapping else 0,
+                                     method_rerank=p['method'] == 'lln', scale=p['offset_scale'])
+            if mapping:  # committed before the answer goes out: an answered keyframe is never lost
+                self.store.add(lset, msg.header.stamp)
+                self.health.count('keyframes_stored')
+        except (LLNError, ValueError) as e:
+            self.health.problem('bad_query', str(e))
+            return
+        self.candidates_pub.publish(msgs.candidates_to_cloud(
+            [{'keyframe_id': c.keyframe_id, 'score': c.score, 'holistic_score': c.holistic_score,
+              'stamp_sec': c.stamp[0], 'stamp_nanosec': c.stamp[1]} for c in found], msg.header))
+        best = found[0] if found else None
+        self.matches_pub.publish(msgs.matches_to_cloud(
+            msgs.match_rows(best.keyframe_id, best.pairs) if best else [], msg.header))
+        self.health.count('queries_answered')
+
+    # ------------------------------------------------------------------ services
+
+    def on_save(self, request, response):
+        def save():
+            self.store.save()
+            return f'saved {len(self.store)} keyframes to {self.store.path}'
+        return self._service(response, save)
+
+    def on_clear(self, request, response):
+        def clear():
+            self.store.clear()
+            return f'cleared {self.store.path}'
+        return self._service(response, clear)
+
+    def on_info(self, request, response):
+        return self._service(response, lambda: json.dumps(
+            {**self.store.info(), 'mode': self.params['mode'], 'counters': self.health.snapshot()}))
+
+    def _service(self, response, action):
+        try:
+            response.message = action()
+            response.success = True
+        except (LLNError, OSError) as e:
+            response.success, response.message = False, str(e)
+            self.get_logger().error(str(e))
+        return response
+
+    def destroy_node(self):
+        self.store.close()
+        return super().destroy_node()
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = MatcherNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
