@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import importlib
 import os
-import re
 import shutil
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -22,10 +21,10 @@ from pathlib import Path
 
 import cv2
 
+from .datasets import list_images
 from .errors import DatasetError, ImageError, LLNError
 from .msgs import array_to_compressed, array_to_image, make_header
 
-IMAGE_SUFFIXES = ('.jpg', '.jpeg', '.png', '.bmp', '.tif', '.tiff', '.ppm', '.pgm', '.webp')
 DEFAULT_START_NS = 1_700_000_000 * 1_000_000_000  # 2023-11-14T22:13:20Z: bags are reproducible
 DEFAULT_TOPIC = '/camera/image_raw'
 
@@ -36,30 +35,6 @@ class BagError(DatasetError):
 
 # --------------------------------------------------------------------------------------------
 # image folders
-
-def natural_key(path: str | os.PathLike) -> list:
-    """Sort key that orders 2.jpg before 10.jpg (digit runs compare as numbers)."""
-    name = Path(path).name
-    return [(0, int(tok), '') if tok.isdigit() else (1, 0, tok.lower()) for tok in re.split(r'(\d+)', name)]
-
-
-def list_images(folder: str | os.PathLike, pattern: str | None = None) -> list[Path]:
-    """Image files of a folder (not recursive), in natural order; with `pattern` (a glob such as
-    '*.jpg') only the matching ones. Raises BagError when the folder is missing or holds no images.
-
-    Mind folders that hold other images beside the frames: rtabmap_loop/ has samples_GT.bmp."""
-    folder = Path(folder)
-    if not folder.exists():
-        raise BagError(f'image folder {folder} does not exist')
-    if not folder.is_dir():
-        raise BagError(f'{folder} is not a folder')
-    files = folder.glob(pattern) if pattern else folder.iterdir()
-    paths = sorted((p for p in files if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES), key=natural_key)
-    if not paths:
-        what = f'images matching {pattern!r}' if pattern else f'images ({", ".join(IMAGE_SUFFIXES)})'
-        raise BagError(f'image folder {folder} holds no {what}')
-    return paths
-
 
 def read_image_bgr(path: str | os.PathLike):
     """BGR uint8 (H, W, 3) of an image file; ImageError when it cannot be decoded."""

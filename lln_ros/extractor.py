@@ -67,10 +67,14 @@ class Extractor:
         }
 
     @torch.inference_mode()
+    def backbone_features(self, rgb_batch: np.ndarray) -> torch.Tensor:
+        """RGB uint8 (B, H, W, 3), already at network size -> features (B, D, H/32, W/32)."""
+        return self.backbone(torch.from_numpy(rgb_batch).permute(0, 3, 1, 2).float().div_(255.0))
+
+    @torch.inference_mode()
     def features(self, rgb_batch: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        """RGB uint8 (B, H, W, 3), already at network size -> (features (B, D, h, w), activation (B, h, w))."""
-        x = torch.from_numpy(rgb_batch).permute(0, 3, 1, 2).float().div_(255.0)
-        feats = self.backbone(x)
+        """RGB uint8 (B, H, W, 3) at network size -> (features (B, D, h, w), activation (B, h, w))."""
+        feats = self.backbone_features(rgb_batch)
         return feats, self.head(feats)
 
     def __call__(self, image: np.ndarray, channel_order: str = 'rgb') -> LandmarkSet:
@@ -93,6 +97,13 @@ class Extractor:
                     h, w = rgb[i].shape[:2]
                     out[i] = self._landmarks(feats[j].numpy(), act[j].numpy(), (w, h))
         return out
+
+    @torch.inference_mode()
+    def from_features(self, feats: np.ndarray, image_size: tuple) -> LandmarkSet:
+        """LandmarkSet from a cached backbone feature map (D, rows, cols) of an image whose original
+        size is image_size = (width, height): the head and the selection run, the backbone does not."""
+        f = torch.from_numpy(np.asarray(feats, np.float32))[None]
+        return self._landmarks(f[0].numpy(), self.head(f)[0].numpy(), image_size)
 
     def _landmarks(self, feats: np.ndarray, activation: np.ndarray, image_size: tuple) -> LandmarkSet:
         """feats (D, rows, cols), activation (rows, cols) -> LandmarkSet in original image pixels."""

@@ -108,6 +108,11 @@ class LandmarkBatch:
     def __len__(self) -> int:
         return len(self.descriptors)
 
+    def take(self, indices) -> 'LandmarkBatch':
+        """The sub-batch of the given set indices, in that order."""
+        idx = np.asarray(indices, np.int64)
+        return LandmarkBatch(self.descriptors[idx], self.cells[idx], self.valid[idx], self.globals[idx])
+
 
 def stack_landmarks(sets: list[LandmarkSet], dtype=np.float32) -> LandmarkBatch:
     """Pad a list of landmark sets (any n, same D and descriptor space) into a LandmarkBatch."""

@@ -42,8 +42,33 @@ def rerank(query: LandmarkSet, batch: LandmarkBatch, indices: np.ndarray, holist
                       tuple(int(v) for v in result.offsets[k]), result.pairs(k)) for k in order]
 
 
-REGION_KEYS = ('query_index', 'map_index', 'query_u', 'query_v', 'map_u', 'map_v', 'cell_w', 'cell_h',
-               'similarity', 'weight')
+def rank_all(queries: list[LandmarkSet], refs: LandmarkBatch, prefilter_k: int = 30,
+             allowed: np.ndarray | None = None, rerank_local: bool = True,
+             scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Offline retrieval of many queries against a stacked map (evaluation and validation).
+
+    refs: LandmarkBatch of R map sets; allowed (Q, R) bool: which refs each query may be answered
+    with (None = all). Returns ranked (Q, K) ref indices, best first, and their scores (Q, K): S
+    after the holistic top-K prefilter (or the holistic cosine when rerank_local is False).
+    Rows with fewer than K allowed refs are padded with index -1 and score -inf.
+    """
+    k = min(int(prefilter_k), len(refs))
+    hol = np.stack([q.global_descriptor for q in queries]).astype(np.float32) @ refs.globals.T   # (Q, R)
+    if allowed is not None:
+        hol = np.where(allowed, hol, -np.inf)
+    top = np.argsort(-hol, axis=1, kind='stable')[:, :k]                                         # (Q, K)
+    top_hol = np.take_along_axis(hol, top, axis=1)
+    ranked = np.full((len(queries), k), -1, np.int64)
+    scores = np.full((len(queries), k), -np.inf, np.float32)
+    for i, q in enumerate(queries):
+        ok = np.isfinite(top_hol[i])
+        idx = top[i][ok]
+        if not len(idx):
+            continue
+        s = match_batch(q, refs.take(idx), scale).scores if rerank_local else top_hol[i][ok]
+        order = np.argsort(-s, kind='stable')
+        ranked[i, :len(idx)], scores[i, :len(idx)] = idx[order], s[order]
+    return ranked, scores
 
 
 def pair_regions(query: LandmarkSet, keyframe: LandmarkSet, pairs: dict) -> dict:

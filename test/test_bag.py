@@ -16,6 +16,7 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CompressedImage, Image
 
 from lln_ros import bag, msgs
+from lln_ros.datasets import natural_key
 from lln_ros.cli.bag import main
 from lln_ros.errors import ImageError
 from ros_harness import ros_env
@@ -64,7 +65,7 @@ def test_natural_sort_and_list_images(tmp_path):
     (tmp_path / 'notes.txt').write_text('not an image')
     names = [p.name for p in bag.list_images(tmp_path)]
     assert names == [f'{i}.png' for i in range(1, 13)]
-    assert sorted(['a10.png', 'a2.png', 'a1.png', 'b.png'], key=bag.natural_key) == \
+    assert sorted(['a10.png', 'a2.png', 'a1.png', 'b.png'], key=natural_key) == \
         ['a1.png', 'a2.png', 'a10.png', 'b.png']
     assert [p.name for p in bag.list_images(tmp_path, '1*.png')] == ['1.png', '10.png', '11.png', '12.png']
 

@@ -86,11 +86,11 @@ class MatcherNode(Node):
             model = json.loads(msg.data)
             self.store.use_model(model)
             self.refusing = ''
-        except (ValueError, KeyError, TypeError) as e:
-            self.health.problem('bad_model_info', f'cannot read model_info: {e}')
-        except LLNError as e:
+        except LLNError as e:  # before ValueError: LLNError (MapError) subclasses it
             self.refusing = str(e)
             self.get_logger().error(f'{e}; landmark input is refused until the models agree')
+        except (ValueError, KeyError, TypeError) as e:
+            self.health.problem('bad_model_info', f'cannot read model_info: {e}')
 
     def decode(self, msg: PointCloud2, kind: str):
         if self.refusing:

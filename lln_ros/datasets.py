@@ -1,0 +1,202 @@
+"""Place-recognition datasets: which reference images are correct answers for which queries.
+
+Every reader returns a `Dataset`:
+
+    ref_paths, query_paths   image files (natural sort order: 2.jpg before 10.jpg)
+    gt          (Q, R) bool  ref r is a correct answer for query q
+    candidates  (Q, R) bool or None   which refs query q may be answered with (loop protocol)
+    info        dict         what was dropped or clipped, and why
+
+Formats: aligned traverses (two folders, same index = same place, +-tol), VPR-Bench
+(DIR/query, DIR/ref, DIR/ground_truth_new.npy), a loop sequence (one folder, NxN ground-truth
+matrix), and the Gardens Point Walking archive layout. Everything is checked (folders, lengths,
+ground-truth shape, every image decodes) before any long computation starts.
+"""
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import DatasetError
+
+IMAGE_SUFFIXES = ('.jpg', '.jpeg', '.png', '.bmp', '.tif', '.tiff', '.ppm', '.pgm', '.webp')
+BLANK_STD = 2.0  # grey-level standard deviation below which a frame is blank (tunnels, stops)
+
+
+@dataclass
+class Dataset:
+    name: str
+    ref_paths: list
+    query_paths: list
+    gt: np.ndarray
+    candidates: np.ndarray | None = None
+    info: dict = field(default_factory=dict)
+
+    @property
+    def queries_with_match(self) -> int:
+        return int(self.gt.any(1).sum())
+
+
+def natural_key(path: str | os.PathLike) -> list:
+    """Sort key that orders 2.jpg before 10.jpg (digit runs compare as numbers)."""
+    name = Path(path).name
+    return [(0, int(tok), '') if tok.isdigit() else (1, 0, tok.lower()) for tok in re.split(r'(\d+)', name)]
+
+
+def list_images(folder: str | os.PathLike, pattern: str | None = None) -> list[Path]:
+    """Image files of a folder (not recursive), in natural order; with `pattern` (a glob such as
+    '*.jpg') only the matching ones. DatasetError when the folder is missing or holds no images.
+
+    Mind folders that hold other images beside the frames: rtabmap_loop/ has samples_GT.bmp."""
+    folder = Path(folder)
+    if not folder.exists():
+        raise DatasetError(f'image folder {folder} does not exist')
+    if not folder.is_dir():
+        raise DatasetError(f'{folder} is not a folder')
+    files = folder.glob(pattern) if pattern else folder.iterdir()
+    paths = sorted((p for p in files if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES), key=natural_key)
+    if not paths:
+        what = f'images matching {pattern!r}' if pattern else f'images ({", ".join(IMAGE_SUFFIXES)})'
+        raise DatasetError(f'image folder {folder} holds no {what}')
+    return paths
+
+
+def read_checked(paths: list) -> list[tuple[int, int, float]]:
+    """(width, height, grey std) of every image; DatasetError naming the first that does not decode."""
+    out = []
+    for p in paths:
+        im = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        if im is None or im.size == 0:
+            raise DatasetError(f'cannot read image {p} (not an image, or truncated)')
+        out.append((im.shape[1], im.shape[0], float(im.std())))
+    return out
+
+
+def _select(n: int, frac) -> slice:
+    if frac is None:
+        return slice(0, n)
+    start, end = frac
+    if not 0 <= start < end <= 1:
+        raise DatasetError(f'range must satisfy 0 <= start < end <= 1, got {frac}')
+    return slice(int(round(start * n)), int(round(end * n)))
+
+
+def aligned(dir_ref, dir_query, tol: int = 2, frac=None, name: str | None = None,
+            drop_blank: bool = True) -> Dataset:
+    """Two traverses, same index = same place; a ref within +-tol frames is correct. `frac`
+    (start, end) in [0, 1] keeps that contiguous part of the route. Blank query frames (grey std
+    below BLANK_STD: tunnels, stops) have no recognisable place and are dropped; the count is in info."""
+    refs, queries = list_images(dir_ref), list_images(dir_query)
+    if len(refs) != len(queries):
+        raise DatasetError(f'aligned traverses differ in length: {dir_ref} has {len(refs)} images, '
+                           f'{dir_query} has {len(queries)}')
+    part = _select(len(refs), frac)
+    refs, queries = refs[part], queries[part]
+    if not refs:
+        raise DatasetError(f'range {frac} selects no frames of {len(list_images(dir_ref))}')
+    ref_stats, query_stats = read_checked(refs), read_checked(queries)
+    idx = np.arange(len(refs))
+    keep = np.array([s[2] >= BLANK_STD for s in query_stats]) if drop_blank else np.ones(len(refs), bool)
+    gt = np.abs(idx[keep][:, None] - idx[None, :]) <= int(tol)
+    info = {'tol': int(tol), 'range': list(frac) if frac else [0.0, 1.0], 'first_index': part.start,
+            'blank_queries_dropped': int((~keep).sum()),
+            'blank_refs': int(sum(s[2] < BLANK_STD for s in ref_stats)),
+            'ref_sizes': [s[:2] for s in ref_stats],
+            'query_sizes': [s[:2] for s, k in zip(query_stats, keep) if k]}
+    return Dataset(name or f'{Path(dir_ref).name}-vs-{Path(dir_query).name}', refs,
+                   [q for q, k in zip(queries, keep) if k], gt, None, info)
+
+
+def vprbench(root, name: str | None = None) -> Dataset:
+    """DIR/query/*, DIR/ref/*, DIR/ground_truth_new.npy (rows [query_index, [ref indices]]).
+    Ref indices past the end (the public Gardens Point file names 200 and 201) are clipped."""
+    root = Path(root)
+    refs, queries = list_images(root / 'ref'), list_images(root / 'query')
+    gt = vprbench_gt(root / 'ground_truth_new.npy', len(queries), len(refs))
+    ref_stats, query_stats = read_checked(refs), read_checked(queries)
+    return Dataset(name or root.name, refs, queries, gt[0], None,
+                   {'clipped_refs': gt[1], 'ref_sizes': [s[:2] for s in ref_stats],
+                    'query_sizes': [s[:2] for s in query_stats]})
+
+
+def vprbench_gt(path, n_queries: int, n_refs: int) -> tuple[np.ndarray, int]:
+    """(Q, R) bool from a VPR-Bench ground_truth_new.npy, and how many out-of-range refs were clipped."""
+    if not Path(path).is_file():
+        raise DatasetError(f'ground truth not found: {path}')
+    try:
+        rows = np.load(path, allow_pickle=True)
+    except (OSError, ValueError) as e:
+        raise DatasetError(f'cannot read ground truth {path}: {e}') from e
+    gt = np.zeros((n_queries, n_refs), bool)
+    clipped = 0
+    try:
+        for row in rows:
+            q, refs = int(row[0]), np.atleast_1d(np.asarray(row[1], np.int64))
+            if not 0 <= q < n_queries:
+                raise DatasetError(f'{path}: query index {q} outside 0..{n_queries - 1}')
+            ok = (refs >= 0) & (refs < n_refs)
+            clipped += int((~ok).sum())
+            gt[q, refs[ok]] = True
+    except (TypeError, IndexError, ValueError) as e:
+        raise DatasetError(f'{path}: rows must be [query_index, [ref indices]]: {e}') from e
+    return gt, clipped
+
+
+def loop(folder, gt_file, min_gap: int = 10, name: str | None = None) -> Dataset:
+    """One ordered sequence and an NxN ground-truth matrix (image or .npy; nonzero at (r, c) = frame r
+    revisits frame c). Query r may be answered only with frames at least min_gap older."""
+    frames = list_images(folder)
+    gt_file = Path(gt_file)
+    frames = [f for f in frames if f.resolve() != gt_file.resolve()]
+    if not gt_file.is_file():
+        raise DatasetError(f'ground truth not found: {gt_file}')
+    if gt_file.suffix == '.npy':
+        matrix = np.load(gt_file)
+    else:
+        matrix = cv2.imread(str(gt_file), cv2.IMREAD_GRAYSCALE)
+        if matrix is None:
+            raise DatasetError(f'cannot read ground-truth image {gt_file}')
+    n = len(frames)
+    if matrix.shape != (n, n):
+        raise DatasetError(f'ground truth {gt_file} is {matrix.shape[0]}x{matrix.shape[1]}; the sequence in '
+                           f'{folder} has {n} frames, so it must be {n}x{n}')
+    stats = read_checked(frames)
+    idx = np.arange(n)
+    candidates = idx[None, :] <= idx[:, None] - int(min_gap)
+    return Dataset(name or Path(folder).name, frames, frames, (matrix > 0) & candidates, candidates,
+                   {'min_gap': int(min_gap), 'ref_sizes': [s[:2] for s in stats],
+                    'query_sizes': [s[:2] for s in stats]})
+
+
+def gardenspoint(root, ref: str = 'day_right', query: str = 'night_right', tol: int = 2) -> Dataset:
+    """The public Gardens Point Walking archive (day_left/, day_right/, night_right/) as an aligned pair."""
+    root = Path(root)
+    for sub in (ref, query):
+        if not (root / sub).is_dir():
+            raise DatasetError(f'{root} is not the Gardens Point Walking layout: {sub}/ is missing')
+    return aligned(root / ref, root / query, tol, name=f'gardenspoint-{ref}-vs-{query}', drop_blank=False)
+
+
+def parse_spec(spec: str, frac=None) -> Dataset:
+    """A dataset from a command-line SPEC: vprbench:DIR | aligned:DIR_REF,DIR_QUERY[,TOL] |
+    loop:DIR,GT_FILE | gardenspoint:DIR[,REF,QUERY]. frac (start, end) applies to aligned data."""
+    kind, _, rest = spec.partition(':')
+    args = [a for a in rest.split(',') if a] if rest else []
+    if kind == 'aligned' and len(args) in (2, 3):
+        return aligned(args[0], args[1], int(args[2]) if len(args) == 3 else 2, frac)
+    if frac is not None and kind != 'aligned':
+        raise DatasetError(f'--range applies to aligned datasets only, not {kind!r}')
+    if kind == 'vprbench' and len(args) == 1:
+        return vprbench(args[0])
+    if kind == 'loop' and len(args) == 2:
+        return loop(args[0], args[1])
+    if kind == 'gardenspoint' and len(args) in (1, 3):
+        return gardenspoint(*args)
+    raise DatasetError(f'cannot parse dataset {spec!r}; use vprbench:DIR, aligned:DIR_REF,DIR_QUERY[,TOL], '
+                       'loop:DIR,GT_FILE or gardenspoint:DIR[,REF,QUERY]')
+
