@@ -318,9 +318,17 @@ def cloud_to_landmarks(msg: PointCloud2, expected_dim: int | None = None,
     if (cells < 0).any() or (cells[:, 0] >= cols).any() or (cells[:, 1] >= rows).any():
         raise MessageError(f'{what}: landmark centres fall outside the {cols}x{rows} grid '
                            f'of a {image_w:g}x{image_h:g} image')
+    # descriptors not of unit length (another sender, or huge finite values that would become inf
+    # in the float16 map) are normalised in float64; unit ones pass through bit for bit
+    desc = np.array(table['descriptor'], np.float32).reshape(len(table), dim)
+    norms = np.linalg.norm(desc.astype(np.float64), axis=1, keepdims=True)
+    if not (np.isfinite(norms).all() and (norms > 0).all()):
+        raise MessageError(f'{what}: descriptors must have a finite, non-zero length')
+    off = np.abs(norms[:, 0] - 1) > 1e-3
+    desc[off] = (desc[off].astype(np.float64) / norms[off]).astype(np.float32)
     lset = LandmarkSet(
-        global_descriptor=np.array(table['descriptor'][0], np.float32).reshape(dim),
-        descriptors=np.array(lm['descriptor'], np.float32).reshape(len(lm), dim),
+        global_descriptor=desc[0],
+        descriptors=desc[1:],
         cells=cells.astype(np.int32),
         centers=np.stack([lm['u'], lm['v']], axis=1).astype(np.float32),
         scores=np.array(lm['score'], np.float32),

@@ -340,6 +340,16 @@ def test_candidates_empty_and_errors():
         msgs.cloud_to_candidates(msgs.array_to_cloud(table))
 
 
+def test_landmarks_descriptors_renormalised_on_decode():
+    lset = make_landmarks()
+    lset.descriptors = lset.descriptors * 1e30  # finite, but inf once squared or stored as float16
+    back = msgs.cloud_to_landmarks(msgs.landmarks_to_cloud(lset))
+    np.testing.assert_allclose(np.linalg.norm(back.descriptors, axis=1), 1, rtol=1e-5)
+    lset.descriptors[0] = 0
+    with pytest.raises(MessageError, match='non-zero length'):
+        msgs.cloud_to_landmarks(msgs.landmarks_to_cloud(lset))
+
+
 def test_matches_roundtrip_and_match_rows():
     from lln_ros.similarity import match_pair
     a, b = make_landmarks(seed=1), make_landmarks(seed=1)

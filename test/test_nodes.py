@@ -579,6 +579,7 @@ def test_matcher_corrupt_map_exits_and_leaves_file(rig, places, tmp_path, kind):
     assert proc.proc.returncode != 0
     text = read_log(proc)
     assert str(map_path) in text and ('corrupt' in text or 'truncated' in text or 'not an SQLite' in text), text
+    assert 'FATAL' in text and 'cannot start' in text and 'Traceback' not in text, text
     assert sha(map_path) == before
 
 

@@ -18,10 +18,11 @@ MODEL_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=Rel
 
 
 def declare(node: Node, spec: dict) -> dict:
-    """Declare every parameter of `spec` {name: (default, description)} and return their values."""
+    """Declare every parameter of `spec` {name: (default, description)} and return their values.
+    Read-only: the nodes read them once at start, so `ros2 param set` says so instead of pretending."""
     values = {}
     for name, (default, description) in spec.items():
-        node.declare_parameter(name, default, ParameterDescriptor(description=description))
+        node.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=True))
         values[name] = node.get_parameter(name).value
     return values
 
@@ -71,6 +72,30 @@ class Health:
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.node.get_clock().now().to_msg()
         return msg
+
+
+def run_node(make_node, name: str, args=None) -> int:
+    """init / spin / shutdown. A node that cannot start (corrupt map, bad parameter, missing
+    weights) logs one fatal line naming the problem and exits 1, without a traceback."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    from ..errors import LLNError
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = make_node()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (LLNError, ValueError, OSError) as e:
+        rclpy.logging.get_logger(name).fatal(f'cannot start: {e}')
+        return 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 def start_diagnostics(node: Node, health: Health, period: float, extra=lambda: {}) -> None:

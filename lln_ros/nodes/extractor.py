@@ -11,11 +11,10 @@ is replaced and counted as dropped, so latency stays bounded by one extraction.
 from __future__ import annotations
 
 import json
+import sys
 import threading
 import time
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_msgs.msg import String
@@ -25,7 +24,7 @@ from ..errors import LLNError
 from ..extractor import Extractor
 from ..image import check_image
 from ..plotting import heatmap_bgr
-from .common import MODEL_QOS, Health, declare, start_diagnostics, subscription_qos
+from .common import MODEL_QOS, Health, declare, run_node, start_diagnostics, subscription_qos
 
 PARAMETERS = {
     'backbone': ('efficientnet_lite0', 'backbone: efficientnet_lite0 | efficientnet_lite2 | resnet101'),
@@ -105,8 +104,13 @@ class ExtractorNode(Node):
     def _work(self) -> None:
         while self._running:
             msg = self.mailbox.take(timeout=0.2)
-            if msg is not None:
+            if msg is None:
+                continue
+            try:
                 self.process(msg)
+            except Exception as e:  # noqa: BLE001  the worker must outlive any one frame
+                self.get_logger().error(f'unexpected error on a frame (skipped): {type(e).__name__}: {e}')
+                self.health.count('internal_error')
 
     def process(self, msg) -> None:
         start = time.perf_counter()
@@ -130,18 +134,8 @@ class ExtractorNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = ExtractorNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    return run_node(ExtractorNode, 'lln_extractor', args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -14,9 +14,8 @@ so whatever a subscriber has seen answered survives kill -9.
 from __future__ import annotations
 
 import json
+import sys
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
@@ -25,7 +24,7 @@ from std_srvs.srv import Trigger
 from .. import msgs
 from ..errors import LLNError
 from ..mapstore import MapStore
-from .common import MODEL_QOS, Health, declare, start_diagnostics, subscription_qos
+from .common import MODEL_QOS, Health, declare, run_node, start_diagnostics, subscription_qos
 
 PARAMETERS = {
     'map_path': ('~/.ros/lln_ros/map.db', 'SQLite map file; created if missing'),
@@ -172,18 +171,8 @@ class MatcherNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = MatcherNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    return run_node(MatcherNode, 'lln_matcher', args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())
