@@ -73,9 +73,9 @@ class Extractor:
 
     @torch.inference_mode()
     def features(self, rgb_batch: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        """RGB uint8 (B, H, W, 3) at network size -> (features (B, D, h, w), activation (B, h, w))."""
+        """RGB uint8 (B, H, W, 3) at network size -> (features (B, D, h, w), head logits (B, h, w))."""
         feats = self.backbone_features(rgb_batch)
-        return feats, self.head(feats)
+        return feats, self.head.logits(feats)
 
     def __call__(self, image: np.ndarray, channel_order: str = 'rgb') -> LandmarkSet:
         return self.extract_batch([image], channel_order)[0]
@@ -92,10 +92,10 @@ class Extractor:
         for idx in by_size.values():
             for start in range(0, len(idx), batch_size):
                 chunk = idx[start:start + batch_size]
-                feats, act = self.features(np.stack([net[i] for i in chunk]))
+                feats, logits = self.features(np.stack([net[i] for i in chunk]))
                 for j, i in enumerate(chunk):
                     h, w = rgb[i].shape[:2]
-                    out[i] = self._landmarks(feats[j].numpy(), act[j].numpy(), (w, h))
+                    out[i] = self._landmarks(feats[j].numpy(), logits[j].numpy(), (w, h))
         return out
 
     @torch.inference_mode()
@@ -103,14 +103,18 @@ class Extractor:
         """LandmarkSet from a cached backbone feature map (D, rows, cols) of an image whose original
         size is image_size = (width, height): the head and the selection run, the backbone does not."""
         f = torch.from_numpy(np.asarray(feats, np.float32))[None]
-        return self._landmarks(f[0].numpy(), self.head(f)[0].numpy(), image_size)
+        return self._landmarks(f[0].numpy(), self.head.logits(f)[0].numpy(), image_size)
 
-    def _landmarks(self, feats: np.ndarray, activation: np.ndarray, image_size: tuple) -> LandmarkSet:
-        """feats (D, rows, cols), activation (rows, cols) -> LandmarkSet in original image pixels."""
+    def _landmarks(self, feats: np.ndarray, logits: np.ndarray, image_size: tuple) -> LandmarkSet:
+        """feats (D, rows, cols), head logits (rows, cols) -> LandmarkSet in original image pixels."""
         d, rows, cols = feats.shape
         local = feats.reshape(d, rows * cols).T                       # (rows*cols, D)
         method = self.conf['method']
-        rank_by = np.linalg.norm(local, axis=1).reshape(rows, cols) if method == 'act' else activation
+        activation = np.maximum(logits, 0)
+        # LLN ranks by the logits: the same order as the ReLU activation where it is positive, and
+        # a meaningful order among the many cells the ReLU sets to exactly 0 (by index they would
+        # fall back to the top rows of the image: ceiling and sky)
+        rank_by = np.linalg.norm(local, axis=1).reshape(rows, cols) if method == 'act' else logits
         cells_flat = select_landmarks(rank_by, int(self.conf['top_n']), method, int(self.conf['rand_seed']))
         cells = np.stack([cells_flat % cols, cells_flat // cols], axis=1).astype(np.int32)
         cell_size = np.array([image_size[0] / cols, image_size[1] / rows], np.float32)
@@ -120,7 +124,7 @@ class Extractor:
             descriptors=l2_normalize(local[cells_flat]).astype(np.float32),
             cells=cells,
             centers=centers,
-            scores=rank_by.ravel()[cells_flat].astype(np.float32),
+            scores=(rank_by if method == 'act' else activation).ravel()[cells_flat].astype(np.float32),
             cell_size=cell_size,
             image_size=np.array(image_size, np.float32),
             grid=(rows, cols),

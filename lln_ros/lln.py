@@ -45,12 +45,16 @@ class LLNHead(nn.Module):
                 conv.weight.copy_(torch.rand(conv.weight.shape, generator=generator) * 2 * bound - bound)
                 conv.bias.zero_()
 
-    def forward(self, features: torch.Tensor) -> torch.Tensor:
-        """features (B, D, h, w) -> activation (B, h, w) >= 0."""
+    def logits(self, features: torch.Tensor) -> torch.Tensor:
+        """features (B, D, h, w) -> the 1x1 fuse output before its ReLU (B, h, w)."""
         # a nonlinearity between the branches and the 1x1 fuse; without it the parallel convs and
         # the fuse collapse into one linear 5x5 conv and the multi-scale design buys nothing
         x = torch.relu(torch.cat([b(features) for b in self.branches], dim=1))
-        return torch.relu(self.fuse(x))[:, 0]
+        return self.fuse(x)[:, 0]
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        """features (B, D, h, w) -> activation w (B, h, w) >= 0 (the paper's ReLU output)."""
+        return torch.relu(self.logits(features))
 
 
 def head_fingerprint(head: LLNHead) -> str:

@@ -144,3 +144,16 @@ def test_untrained_head_is_seeded():
         assert torch.equal(v, b.state_dict()[k])
     c = LLNHead(320, {'seed': 1})
     assert not torch.equal(a.fuse.weight, c.fuse.weight)
+
+
+def test_lln_ranks_by_head_logits_not_by_index(extractor, photo):
+    """Many cells get activation exactly 0 from the final ReLU; they must be ordered by the head's
+    logits, not fall back to raster order (the top rows: ceiling, sky)."""
+    from lln_ros.image import resize_for_network
+    feats = extractor.backbone_features(resize_for_network(photo, 288)[None])
+    logits = extractor.head.logits(feats)[0].numpy()
+    s = extractor(photo)
+    assert (s.activation == 0).sum() > 0, 'this check needs silent cells'
+    want = np.argsort(-logits.ravel(), kind='stable')[:50]
+    np.testing.assert_array_equal(s.cells[:, 1] * s.grid[1] + s.cells[:, 0], want)
+    np.testing.assert_allclose(s.scores, np.maximum(logits.ravel()[want], 0), rtol=1e-5)
