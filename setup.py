@@ -28,6 +28,8 @@ setup(
             'matcher = lln_ros.nodes.matcher:main',
             'lln-match = lln_ros.cli.match:main',
             'lln-bag = lln_ros.cli.bag:main',
+            'lln-eval = lln_ros.cli.eval:main',
+            'lln-train = lln_ros.cli.train:main',
         ],
     },
 )

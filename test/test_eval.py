@@ -1,0 +1,441 @@
+"""lln-eval and lln_ros.evaluation on real pixels: a tiny aligned set cut from the photograph matplotlib
+ships, the Gardens Point download against a loopback HTTP server, bad input, and rtabmap_loop."""
+import functools
+import http.server
+import json
+import subprocess
+import sys
+import threading
+import zipfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import shared_data
+from lln_ros import datasets
+from lln_ros.cli.eval import main
+from lln_ros.evaluation import (METHODS, REPORT_KEYS, Head, evaluate, fetch_gardenspoint, parse_head,
+                                variant)
+from lln_ros.lln import LLNHead, head_fingerprint, save_checkpoint
+from lln_ros.retrieval import rank_all
+from lln_ros.landmarks import stack_landmarks
+
+REQUIRED = {'p_at_100r', 'r_at_1', 'r_at_5', 'r_at_10', 'auc_pr', 'r_at_100p', 'extract_ms',
+            'match_ms_per_pair', 'n'}
+FRACTIONS = ('p_at_100r', 'r_at_1', 'r_at_5', 'r_at_10', 'auc_pr', 'r_at_100p')
+
+
+@pytest.fixture(scope='module', autouse=True)
+def one_torch_thread(extractor):
+    """One torch thread here: on a 2-core machine shared with other work, 2 threads contend and
+    run ~10x slower. torch's setting is process-wide (the session `extractor` sets it when built,
+    hence built first), so it is restored for the other test files."""
+    import torch
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def write_rgb(path, rgb):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    assert cv2.imwrite(str(path), cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
+
+
+def crops(photo, count=12, shift=(0, 0), gain=1.0, size=(160, 120)):
+    """count non-overlapping windows of the photo (4 rows x 3 columns), optionally shifted / brightened."""
+    out = []
+    w, h = size
+    for i in range(count):
+        r, c = divmod(i, 3)
+        y, x = 20 + r * 140 + shift[1], 16 + c * 160 + shift[0]
+        out.append(np.clip(photo[y:y + h, x:x + w].astype(np.float32) * gain, 0, 255).astype(np.uint8))
+    return out
+
+
+@pytest.fixture(scope='module')
+def tiny(tmp_path_factory, photo):
+    """12 refs and 12 queries: the same places moved by (8, 6) pixels and 15% brighter."""
+    root = tmp_path_factory.mktemp('tiny')
+    for i, (ref, query) in enumerate(zip(crops(photo), crops(photo, shift=(8, 6), gain=1.15))):
+        write_rgb(root / 'ref' / f'{i}.png', ref)
+        write_rgb(root / 'query' / f'{i}.png', query)
+    return root
+
+
+@pytest.fixture(scope='module')
+def other_head(extractor, tmp_path_factory):
+    """A head checkpoint that stands in for a trained head: the Xavier init (seed 0), then moved."""
+    import torch
+    head = LLNHead(extractor.backbone.dim)
+    generator = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for p in head.parameters():
+            p.add_(0.05 * torch.randn(p.shape, generator=generator))
+    path = tmp_path_factory.mktemp('head') / 'other.pt'
+    save_checkpoint(str(path), head, 'efficientnet_lite0', extractor.backbone.layer, trained=True)
+    return path
+
+
+@pytest.fixture(scope='module')
+def tiny_run(tiny, extractor, other_head, tmp_path_factory):
+    out = tmp_path_factory.mktemp('eval')
+    ds = datasets.parse_spec(f'aligned:{tiny / "ref"},{tiny / "query"},0')
+    conf = {'top_n': 20, 'prefilter_k': 5, 'cache_dir': str(out / 'cache'), 'timing_images': 2,
+            'timing_queries': 4, 'examples': 1}
+    run = evaluate([ds], extractor, conf, [Head('other', str(other_head)), Head('untrained', None)],
+                   out_dir=out / 'results', specs=['tiny'])
+    return run, out / 'results', ds
+
+
+def test_results_json_has_the_required_structure(tiny_run):
+    run, out, ds = tiny_run
+    results = json.loads((out / 'results.json').read_text())
+    assert results == json.loads(json.dumps(run.results))  # what is returned is what is written
+    entry = results['datasets']['ref-vs-query']
+    assert entry['queries'] == 12 and entry['refs'] == 12
+    assert list(entry['methods']) == ['holistic', 'lln[other]', 'lln[untrained]', 'act', 'rand', 'all']
+    for row, m in entry['methods'].items():
+        assert REQUIRED <= set(m), row
+        for key in FRACTIONS:
+            assert 0.0 <= m[key] <= 1.0, (row, key, m[key])
+        assert m['extract_ms'] > 0 and m['match_ms_per_pair'] > 0
+    m = entry['methods']
+    assert m['holistic']['n'] == 1
+    assert m['lln[other]']['n'] == m['act']['n'] == m['rand']['n'] == 20
+    assert m['all']['n'] == 12 * 9  # 160x120 crops -> 384x288 at the network -> a 12x9 grid
+    assert entry['grid'] == [9, 12]
+    assert results['parameters']['top_n'] == 20 and results['parameters']['prefilter_k'] == 5
+    assert len(entry['recall_at_k_holistic']) == 12
+
+
+def test_easy_set_is_solved(tiny_run):
+    run, _, _ = tiny_run
+    m = run.results['datasets']['ref-vs-query']['methods']
+    for row in ('holistic', 'lln[other]', 'lln[untrained]', 'all'):
+        assert m[row]['p_at_100r'] >= 0.75, (row, m[row])
+        assert m[row]['r_at_5'] >= m[row]['r_at_1']
+    curve = run.results['datasets']['ref-vs-query']['recall_at_k_holistic']
+    assert all(b >= a for a, b in zip(curve, curve[1:])) and curve[-1] == 1.0
+
+
+def test_every_local_method_reranks_the_same_holistic_top_k(tiny_run):
+    run, _, _ = tiny_run
+    d = run.datasets['ref-vs-query']
+    top = d.holistic_full[:, :5]
+    for row, (ranked, scores) in d.rankings.items():
+        if row == 'holistic':
+            continue
+        assert ranked.shape == (12, 5)
+        assert all(set(a) == set(b) for a, b in zip(ranked, top)), row
+        assert (np.diff(scores, axis=1) <= 1e-6).all()  # best first
+
+
+def test_rankings_equal_direct_extraction(tiny_run, tiny, extractor):
+    """The cached-feature path gives the ranking a plain Extractor gives from the image files."""
+    from lln_ros.image import load_image
+    run, _, ds = tiny_run
+    v = variant(extractor, 'all', 20)
+    qs = v.extract_batch([load_image(str(p)) for p in ds.query_paths])
+    rs = v.extract_batch([load_image(str(p)) for p in ds.ref_paths])
+    ranked, _ = rank_all(qs, stack_landmarks(rs), 5)
+    mine = run.datasets['ref-vs-query'].rankings['all'][0]
+    assert (ranked[:, 0] == mine[:, 0]).mean() >= 11 / 12  # features are cached as float16
+
+
+def test_heads_are_separate_rows(tiny_run, extractor, other_head):
+    run, _, _ = tiny_run
+    m = run.results['datasets']['ref-vs-query']['methods']
+    xavier = head_fingerprint(LLNHead(extractor.backbone.dim))
+    assert m['lln[untrained]']['head_trained'] is False and m['lln[untrained]']['head_fingerprint'] == xavier
+    assert m['lln[other]']['head_trained'] is True and m['lln[other]']['head_fingerprint'] != xavier
+    assert m['lln[other]']['weights'] == str(other_head)
+    heads = run.results['parameters']['heads']
+    assert set(heads) == {'other', 'untrained'} and heads['untrained']['weights'] == ''
+
+
+def test_pictures_and_markdown(tiny_run):
+    run, out, _ = tiny_run
+    figs = run.results['datasets']['ref-vs-query']['figures']
+    assert {'pr', 'recall_at_k', 'heatmaps'} <= set(figs) and figs['examples']
+    assert len(run.figures) >= 4
+    for name in run.figures:
+        img = cv2.imread(str(out / name))
+        assert img is not None and img.shape[0] > 200 and img.shape[1] > 300, name
+    md = (out / 'results.md').read_text()
+    for row in ('holistic', 'lln[other]', 'lln[untrained]', 'act', 'rand', 'all'):
+        assert f'| {row} |' in md
+    assert '## Parameters' in md and 'prefilter_k: `5`' in md and '(ref-vs-query_pr.png)' in md
+
+
+def test_parse_head():
+    assert (parse_head('trained=a/b.pt').label, parse_head('trained=a/b.pt').weights) == ('trained', 'a/b.pt')
+    assert parse_head('untrained=').weights is None and parse_head('xavier').label == 'untrained'
+    assert parse_head('runs/best.pt').label == 'best' and parse_head('x.pt', 'mine').label == 'mine'
+
+
+# ------------------------------------------------------------------------------------------------ CLI
+
+
+def run_cli(*args):
+    return main([str(a) for a in args])
+
+
+def test_cli_trained_vs_untrained_in_one_command(tiny, tiny_run, other_head, tmp_path, capsys):
+    """--heads and --weights/--label give one lln row per head, next to the head-free baselines."""
+    _, results_dir, _ = tiny_run
+    cache = results_dir.parent / 'cache'  # features from tiny_run: no backbone pass but the timing
+    rc = run_cli('--dataset', f'aligned:{tiny / "ref"},{tiny / "query"},0', '--methods', 'holistic,lln,all',
+                 '--top-n', 20, '--prefilter-k', 5, '--out', tmp_path / 'a', '--cache', cache,
+                 '--heads', f'trained={other_head},untrained=', '--timing-images', 1, '--timing-queries', 2,
+                 '--examples', 0, '--heatmap-images', 2, '--threads', 1, '--quiet')
+    assert rc == 0, capsys.readouterr().err
+    results = json.loads((tmp_path / 'a' / 'results.json').read_text())
+    entry = results['datasets']['ref-vs-query']
+    assert list(entry['methods']) == ['holistic', 'lln[trained]', 'lln[untrained]', 'all']
+    assert results['parameters']['command'].startswith('lln-eval --dataset aligned:')
+    assert (tmp_path / 'a' / 'ref-vs-query_heatmaps.png').is_file()
+
+    rc = run_cli('--dataset', f'aligned:{tiny / "ref"},{tiny / "query"},0', '--methods', 'lln',
+                 '--top-n', 20, '--prefilter-k', 5, '--out', tmp_path / 'b', '--cache', cache,
+                 '--weights', other_head, '--label', 'mine', '--weights', '', '--label', 'xavier',
+                 '--timing-images', 1, '--timing-queries', 2, '--no-plots', '--threads', 1, '--quiet')
+    assert rc == 0, capsys.readouterr().err
+    methods = json.loads((tmp_path / 'b' / 'results.json').read_text())['datasets']['ref-vs-query']['methods']
+    assert list(methods) == ['lln[mine]', 'lln[xavier]']
+    assert methods['lln[mine]']['p_at_100r'] == entry['methods']['lln[trained]']['p_at_100r']
+    assert not list((tmp_path / 'b').glob('*.png'))
+
+
+def make_bad_inputs(root: Path, photo) -> dict:
+    good = crops(photo, 3)
+    for i, im in enumerate(good):
+        write_rgb(root / 'a' / f'{i}.png', im)
+        write_rgb(root / 'b' / f'{i}.png', im)
+        write_rgb(root / 'short' / f'{i}.png', im)
+        write_rgb(root / 'broken' / f'{i}.png', im)
+        write_rgb(root / 'seq' / f'{i}.png', im)
+    (root / 'short' / '2.png').unlink()
+    (root / 'broken' / '1.png').write_bytes(b'\x89PNG\r\n\x1a\n' + b'truncated')
+    np.save(root / 'gt4.npy', np.zeros((4, 4), np.uint8))
+    a = root / 'a'
+    return {
+        'missing folder': (f'aligned:{a},{root / "nope"}', 'does not exist'),
+        'unequal lengths': (f'aligned:{a},{root / "short"}', 'differ in length'),
+        'ground truth shape': (f'loop:{root / "seq"},{root / "gt4.npy"}', 'must be 3x3'),
+        'unreadable image': (f'aligned:{a},{root / "broken"}', 'cannot read image'),
+        'missing vprbench gt': (f'vprbench:{root}', 'does not exist'),
+        'unknown kind': ('nordland:x', 'cannot parse dataset'),
+        'gardens point layout': (f'gardenspoint:{root / "gp"}', 'add --download'),
+    }
+
+
+@pytest.fixture(scope='module')
+def bad_inputs(tmp_path_factory, photo):
+    root = tmp_path_factory.mktemp('bad')
+    return root, make_bad_inputs(root, photo)
+
+
+@pytest.mark.parametrize('case', ['missing folder', 'unequal lengths', 'ground truth shape', 'unreadable image',
+                                  'missing vprbench gt', 'unknown kind', 'gardens point layout'])
+def test_bad_dataset_is_one_line_before_any_extraction(case, bad_inputs, tmp_path, capsys):
+    root, cases = bad_inputs
+    spec, message = cases[case]
+    good = f'aligned:{root / "a"},{root / "b"}'
+    # the bad dataset comes second: the good one must not have been extracted first
+    rc = run_cli('--dataset', good, '--dataset', spec, '--out', tmp_path / 'out', '--cache', tmp_path / 'cache')
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('lln-eval: error:') and message in lines[0], err
+    assert not (tmp_path / 'cache').exists() and not (tmp_path / 'out').exists()
+
+
+@pytest.mark.parametrize('args, message', [
+    (['--methods', 'lln,delf'], "unknown method(s) ['delf']"),
+    (['--range', '0.5'], '--range must be START:END'),
+    (['--range', '0.7:1.5'], '0 <= START < END <= 1'),
+    (['--label', 'x'], '--label given 1 times'),
+    (['--heads', 'trained'], 'LABEL=CKPT'),
+    (['--heads', 'a=,a=xavier'], 'distinct'),
+    (['--weights', 'missing.pt'], 'checkpoint not found'),
+    (['--top-n', '0'], 'at least 1'),
+])
+def test_bad_options_are_one_line(args, message, bad_inputs, tmp_path, capsys):
+    root, _ = bad_inputs
+    rc = run_cli('--dataset', f'aligned:{root / "a"},{root / "b"}', '--out', tmp_path / 'out',
+                 '--cache', tmp_path / 'cache', *args)
+    err = capsys.readouterr().err
+    assert rc == 2 and len(err.strip().splitlines()) == 1 and message in err, err
+    assert not (tmp_path / 'cache').exists()
+
+
+def test_module_entry_point_exits_2(tmp_path):
+    out = subprocess.run([sys.executable, '-m', 'lln_ros.cli.eval', '--dataset', f'aligned:{tmp_path / "x"},'
+                          f'{tmp_path / "y"}', '--out', str(tmp_path / 'o')], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 2 and 'does not exist' in out.stderr and 'Traceback' not in out.stderr
+
+
+# ------------------------------------------------------------------------------------------- download
+
+
+class Server:
+    """http.server on 127.0.0.1 (ephemeral port) in a thread, serving one folder; counts requests."""
+
+    def __init__(self, folder: Path):
+        outer = self
+        self.requests = []
+
+        class Handler(http.server.SimpleHTTPRequestHandler):
+            def log_message(self, *args):
+                pass
+
+            def do_GET(self):
+                outer.requests.append(self.path)
+                super().do_GET()
+
+        self.httpd = http.server.ThreadingHTTPServer(('127.0.0.1', 0),
+                                                     functools.partial(Handler, directory=str(folder)))
+        self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
+        self.thread.start()
+        self.url = f'http://127.0.0.1:{self.httpd.server_address[1]}'
+
+    def close(self):
+        self.httpd.shutdown()
+        self.httpd.server_close()
+        self.thread.join(5)
+
+
+def make_zip(path: Path, photo, folders=('day_left', 'day_right', 'night_right'), top: str = '', frames=4):
+    """A GardensPoint_Walking.zip look-alike: each traverse folder holds `frames` JPEGs (same places,
+    night = darker), named like the real archive."""
+    with zipfile.ZipFile(path, 'w') as z:
+        for f in folders:
+            gain = 0.6 if f.startswith('night') else 1.0
+            for i, im in enumerate(crops(photo, frames, gain=gain)):
+                ok, buf = cv2.imencode('.jpg', cv2.cvtColor(im, cv2.COLOR_RGB2BGR))
+                z.writestr(f'{top}{f}/Image{i:03d}.jpg', buf.tobytes())
+        z.writestr(f'{top}README.txt', 'Gardens Point Walking (test copy)')
+
+
+@pytest.fixture(scope='module')
+def server(tmp_path_factory, photo):
+    served = tmp_path_factory.mktemp('served')
+    make_zip(served / 'GardensPoint_Walking.zip', photo)
+    make_zip(served / 'nested.zip', photo, top='GardensPoint_Walking/')
+    make_zip(served / 'no_night.zip', photo, folders=('day_left', 'day_right'))
+    (served / 'garbage.zip').write_bytes(b'<html>not found</html>' * 20)
+    s = Server(served)
+    yield s
+    s.close()
+
+
+def test_download_then_evaluate(server, tmp_path, capsys):
+    root = tmp_path / 'gp'
+    url = f'{server.url}/GardensPoint_Walking.zip'
+    before = len(server.requests)
+    rc = run_cli('--dataset', f'gardenspoint:{root}', '--download', '--download-url', url, '--methods',
+                 'holistic,all', '--top-n', 10, '--prefilter-k', 3, '--out', tmp_path / 'out',
+                 '--cache', tmp_path / 'cache', '--timing-images', 1, '--timing-queries', 2, '--examples', 1,
+                 '--heatmap-images', 0, '--threads', 1)
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    assert server.requests[before:] == ['/GardensPoint_Walking.zip']
+    assert 'downloading' in captured.err
+    assert sorted(p.name for p in root.iterdir()) == ['day_left', 'day_right', 'night_right']  # no leftovers
+    assert len(list((root / 'night_right').glob('*.jpg'))) == 4
+    entry = json.loads((tmp_path / 'out' / 'results.json').read_text())['datasets']
+    entry = entry['gardenspoint-day_right-vs-night_right']
+    assert entry['queries'] == 4 and set(entry['methods']) == {'holistic', 'all'}
+    assert entry['methods']['all']['p_at_100r'] >= 0.75  # +-2 frames of 4: nearly everything is right
+
+    # the layout is there now: a second run does not download again
+    rc = run_cli('--dataset', f'gardenspoint:{root},day_left,night_right', '--download', '--download-url', url,
+                 '--out', tmp_path / 'out2', '--check')
+    assert rc == 0 and len(server.requests) == before + 1
+
+
+def test_download_nested_archive(server, tmp_path):
+    got = fetch_gardenspoint(tmp_path / 'gp', f'{server.url}/nested.zip', progress=False)
+    assert got == ['day_left', 'day_right', 'night_right']
+    ds = datasets.gardenspoint(tmp_path / 'gp')
+    assert len(ds.query_paths) == 4 and ds.gt.shape == (4, 4)
+
+
+@pytest.mark.parametrize('name, message', [
+    ('garbage.zip', 'is not a zip archive'),
+    ('no_night.zip', 'lacks the Gardens Point folders'),
+    ('missing.zip', 'cannot download'),
+])
+def test_download_failures_are_one_line(name, message, server, tmp_path, capsys):
+    root = tmp_path / 'gp'
+    rc = run_cli('--dataset', f'gardenspoint:{root}', '--download', '--download-url', f'{server.url}/{name}',
+                 '--out', tmp_path / 'out', '--cache', tmp_path / 'cache', '--quiet')
+    err = capsys.readouterr().err
+    assert rc == 2 and message in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / 'cache').exists() and list(root.iterdir()) == []  # nothing half-written
+
+
+def test_download_waits_for_every_other_dataset(server, bad_inputs, tmp_path, capsys):
+    root, cases = bad_inputs
+    before = len(server.requests)
+    rc = run_cli('--dataset', f'gardenspoint:{tmp_path / "gp"}', '--download', '--download-url',
+                 f'{server.url}/GardensPoint_Walking.zip', '--dataset', cases['unequal lengths'][0],
+                 '--out', tmp_path / 'out')
+    assert rc == 2 and 'differ in length' in capsys.readouterr().err
+    assert len(server.requests) == before  # the bad second dataset stopped the run before any download
+
+
+# ------------------------------------------------------------------------------------------ real data
+
+
+def test_rtabmap_loop(tmp_path, capsys):
+    """The loop protocol on the real 84-frame sequence: every method, pictures, sane figures."""
+    root = shared_data('rtabmap_loop')
+    out = tmp_path / 'out'
+    rc = run_cli('--dataset', f'loop:{root},{root / "samples_GT.bmp"}', '--out', out,
+                 '--cache', tmp_path / 'cache', '--timing-images', 2, '--timing-queries', 5, '--examples', 1,
+                 '--heatmap-images', 3, '--quiet')
+    assert rc == 0, capsys.readouterr().err
+    results = json.loads((out / 'results.json').read_text())
+    entry = results['datasets']['rtabmap_loop']
+    assert entry['queries'] == 84 and entry['queries_with_match'] == 44 and entry['info']['min_gap'] == 10
+    assert list(entry['methods']) == list(METHODS)
+    for row, m in entry['methods'].items():
+        assert set(REPORT_KEYS) <= set(m)
+        for key in FRACTIONS:
+            assert 0.0 <= m[key] <= 1.0
+        # an easy indoor loop: every method finds most revisits (measured: 0.86 .. 0.93)
+        assert m['p_at_100r'] >= 0.7, (row, m)
+    assert entry['methods']['all']['n'] == 108 and entry['methods']['lln']['n'] == 50
+    curve = entry['recall_at_k_holistic']
+    assert all(b >= a for a, b in zip(curve, curve[1:])) and curve[29] >= 0.95
+    figs = entry['figures']
+    kinds = [ex['kind'] for ex in figs['examples']]
+    assert 'success' in kinds and 'failure' in kinds and any('truth_file' in ex for ex in figs['examples'])
+    for name in [figs['pr'], figs['recall_at_k'], figs['heatmaps']] + [ex['file'] for ex in figs['examples']]:
+        assert cv2.imread(str(out / name)) is not None, name
+    md = (out / 'results.md').read_text()
+    assert all(f'| {row}' in md for row in METHODS)
+
+
+def test_untrained_head_has_the_checkpoint_architecture(extractor, tmp_path):
+    """"trained vs untrained" must differ only in training: the untrained head copies the architecture
+    and init seed of the checkpoint it is compared with."""
+    from lln_ros.evaluation import load_heads
+    dim = extractor.backbone.dim
+    path = tmp_path / 'small.pt'
+    save_checkpoint(str(path), LLNHead(dim, {'channels': 16, 'kernel_sizes': (1, 3), 'seed': 3}),
+                    'efficientnet_lite0', extractor.backbone.layer)
+    trained, untrained = load_heads(extractor, [Head('t', str(path)), Head('u', None)])
+    assert untrained.module.conf['channels'] == 16 and untrained.module.conf['kernel_sizes'] == (1, 3)
+    assert head_fingerprint(untrained.module) == head_fingerprint(trained.module)  # same init, never trained
+    assert untrained.trained is False and trained.trained is True
+    only = load_heads(extractor, [Head('u', None)])[0]
+    assert head_fingerprint(only.module) == head_fingerprint(LLNHead(dim))
+    with pytest.raises(Exception, match='trained for layer'):
+        save_checkpoint(str(tmp_path / 'wrong.pt'), LLNHead(dim), 'efficientnet_lite0', 'stage6')
+        load_heads(extractor, [Head('w', str(tmp_path / 'wrong.pt'))])
