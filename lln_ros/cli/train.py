@@ -1,0 +1,104 @@
+"""lln-train: train the LLN head on cached backbone features (the paper's recipe).
+
+    lln-train --data SPEC [--data SPEC ...] [--range START:END] [--val SPEC --val-range START:END]
+              --out DIR [--epochs 10] [--lr 1e-4] [--tuples-per-epoch 1000] [--seed 0]
+
+SPEC: any lln-eval dataset (aligned:REF,QUERY[,TOL], vprbench:DIR, loop:DIR,GT, gardenspoint:DIR),
+or places:DIR (DIR/<place>/*.jpg), or sfm:PICKLE,IMS_ROOT (Retrieval-SfM-120k layout). The best
+head by validation precision at 100% recall is DIR/best.pt; DIR/last.pt resumes an interrupted run.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+
+
+def parse_range(text: str | None):
+    if not text:
+        return None
+    try:
+        start, end = (float(v) for v in text.split(':'))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'range must be START:END fractions, got {text!r}') from None
+    if not 0 <= start < end <= 1:
+        raise argparse.ArgumentTypeError(f'range needs 0 <= START < END <= 1, got {text!r}')
+    return start, end
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog='lln-train', description=__doc__.strip().splitlines()[0])
+    p.add_argument('--data', action='append', required=True, metavar='SPEC', help='training data (repeatable)')
+    p.add_argument('--range', type=parse_range, help='START:END fractions of aligned --data to train on')
+    p.add_argument('--val', metavar='SPEC', help='validation dataset (an lln-eval SPEC)')
+    p.add_argument('--val-range', type=parse_range, help='START:END fractions of an aligned --val')
+    p.add_argument('--out', required=True, help='output folder (best.pt, last.pt, history.json)')
+    p.add_argument('--epochs', type=int, default=10)
+    p.add_argument('--lr', type=float, default=1e-4)
+    p.add_argument('--batch-size', type=int, default=10, help='tuples per step (paper: 10)')
+    p.add_argument('--negatives', type=int, default=4, help='hard negatives per tuple (paper: 4)')
+    p.add_argument('--margin', type=float, default=0.3)
+    p.add_argument('--tuples-per-epoch', type=int, default=1000, help='0 = every usable query')
+    p.add_argument('--train-size', default='352x352',
+                   help="WxH training images are squashed to (the paper's 352x352), or a height H "
+                        '(aspect kept, as at test time)')
+    p.add_argument('--neg-margin', type=int, default=10, help='route data: frames beside a match are not negatives')
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--backbone', default='efficientnet_lite0')
+    p.add_argument('--layer', default='')
+    p.add_argument('--backbone-weights', default='')
+    p.add_argument('--cache', default='cache/features', help='feature cache folder')
+    p.add_argument('--threads', type=int, default=0, help='torch threads (0 = default)')
+    p.add_argument('--no-resume', action='store_true', help='ignore OUT/last.pt')
+    return p
+
+
+def load_pairs(spec: str, frac, neg_margin: int):
+    from .. import datasets, training
+    kind, _, rest = spec.partition(':')
+    if kind == 'places':
+        return training.pairs_from_places(rest)
+    if kind == 'sfm':
+        pickle_path, _, ims = rest.partition(',')
+        return training.pairs_from_sfm(pickle_path, ims)
+    return training.pairs_from_dataset(datasets.parse_spec(spec, frac), neg_margin)
+
+
+def run(args) -> dict:
+    from .. import datasets, training
+    from ..extractor import Extractor
+    size = args.train_size.lower()
+    train_size = tuple(int(v) for v in size.split('x')) if 'x' in size else int(size)
+    conf = {'epochs': args.epochs, 'lr': args.lr, 'batch_size': args.batch_size, 'negatives': args.negatives,
+            'margin': args.margin, 'tuples_per_epoch': args.tuples_per_epoch, 'train_size': train_size,
+            'neg_margin': args.neg_margin, 'seed': args.seed}
+    # every dataset is read and checked before any feature is computed
+    pairs = training.combine([load_pairs(s, args.range, args.neg_margin) for s in args.data])
+    val = datasets.parse_spec(args.val, args.val_range) if args.val else None
+    extractor = Extractor({'backbone': {'name': args.backbone, 'layer': args.layer,
+                                        'weights_path': args.backbone_weights}, 'num_threads': args.threads})
+    command = 'lln-train ' + ' '.join(shlex.quote(a) for a in sys.argv[1:])
+    trainer = training.Trainer(extractor, pairs, val, conf, cache_dir=args.cache, out_dir=args.out,
+                               meta={'command': command})
+    return trainer.fit(resume=not args.no_resume)
+
+
+def main(argv=None) -> int:
+    from ..errors import LLNError
+    args = build_parser().parse_args(argv)
+    try:
+        result = run(args)
+    except LLNError as e:
+        print(f'lln-train: error: {e}', file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print('lln-train: interrupted; OUT/last.pt holds the last finished epoch (rerun to resume)',
+              file=sys.stderr)
+        return 130
+    print(json.dumps({'best_val_p_at_100r': result['best_val_p_at_100r']}))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

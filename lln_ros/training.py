@@ -1,0 +1,317 @@
+"""Training the LLN head with image-level labels only (Xin et al., ICRA 2019, Sec. III-B).
+
+    embedding  F = normalize( sum_ij w_ij * f_ij )     w = LLN activation, f_ij = L2-normalised features
+    tuple      1 query, 1 positive, K hard negatives, re-mined with the current head every epoch
+    loss       sum_k max(0, |F_q - F_p| + m - |F_q - F_nk|)       m = 0.3
+
+The backbone is frozen, so its feature maps come from a FeatureCache and an epoch costs only the
+head. Training data is a `PairSet`: query and reference images with boolean positive / negative
+masks, made from any evaluation dataset (aligned traverses, VPR-Bench), place-labelled folders or
+the Retrieval-SfM-120k pickle, and combinable.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import os
+import pickle
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from .datasets import list_images
+from .errors import DatasetError
+from .features import FeatureCache
+from .landmarks import stack_landmarks
+from .lln import LLNHead, save_checkpoint
+from .retrieval import rank_all
+
+default_conf = {
+    'epochs': 10,
+    'lr': 1e-4,                # the paper's 1e-6 (TensorFlow, SfM-120k) barely moves this head: see docs
+    'batch_size': 10,          # tuples per optimiser step
+    'negatives': 4,            # hard negatives per tuple (K)
+    'margin': 0.3,
+    'tuples_per_epoch': 1000,  # queries drawn (without replacement) per epoch; 0 = all
+    'train_size': (352, 352),  # training images are squashed to this (the paper's 352x352)
+    'neg_margin': 10,          # route data: refs within this many frames of a positive are not negatives
+    'seed': 0,
+    'head': {},                # LLNHead conf overrides
+    'val_top_n': 50,
+    'val_prefilter_k': 30,
+}
+
+
+@dataclass
+class PairSet:
+    """Training pairs. positive / negative (Q, R) bool: ref r is a positive / negative of query q."""
+    name: str
+    query_paths: list
+    ref_paths: list
+    positive: np.ndarray
+    negative: np.ndarray
+
+    def usable(self) -> np.ndarray:
+        """Queries that can form a tuple: at least one positive and enough negatives."""
+        return np.flatnonzero(self.positive.any(1) & (self.negative.sum(1) >= 1))
+
+
+def pairs_from_dataset(ds, neg_margin: int = 10) -> PairSet:
+    """A PairSet from an evaluation Dataset (lln_ros.datasets): positives are its ground truth;
+    negatives are refs farther than neg_margin refs (in ref order) from every positive, so frames
+    just beside a match are neither."""
+    gt = np.asarray(ds.gt, bool)
+    near = gt.copy()
+    for shift in range(1, int(neg_margin) + 1):
+        near[:, shift:] |= gt[:, :-shift]
+        near[:, :-shift] |= gt[:, shift:]
+    negative = ~near & gt.any(1, keepdims=True)
+    if getattr(ds, 'candidates', None) is not None:
+        negative &= ds.candidates
+    return PairSet(ds.name, list(ds.query_paths), list(ds.ref_paths), gt, negative)
+
+
+def pairs_from_places(root: str | os.PathLike) -> PairSet:
+    """DIR/<place>/*.jpg: every image queries every other; same folder = positive, other = negative."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(f'place folder not found: {root}')
+    paths, labels = [], []
+    for label, place in enumerate(sorted(p for p in root.iterdir() if p.is_dir())):
+        images = list_images(place)
+        paths += images
+        labels += [label] * len(images)
+    if not paths:
+        raise DatasetError(f'no images in place folders under {root} (expected {root}/<place>/*.jpg)')
+    labels = np.array(labels)
+    same = labels[:, None] == labels[None, :]
+    np.fill_diagonal(same, False)
+    other = labels[:, None] != labels[None, :]
+    return PairSet(f'places:{root.name}', paths, paths, same, other)
+
+
+def sfm_image_path(ims_root: str | os.PathLike, cid: str) -> Path:
+    """cirtorch's layout of Retrieval-SfM-120k images: ims/<cid[-2:]>/<cid[-4:-2]>/<cid[-6:-4]>/<cid>."""
+    return Path(ims_root) / cid[-2:] / cid[-4:-2] / cid[-6:-4] / cid
+
+
+def pairs_from_sfm(pickle_path: str | os.PathLike, ims_root: str | os.PathLike, split: str = 'train') -> PairSet:
+    """The Retrieval-SfM-120k pickle the paper trained on: {split: {'cids', 'cluster', 'qidxs',
+    'pidxs'}}. Query qidxs[i] has positive pidxs[i]; negatives are images of other clusters."""
+    try:
+        with open(pickle_path, 'rb') as f:
+            db = pickle.load(f)[split]
+        cids, cluster = list(db['cids']), np.asarray(db['cluster'])
+        qidxs, pidxs = np.asarray(db['qidxs'], np.int64), np.asarray(db['pidxs'], np.int64)
+    except FileNotFoundError:
+        raise DatasetError(f'SfM pickle not found: {pickle_path}') from None
+    except (KeyError, TypeError, pickle.UnpicklingError, EOFError) as e:
+        raise DatasetError(f'{pickle_path} is not a Retrieval-SfM-120k pickle with split {split!r}: {e}') from e
+    if len(cluster) != len(cids) or len(qidxs) != len(pidxs) or (len(qidxs) and max(qidxs.max(), pidxs.max()) >= len(cids)):
+        raise DatasetError(f'{pickle_path}: inconsistent {split} lists (cids {len(cids)}, cluster {len(cluster)}, '
+                           f'qidxs {len(qidxs)}, pidxs {len(pidxs)})')
+    paths = [sfm_image_path(ims_root, c) for c in cids]
+    missing = [str(p) for p in paths if not p.is_file()]
+    if missing:
+        raise DatasetError(f'{len(missing)} SfM images missing under {ims_root}, e.g. {missing[0]}')
+    positive = np.zeros((len(qidxs), len(cids)), bool)
+    positive[np.arange(len(qidxs)), pidxs] = True
+    negative = cluster[qidxs][:, None] != cluster[None, :]
+    return PairSet(f'sfm:{split}', [paths[i] for i in qidxs], paths, positive, negative)
+
+
+def combine(sets: list[PairSet]) -> PairSet:
+    """Several PairSets as one: block diagonal (no pairs across sources)."""
+    if len(sets) == 1:
+        return sets[0]
+    q = sum(len(s.query_paths) for s in sets)
+    r = sum(len(s.ref_paths) for s in sets)
+    pos, neg = np.zeros((q, r), bool), np.zeros((q, r), bool)
+    qo = ro = 0
+    for s in sets:
+        pos[qo:qo + len(s.query_paths), ro:ro + len(s.ref_paths)] = s.positive
+        neg[qo:qo + len(s.query_paths), ro:ro + len(s.ref_paths)] = s.negative
+        qo, ro = qo + len(s.query_paths), ro + len(s.ref_paths)
+    return PairSet('+'.join(s.name for s in sets), sum((s.query_paths for s in sets), []),
+                   sum((s.ref_paths for s in sets), []), pos, neg)
+
+
+def embed(head: LLNHead, feats: torch.Tensor) -> torch.Tensor:
+    """feats (B, D, h, w) -> F (B, D): LLN-weighted sum of L2-normalised local features, L2-normalised."""
+    w = head(feats)                                                      # (B, h, w)
+    f = torch.nn.functional.normalize(feats, dim=1)
+    return torch.nn.functional.normalize((f * w[:, None]).sum((2, 3)) + 1e-8, dim=1)
+
+
+def triplet_loss(fq: torch.Tensor, fp: torch.Tensor, fn: torch.Tensor, margin: float) -> torch.Tensor:
+    """fq, fp (B, D); fn (B, K, D). Sum over negatives of the hinge, mean over tuples."""
+    d_pos = (fq - fp).norm(dim=1)                                        # (B,)
+    d_neg = (fq[:, None] - fn).norm(dim=2)                               # (B, K)
+    return torch.relu(d_pos[:, None] + margin - d_neg).sum(1).mean()
+
+
+class Trainer:
+    """Train a head on a PairSet, validating on an evaluation Dataset every epoch.
+
+    out_dir holds last.pt (everything needed to resume: head, optimiser, epoch, RNG state, history)
+    and best.pt (the best head by validation precision at 100% recall, as an lln_ros checkpoint).
+    """
+
+    def __init__(self, extractor, pairs: PairSet, val=None, conf: dict | None = None,
+                 cache_dir: str = 'cache/features', out_dir: str = 'out/train', meta: dict | None = None):
+        self.conf = conf = {**default_conf, **(conf or {})}
+        self.extractor = extractor
+        self.pairs = pairs
+        self.val = val
+        self.out = Path(out_dir)
+        self.meta = meta or {}
+        self.cache = FeatureCache(cache_dir, extractor)
+        self.queries = pairs.usable()
+        if not len(self.queries):
+            raise DatasetError(f'{pairs.name}: no query has both a positive and a negative')
+        torch.manual_seed(conf['seed'])
+        self.head = LLNHead(extractor.backbone.dim, {**conf['head'], 'seed': conf['seed']})
+        self.optimizer = torch.optim.Adam(self.head.parameters(), lr=conf['lr'])
+        self.rng = np.random.default_rng(conf['seed'])
+        self.epoch = 0
+        self.history: list[dict] = []
+        self.best = -1.0
+
+    # ------------------------------------------------------------------ data
+
+    def load_features(self):
+        size = self.conf['train_size']
+        size = size if isinstance(size, int) else tuple(size)
+        q = self.cache.load(self.pairs.query_paths, size, progress='train features (queries)')
+        r = q if self.pairs.ref_paths is self.pairs.query_paths else \
+            self.cache.load(self.pairs.ref_paths, size, progress='train features (refs)')
+        self.fq, self.fr = torch.from_numpy(np.stack(q)), torch.from_numpy(np.stack(r))
+        if self.val is not None:
+            h = int(self.extractor.conf['input_height'])
+            self.val_q = self.cache.load(self.val.query_paths, h, progress='val features (queries)')
+            self.val_r = self.cache.load(self.val.ref_paths, h, progress='val features (refs)')
+            self.val_sizes = (self.val.info.get('query_sizes'), self.val.info.get('ref_sizes'))
+
+    @torch.no_grad()
+    def embed_all(self, feats: torch.Tensor, batch: int = 256) -> torch.Tensor:
+        self.head.eval()
+        return torch.cat([embed(self.head, feats[i:i + batch].float()) for i in range(0, len(feats), batch)])
+
+    def mine(self) -> np.ndarray:
+        """(T, 2 + K) tuples of indices: query (into queries), its hardest... most similar positive,
+        and its K most similar negatives, under the current head."""
+        k = self.conf['negatives']
+        n = self.conf['tuples_per_epoch'] or len(self.queries)
+        chosen = self.rng.permutation(self.queries)[:n]
+        eq = self.embed_all(self.fq[chosen])
+        er = self.embed_all(self.fr)
+        sims = (eq @ er.T).numpy()                                                   # (T, R)
+        pos = np.where(self.pairs.positive[chosen], sims, -np.inf).argmax(1)
+        neg_s = np.where(self.pairs.negative[chosen], sims, -np.inf)
+        negs = np.argsort(-neg_s, axis=1, kind='stable')[:, :k]
+        # a query with fewer than K negatives repeats its hardest one
+        short = ~np.isfinite(np.take_along_axis(neg_s, negs, 1))
+        negs[short] = np.broadcast_to(negs[:, :1], negs.shape)[short]
+        return np.concatenate([chosen[:, None], pos[:, None], negs], axis=1)
+
+    # ------------------------------------------------------------------ loop
+
+    def train_epoch(self, tuples: np.ndarray) -> float:
+        self.head.train()
+        bs, k = self.conf['batch_size'], self.conf['negatives']
+        losses = []
+        for start in tqdm(range(0, len(tuples), bs), desc=f'epoch {self.epoch + 1}', leave=False, unit='batch'):
+            t = tuples[start:start + bs]
+            feats = torch.cat([self.fq[t[:, 0]], self.fr[t[:, 1]], self.fr[t[:, 2:].ravel()]]).float()
+            e = embed(self.head, feats)
+            b = len(t)
+            loss = triplet_loss(e[:b], e[b:2 * b], e[2 * b:].view(b, k, -1), self.conf['margin'])
+            self.optimizer.zero_grad()
+            loss.backward()
+            self.optimizer.step()
+            losses.append(loss.item())
+        return float(np.mean(losses))
+
+    @torch.no_grad()
+    def validate(self) -> float:
+        """Precision at 100% recall of the LLN rerank on the validation dataset."""
+        if self.val is None:
+            return float('nan')
+        self.head.eval()
+        ex = copy.copy(self.extractor)
+        ex.head = self.head
+        ex.conf = {**self.extractor.conf, 'method': 'lln', 'top_n': self.conf['val_top_n']}
+        qs = [ex.from_features(f, s) for f, s in zip(self.val_q, self.val_sizes[0])]
+        rs = stack_landmarks([ex.from_features(f, s) for f, s in zip(self.val_r, self.val_sizes[1])])
+        ranked, _ = rank_all(qs, rs, self.conf['val_prefilter_k'], allowed=self.val.candidates)
+        has = self.val.gt.any(1)
+        top1 = ranked[:, 0]
+        correct = (top1 >= 0) & self.val.gt[np.arange(len(top1)), np.maximum(top1, 0)]
+        return float(correct[has].mean())
+
+    def fit(self, resume: bool = True) -> dict:
+        self.out.mkdir(parents=True, exist_ok=True)
+        if resume and (self.out / 'last.pt').is_file():
+            self._restore(self.out / 'last.pt')
+        self.load_features()
+        if self.epoch == 0 and self.val is not None:
+            untrained = self.validate()
+            self.history.append({'epoch': 0, 'val_p_at_100r': untrained})
+            print(f'epoch 0 (untrained head): val P@100R {untrained:.3f}', flush=True)
+        while self.epoch < self.conf['epochs']:
+            t0 = time.perf_counter()
+            tuples = self.mine()
+            loss = self.train_epoch(tuples)
+            self.epoch += 1
+            score = self.validate()
+            row = {'epoch': self.epoch, 'loss': loss, 'val_p_at_100r': score,
+                   'seconds': time.perf_counter() - t0}
+            self.history.append(row)
+            improved = self.val is None or score > self.best
+            if improved:
+                self.best = score if self.val is not None else self.best
+                self._save_best()
+            self._save_last()  # after best.pt: an interruption never leaves last ahead of best
+            print(f'epoch {self.epoch}: loss {loss:.4f}, val P@100R {score:.3f}'
+                  f'{" (best)" if improved else ""}, {row["seconds"]:.0f} s', flush=True)
+        return {'best_val_p_at_100r': self.best, 'history': self.history}
+
+    # ------------------------------------------------------------------ files
+
+    def _save_best(self) -> None:
+        bb = self.extractor.conf['backbone']
+        save_checkpoint(str(self.out / 'best.pt'), self.head, bb['name'], self.extractor.backbone.layer,
+                        trained=True, epoch=self.epoch, val_p_at_100r=self.best, train_conf=_jsonable(self.conf),
+                        train_data=self.pairs.name, val_data=getattr(self.val, 'name', None), **self.meta)
+
+    def _save_last(self) -> None:
+        state = {'head': self.head.state_dict(), 'optimizer': self.optimizer.state_dict(), 'epoch': self.epoch,
+                 'rng': self.rng.bit_generator.state, 'torch_rng': torch.get_rng_state(),
+                 'history': self.history, 'best': self.best, 'conf': _jsonable(self.conf)}
+        tmp = self.out / 'last.pt.tmp'
+        torch.save(state, tmp)
+        os.replace(tmp, self.out / 'last.pt')
+        (self.out / 'history.json').write_text(json.dumps(self.history, indent=1))
+
+    def _restore(self, path: Path) -> None:
+        state = torch.load(path, map_location='cpu', weights_only=False)
+        # only the number of epochs may change on resume (to extend a run)
+        same = {k: v for k, v in state['conf'].items() if k != 'epochs'} == \
+            {k: v for k, v in _jsonable(self.conf).items() if k != 'epochs'}
+        if not same:
+            raise DatasetError(f'{path} was written with another training configuration; use a new --out '
+                               f'or remove it (was {state["conf"]}, now {_jsonable(self.conf)})')
+        self.head.load_state_dict(state['head'])
+        self.optimizer.load_state_dict(state['optimizer'])
+        self.epoch, self.history, self.best = state['epoch'], state['history'], state['best']
+        self.rng.bit_generator.state = state['rng']
+        torch.set_rng_state(state['torch_rng'])
+        print(f'resuming from {path} after epoch {self.epoch}', flush=True)
+
+
+def _jsonable(conf: dict) -> dict:
+    return json.loads(json.dumps(conf, default=list))

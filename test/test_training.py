@@ -1,0 +1,121 @@
+"""LLN head training: data sources, mining, determinism, resume, and the checkpoint it ships."""
+import pickle
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from lln_ros import datasets, training
+from lln_ros.errors import DatasetError
+from lln_ros.extractor import Extractor
+from lln_ros.lln import LLNHead, load_checkpoint
+
+
+@pytest.fixture(scope='module')
+def traverses(tmp_path_factory, photo):
+    """Two 'traverses' of 10 places: views of the photograph, the second shifted and darker."""
+    root = tmp_path_factory.mktemp('traverses')
+    for name, dy, gain in (('ref', 0, 1.0), ('query', 8, 0.7)):
+        (root / name).mkdir()
+        for i in range(10):
+            y = 20 + i * 30 + dy
+            view = (photo[y:y + 96, 100:228] * gain).astype(np.uint8)
+            cv2.imwrite(str(root / name / f'{i}.png'), cv2.cvtColor(view, cv2.COLOR_RGB2BGR))
+    return root
+
+
+def small_extractor():
+    return Extractor({'input_height': 96, 'num_threads': 2})
+
+
+def conf(**kw):
+    return {'epochs': 2, 'lr': 1e-3, 'tuples_per_epoch': 0, 'train_size': 96, 'batch_size': 4,
+            'neg_margin': 1, 'head': {'channels': 8}, **kw}
+
+
+def test_pairs_from_dataset_excludes_frames_beside_a_match(traverses):
+    ds = datasets.aligned(traverses / 'ref', traverses / 'query', tol=0)
+    pairs = training.pairs_from_dataset(ds, neg_margin=2)
+    assert pairs.positive[4].tolist() == [i == 4 for i in range(10)]
+    assert pairs.negative[4].tolist() == [i not in (2, 3, 4, 5, 6) for i in range(10)]
+    assert not (pairs.positive & pairs.negative).any()
+
+
+def test_places_and_sfm_layouts(tmp_path, photo):
+    for place in ('a', 'b', 'c'):
+        (tmp_path / 'places' / place).mkdir(parents=True)
+        for k in range(2):
+            cv2.imwrite(str(tmp_path / 'places' / place / f'{k}.jpg'), photo[k * 10:k * 10 + 64, :64])
+    p = training.pairs_from_places(tmp_path / 'places')
+    assert len(p.query_paths) == 6 and p.positive.sum() == 6 and not p.positive.diagonal().any()
+    assert p.negative[0].sum() == 4
+    # Retrieval-SfM-120k: pickle {'train': {cids, cluster, qidxs, pidxs}}, images under ims/ by cid
+    cids = [f'{k:08x}abcdef{k}' for k in range(4)]
+    for k, cid in enumerate(cids):
+        path = training.sfm_image_path(tmp_path / 'ims', cid)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(path) + '.png', photo[k * 20:k * 20 + 64, :64])
+        (path.parent / (path.name + '.png')).rename(path)
+    with open(tmp_path / 'db.pkl', 'wb') as f:
+        pickle.dump({'train': {'cids': cids, 'cluster': [0, 0, 1, 1], 'qidxs': [0, 2], 'pidxs': [1, 3]}}, f)
+    s = training.pairs_from_sfm(tmp_path / 'db.pkl', tmp_path / 'ims')
+    assert s.positive.tolist() == [[False, True, False, False], [False, False, False, True]]
+    assert s.negative.tolist() == [[False, False, True, True], [True, True, False, False]]
+    both = training.combine([p, s])
+    assert both.positive.shape == (8, 10) and both.positive.sum() == 8
+    with pytest.raises(DatasetError, match='not a Retrieval-SfM-120k pickle'):
+        (tmp_path / 'bad.pkl').write_bytes(pickle.dumps({'val': {}}))
+        training.pairs_from_sfm(tmp_path / 'bad.pkl', tmp_path / 'ims')
+    with pytest.raises(DatasetError, match='SfM images missing'):
+        training.pairs_from_sfm(tmp_path / 'db.pkl', tmp_path / 'elsewhere')
+
+
+def test_loss_and_embedding():
+    head = LLNHead(16, {'channels': 4})
+    feats = torch.randn(3, 16, 3, 4)
+    f = training.embed(head, feats)
+    assert f.shape == (3, 16) and torch.allclose(f.norm(dim=1), torch.ones(3), atol=1e-5)
+    q = torch.tensor([[1.0, 0.0]])
+    assert training.triplet_loss(q, q, torch.tensor([[[0.0, 1.0]]]), 0.3).item() == 0.0  # well separated
+    loss = training.triplet_loss(q, torch.tensor([[0.0, 1.0]]), torch.tensor([[[1.0, 0.0], [0.0, 1.0]]]), 0.3)
+    assert loss.item() == pytest.approx((2 ** 0.5 + 0.3) + 0.3, rel=1e-5)
+
+
+def test_training_is_deterministic_resumable_and_ships_metadata(traverses, tmp_path):
+    ds = datasets.aligned(traverses / 'ref', traverses / 'query', tol=0)
+    pairs = training.pairs_from_dataset(ds, neg_margin=1)
+
+    def run(out, epochs, resume=True):
+        t = training.Trainer(small_extractor(), pairs, ds, conf(epochs=epochs), cache_dir=str(tmp_path / 'cache'),
+                             out_dir=str(out), meta={'command': 'test'})
+        return t.fit(resume=resume), t
+
+    # the feature cache is warmed first: features computed in this process and the same features
+    # read back can drive the head through different oneDNN kernels (last-bit differences)
+    run(tmp_path / 'warm', 1)
+    full, t_full = run(tmp_path / 'a', 2)
+    assert [h['epoch'] for h in full['history']] == [0, 1, 2]
+    assert all(np.isfinite(h['loss']) for h in full['history'][1:])
+    again, t_again = run(tmp_path / 'b', 2)
+    for k, v in t_full.head.state_dict().items():
+        assert torch.equal(v, t_again.head.state_dict()[k]), f'not deterministic: {k}'
+    # interrupted after epoch 1, resumed: the same head as an uninterrupted run
+    run(tmp_path / 'c', 1)
+    resumed, t_resumed = run(tmp_path / 'c', 2)
+    assert [h['epoch'] for h in resumed['history']] == [0, 1, 2]
+    for k, v in t_full.head.state_dict().items():
+        assert torch.equal(v, t_resumed.head.state_dict()[k]), f'resume differs: {k}'
+    head, meta = load_checkpoint(str(tmp_path / 'a' / 'best.pt'), 'efficientnet_lite0', 'stage7', 320)
+    assert meta['trained'] and meta['command'] == 'test' and meta['train_data'] == pairs.name
+    assert 0 <= meta['val_p_at_100r'] <= 1
+    with pytest.raises(DatasetError, match='another training configuration'):
+        training.Trainer(small_extractor(), pairs, ds, conf(epochs=3, lr=0.5), cache_dir=str(tmp_path / 'cache'),
+                         out_dir=str(tmp_path / 'c')).fit()
+
+
+def test_cli_rejects_bad_data_before_work(tmp_path, capsys):
+    from lln_ros.cli.train import main
+    (tmp_path / 'a').mkdir()
+    assert main(['--data', f'aligned:{tmp_path / "a"},{tmp_path / "b"}', '--out', str(tmp_path / 'o')]) == 2
+    assert 'lln-train: error:' in capsys.readouterr().err and not (tmp_path / 'o').exists()
