@@ -182,7 +182,7 @@ class ResNet101Block3(nn.Module):
 
 # name -> (constructor(layer, weights_path), default layer)
 BACKBONES = {
-    'efficientnet_lite0': (lambda layer, w: EfficientNetLite('efficientnet-lite0', layer, w), 'stage7'),
+    'efficientnet_lite0': (lambda layer, w: EfficientNetLite('efficientnet-lite0', layer, w), 'stage6'),
     'efficientnet_lite2': (lambda layer, w: EfficientNetLite('efficientnet-lite2', layer, w), 'stage7'),
     'resnet101': (lambda layer, w: ResNet101Block3(layer, w), 'block3'),
 }

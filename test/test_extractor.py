@@ -13,7 +13,7 @@ from lln_ros.lln import LLNHead, load_checkpoint, save_checkpoint
 def test_landmark_set_shapes_and_coordinates(extractor, photo):
     s = extractor(photo)  # 512x600 portrait: network 256x288 -> 8x9 grid
     assert s.grid == (9, 8)
-    assert len(s) == 50 and s.descriptors.shape == (50, 320) and s.global_descriptor.shape == (320,)
+    assert len(s) == 50 and s.descriptors.shape == (50, 192) and s.global_descriptor.shape == (192,)
     np.testing.assert_allclose(np.linalg.norm(s.descriptors, axis=1), 1, atol=1e-5)
     assert abs(np.linalg.norm(s.global_descriptor) - 1) < 1e-5
     np.testing.assert_allclose(s.cell_size, [512 / 8, 600 / 9], rtol=1e-6)
@@ -117,17 +117,17 @@ def test_bad_configuration():
 
 
 def test_checkpoint_metadata_guards_the_descriptor_space(tmp_path, photo):
-    head = LLNHead(192, {'channels': 8})
+    head = LLNHead(320, {'channels': 8})
     path = str(tmp_path / 'head.pt')
-    save_checkpoint(path, head, 'efficientnet_lite0', 'stage6', trained=True, note='test')
-    loaded, meta = load_checkpoint(path, 'efficientnet_lite0', 'stage6', 192)
-    assert meta['note'] == 'test' and meta['descriptor_dim'] == 192 and meta['version'] == 1
+    save_checkpoint(path, head, 'efficientnet_lite0', 'stage7', trained=True, note='test')
+    loaded, meta = load_checkpoint(path, 'efficientnet_lite0', 'stage7', 320)
+    assert meta['note'] == 'test' and meta['descriptor_dim'] == 320 and meta['version'] == 1
     for k, v in head.state_dict().items():
         assert torch.equal(v, loaded.state_dict()[k])
-    ex = Extractor({'backbone': {'layer': 'stage6'}, 'weights': path, 'num_threads': 2})
-    assert ex.model_info['head_trained'] and ex(photo).dim == 192
+    ex = Extractor({'backbone': {'layer': 'stage7'}, 'weights': path, 'num_threads': 2})
+    assert ex.model_info['head_trained'] and ex(photo).dim == 320
     # a head for another layer (another descriptor space) is refused by name, before any shape error
-    with pytest.raises(ModelError, match="layer='stage6'.*layer='stage7'"):
+    with pytest.raises(ModelError, match="layer='stage7'.*layer='stage6'"):
         Extractor({'weights': path})
     with pytest.raises(ModelError, match='backbone'):
         load_checkpoint(path, backbone='resnet101')

@@ -33,6 +33,7 @@ from ros_harness import Probe, RosProcess, installed_env, ros_env
 TIMEOUT = 60.0          # generous: a loaded 2-core CI machine starts torch slowly
 EXTRACTOR = '/lln_extractor'
 MATCHER = '/lln_matcher'
+DIM = 192               # descriptor size of the default model (efficientnet_lite0/stage6)
 T0 = 1_700_000_000 * 10**9  # stamps of the test messages start here (ns)
 
 
@@ -198,7 +199,7 @@ def test_extractor_every_encoding(rig, small_photo):
     out = {}
     for enc, msg in zip(images, got):
         assert same_header(msg.header, sent[enc]), (enc, msg.header, sent[enc])
-        lset = msgs.cloud_to_landmarks(msg, expected_dim=320)
+        lset = msgs.cloud_to_landmarks(msg, expected_dim=DIM)
         assert tuple(lset.image_size) == (w, h), enc
         table = msgs.cloud_to_array(msg)
         assert (table['u'][0], table['v'][0], table['w'][0], table['h'][0]) == (w / 2, h / 2, w, h)
@@ -282,7 +283,7 @@ def test_extractor_compressed_transport(rig, photo):
                     raise
     for fmt in ('jpeg', 'png'):
         m = next(m for m in got if m.header.frame_id == 'cam_' + fmt)
-        lset = msgs.cloud_to_landmarks(m, expected_dim=320)
+        lset = msgs.cloud_to_landmarks(m, expected_dim=DIM)
         assert tuple(lset.image_size) == (200, 150) and len(lset) == 10
     assert len(log_lines(proc, 'cannot decode')) == 1
     assert proc.alive()
@@ -583,7 +584,7 @@ def test_matcher_corrupt_map_exits_and_leaves_file(rig, places, tmp_path, kind):
     assert sha(map_path) == before
 
 
-@pytest.mark.parametrize('other_dim', [8, 320])
+@pytest.mark.parametrize('other_dim', [8, DIM])
 def test_matcher_refuses_other_model(rig, places, tmp_path, small_photo, other_dim):
     """A map made with another model ('x/y/D'): a cloud of another size is refused by the D check;
     once the extractor's latched model_info arrives, its keyframes are refused with an error naming

@@ -39,8 +39,8 @@ def test_database_refuses_other_models_and_bad_queries(extractor, photo):
     db = LandmarkDatabase()
     assert db.retrieve(extractor(photo)) == []
     db.add([extractor(photo)])
-    other = Extractor({'backbone': {'layer': 'stage6'}, 'num_threads': 2})(photo)
-    with pytest.raises(DescriptorError, match='stage6'):
+    other = Extractor({'backbone': {'layer': 'stage7'}, 'num_threads': 2})(photo)
+    with pytest.raises(DescriptorError, match='stage7'):
         db.add([other])
     with pytest.raises(DescriptorError, match='the map holds'):
         db.retrieve(other)

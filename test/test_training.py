@@ -106,7 +106,7 @@ def test_training_is_deterministic_resumable_and_ships_metadata(traverses, tmp_p
     assert [h['epoch'] for h in resumed['history']] == [0, 1, 2]
     for k, v in t_full.head.state_dict().items():
         assert torch.equal(v, t_resumed.head.state_dict()[k]), f'resume differs: {k}'
-    head, meta = load_checkpoint(str(tmp_path / 'a' / 'best.pt'), 'efficientnet_lite0', 'stage7', 320)
+    head, meta = load_checkpoint(str(tmp_path / 'a' / 'best.pt'), 'efficientnet_lite0', 'stage6', 192)
     assert meta['trained'] and meta['command'] == 'test' and meta['train_data'] == pairs.name
     assert 0 <= meta['val_p_at_100r'] <= 1
     with pytest.raises(DatasetError, match='another training configuration'):

@@ -35,7 +35,7 @@ PARAMETERS = {
     'exclude_recent': (10, 'mapping mode: the newest N keyframes are never answers'),
     'method': ('lln', 'lln: rerank by landmark similarity S | holistic: global descriptor only'),
     'offset_scale': (1.0, 'Gaussian width of the offset weights, in grid cells'),
-    'descriptor_space': ('', "expected model, e.g. efficientnet_lite0/stage7/320; '' = the map's or first seen"),
+    'descriptor_space': ('', "expected model, e.g. efficientnet_lite0/stage6/192; '' = the map's or first seen"),
     'reliability': ('reliable', 'keyframes/query subscriptions: reliable | best_effort'),
     'queue_depth': (100, 'keyframes/query subscription queue depth'),
     'diagnostics_period': (1.0, 'seconds between /diagnostics messages; 0 = off'),
