@@ -37,10 +37,12 @@ reads only the small ``keyframes`` rows; the large ``descriptors`` blob is the L
 blobs are read without touching its overflow pages. The activation map and ``LandmarkSet.meta`` are
 not stored.
 
-Bytes per keyframe at n=50, D=320: blobs 1,280 (global) + 32,000 (descriptors) + 200 (cells)
-+ 400 (centers) + 200 (scores) = 34,080; measured ~34.7-34.9 KB per keyframe in the .db file after
-a checkpoint (4 KiB pages; record headers, b-tree and overflow-page slack add ~2%), i.e. ~30
-keyframes per MB, ~350 MB per 10,000 keyframes. (float32 descriptors would double that.)
+Bytes per keyframe at n=50 with the default model (D=192): blobs 768 (global) + 19,200
+(descriptors) + 200 (cells) + 400 (centers) + 200 (scores) = 20,768; measured 21.3 KB per keyframe in a
+1,000-keyframe .db file after a checkpoint. At D=320 the blobs are 34,080
+and the .db file measured ~34.7-34.9 KB per keyframe after a checkpoint (4 KiB pages; record
+headers, b-tree and overflow-page slack add ~2%). float32 descriptors would double the descriptor
+part.
 
 Migrations: ``MIGRATIONS[v]`` upgrades a map from schema v to v+1 inside one transaction at open.
 A map newer than this code is refused, never modified.
