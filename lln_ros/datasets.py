@@ -77,6 +77,19 @@ def read_checked(paths: list) -> list[tuple[int, int, float]]:
     return out
 
 
+def parse_range(text: str | None):
+    """'START:END' fractions of a route (e.g. '0.7:1', the last 30%) -> (start, end), or None."""
+    if not text:
+        return None
+    try:
+        start, end = (float(v) for v in text.split(':'))
+    except ValueError:
+        raise DatasetError(f'--range must be START:END fractions such as 0.7:1, got {text!r}') from None
+    if not 0 <= start < end <= 1:
+        raise DatasetError(f'--range needs 0 <= START < END <= 1, got {text!r}')
+    return start, end
+
+
 def _select(n: int, frac) -> slice:
     if frac is None:
         return slice(0, n)

@@ -31,18 +31,6 @@ class UsageError(Exception):
     """Bad command-line values found after argparse (one line, exit 2)."""
 
 
-def parse_range(text: str | None):
-    if not text:
-        return None
-    try:
-        start, end = (float(v) for v in text.split(':'))
-    except ValueError:
-        raise UsageError(f'--range must be START:END fractions such as 0.7:1, got {text!r}') from None
-    if not 0 <= start < end <= 1:
-        raise UsageError(f'--range needs 0 <= START < END <= 1, got {text!r}')
-    return start, end
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.strip().splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -136,6 +124,7 @@ def run(args, argv) -> dict:
         raise UsageError(f'--methods: {e}') from None
     if args.top_n < 1 or args.prefilter_k < 1:
         raise UsageError('--top-n and --prefilter-k must be at least 1')
+    from ..datasets import parse_range
     frac = parse_range(args.range)
     heads = head_specs(args)
 

@@ -15,24 +15,12 @@ import shlex
 import sys
 
 
-def parse_range(text: str | None):
-    if not text:
-        return None
-    try:
-        start, end = (float(v) for v in text.split(':'))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'range must be START:END fractions, got {text!r}') from None
-    if not 0 <= start < end <= 1:
-        raise argparse.ArgumentTypeError(f'range needs 0 <= START < END <= 1, got {text!r}')
-    return start, end
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog='lln-train', description=__doc__.strip().splitlines()[0])
     p.add_argument('--data', action='append', required=True, metavar='SPEC', help='training data (repeatable)')
-    p.add_argument('--range', type=parse_range, help='START:END fractions of aligned --data to train on')
+    p.add_argument('--range', help='START:END fractions of aligned --data to train on')
     p.add_argument('--val', metavar='SPEC', help='validation dataset (an lln-eval SPEC)')
-    p.add_argument('--val-range', type=parse_range, help='START:END fractions of an aligned --val')
+    p.add_argument('--val-range', help='START:END fractions of an aligned --val')
     p.add_argument('--out', required=True, help='output folder (best.pt, last.pt, history.json)')
     p.add_argument('--epochs', type=int, default=10)
     p.add_argument('--lr', type=float, default=1e-4)
@@ -74,8 +62,9 @@ def run(args) -> dict:
             'margin': args.margin, 'tuples_per_epoch': args.tuples_per_epoch, 'train_size': train_size,
             'neg_margin': args.neg_margin, 'seed': args.seed}
     # every dataset is read and checked before any feature is computed
-    pairs = training.combine([load_pairs(s, args.range, args.neg_margin) for s in args.data])
-    val = datasets.parse_spec(args.val, args.val_range) if args.val else None
+    frac, val_frac = datasets.parse_range(args.range), datasets.parse_range(args.val_range)
+    pairs = training.combine([load_pairs(s, frac, args.neg_margin) for s in args.data])
+    val = datasets.parse_spec(args.val, val_frac) if args.val else None
     extractor = Extractor({'backbone': {'name': args.backbone, 'layer': args.layer,
                                         'weights_path': args.backbone_weights}, 'num_threads': args.threads})
     command = 'lln-train ' + ' '.join(shlex.quote(a) for a in sys.argv[1:])
