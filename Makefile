@@ -2,13 +2,17 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup test bench colcon clean
+.PHONY: setup test main bench colcon clean
 
 setup:
 	bash scripts/setup.sh
 
 test: setup
 	$(PY) -m pytest -q test
+
+# the main job: a map from one traverse, queried with another through the ROS 2 nodes
+main: setup
+	bash scripts/main_job.sh $(ARGS)
 
 bench: setup
 	$(PY) bench/bench_core.py

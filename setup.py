@@ -30,6 +30,7 @@ setup(
             'lln-bag = lln_ros.cli.bag:main',
             'lln-eval = lln_ros.cli.eval:main',
             'lln-train = lln_ros.cli.train:main',
+            'lln-demo = lln_ros.cli.demo:main',
         ],
     },
 )

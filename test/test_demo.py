@@ -2,7 +2,6 @@
 the real nodes (two extractors and the matcher as separate processes over DDS), online figures equal
 to the offline evaluator's; outputs; bad input; clean-up on Ctrl-C; the default dataset."""
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -77,13 +76,21 @@ def test_no_frame_lost_and_counters_agree(tiny_run):
     tr = tiny_run['results']['transport']
     for phase in ('map', 'query'):
         t = tr[phase]
-        assert t['frames'] == t['extractor_received'] == t['extractor_published'] == t['landmarks_seen'] == FRAMES, t
+        # the first frame of a phase is sent again when it went out before the extractor's writer had
+        # matched the matcher's reader (the handshake); nothing else is ever sent twice
+        assert t['resent'] < demo.HANDSHAKE_TRIES, t
+        assert t['extractor_received'] == t['extractor_published'] == FRAMES + t['resent'], t
+        assert t['frames'] == t['landmarks_seen'] == FRAMES, t
         assert t['extractor_dropped'] == 0 and t['lost'] == 0, t
-    assert tr['map']['keyframes_stored'] == tr['keyframes_in_map_at_end'] == FRAMES
+    m = tr['map']
+    assert m['keyframes_stored'] == m['keyframes_in_map_file'] == tr['keyframes_in_map_at_end'] == FRAMES
+    assert tr['map']['duplicate_keyframes'] == 0
     assert tr['query']['answered'] == tr['query']['queries_answered_counter'] == FRAMES
     assert tr['map']['bad_keyframe'] == tr['query']['bad_query'] == 0
     assert tr['unknown_keyframe_stamps'] == tr['unknown_query_stamps'] == 0
-    assert tr['duplicates'] == {'keyframes': 0, 'query': 0, 'candidates': 0}
+    dup = tr['duplicates']  # only a handshake's second copy of a first frame can be seen twice
+    assert dup['keyframes'] <= tr['map']['resent'] and dup['query'] <= tr['query']['resent'], tr
+    assert dup['candidates'] <= tr['query']['resent'], tr
 
 
 def test_nodes_ran_as_ros2_run_would_and_stopped_cleanly(tiny_run):
@@ -277,10 +284,11 @@ def test_default_dataset_is_the_nordland_test_split(tmp_path):
 
 
 def test_nordland_slice_through_the_nodes(tmp_path):
-    """The default dataset's last 11 places (64x32 frames upsampled to the network): online == offline."""
+    """11 places of the default dataset (64x32 frames upsampled to the network): online == offline.
+    (Not the very end: the last 15 winter frames are one repeated image.)"""
     shared_data('nordland_trimmed')
     out = tmp_path / 'o'
-    done = run_demo('--out', str(out), '--range', '0.997:1', '--examples', '1')
+    done = run_demo('--out', str(out), '--range', '0.99:0.993', '--examples', '1')
     assert done.returncode == 0, f'{done.stdout}\n{done.stderr}'
     r = json.loads((out / 'results_online.json').read_text())
     assert r['dataset']['refs'] == r['dataset']['queries'] == 11
