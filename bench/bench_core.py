@@ -10,18 +10,24 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import statistics
 import sys
 import time
 
-import numpy as np
-import torch
+# numpy's BLAS sizes its thread pool at import: take --threads before numpy loads. With more BLAS
+# threads than free cores, spinning workers cost ~266 us per pair whatever the work (seen here)
+if '--threads' in sys.argv[:-1]:
+    os.environ['OPENBLAS_NUM_THREADS'] = sys.argv[sys.argv.index('--threads') + 1]
 
-from lln_ros.extractor import Extractor
-from lln_ros.image import load_image, resize_for_network
-from lln_ros.landmarks import stack_landmarks
-from lln_ros.similarity import match_batch
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from lln_ros.extractor import Extractor  # noqa: E402
+from lln_ros.image import load_image, resize_for_network  # noqa: E402
+from lln_ros.landmarks import stack_landmarks  # noqa: E402
+from lln_ros.similarity import match_batch  # noqa: E402
 
 PAPER_MS = {'extract_ms': 16.0, 'lln_50': 6.0, 'lln_75': 13.0, 'all': 27.0, 'holistic': 0.009}
 
@@ -68,15 +74,20 @@ def run(repeats: int, threads: int) -> dict:
     result['extract_ms'] = median_time(lambda: ex(query_img), repeats) * 1e3
     result['extract_over_backbone'] = result['extract_ms'] / result['backbone_ms']
 
+    prepared = {}
     for key, conf in (('lln_50', {'top_n': 50}), ('lln_75', {'top_n': 75}), ('all', {'method': 'all'})):
-        e = Extractor({'num_threads': threads, **conf})
-        sets = e.extract_batch(images)
-        q, batch = sets[0], stack_landmarks(sets[1:])
+        sets = Extractor({'num_threads': threads, **conf}).extract_batch(images)
+        prepared[key] = (sets[0], stack_landmarks(sets[1:]))
+    # torch's worker threads keep spinning for a while after the last extraction and starve numpy's
+    # BLAS threads (seen here: a constant 266 us per pair); matching is timed once they are idle
+    time.sleep(1.0)
+    for key, (q, batch) in prepared.items():
         per_call = median_time(lambda: match_batch(q, batch), repeats * 3)
         result[f'match_us_per_pair_{key}'] = per_call / len(batch) * 1e6
         result[f'n_{key}'] = len(q)
+    sets = [q]
     globals_ = batch.globals
-    gq = sets[0].global_descriptor
+    gq = q.global_descriptor
     result['holistic_us_per_pair'] = median_time(lambda: globals_ @ gq, repeats * 30) / len(globals_) * 1e6
     return result
 
