@@ -202,7 +202,7 @@ class Trainer:
         return torch.cat([embed(self.head, feats[i:i + batch].float()) for i in range(0, len(feats), batch)])
 
     def mine(self) -> np.ndarray:
-        """(T, 2 + K) tuples of indices: query (into queries), its hardest... most similar positive,
+        """(T, 2 + K) tuples of indices: a query, its most similar positive ref,
         and its K most similar negatives, under the current head."""
         k = self.conf['negatives']
         n = self.conf['tuples_per_epoch'] or len(self.queries)
