@@ -143,8 +143,11 @@ def vprbench_gt(path, n_queries: int, n_refs: int) -> tuple[np.ndarray, int]:
         raise DatasetError(f'ground truth not found: {path}')
     try:
         rows = np.load(path, allow_pickle=True)
-    except (OSError, ValueError) as e:
+    except Exception as e:  # OSError, ValueError, UnpicklingError, EOFError ... for a bad file
         raise DatasetError(f'cannot read ground truth {path}: {e}') from e
+    if rows.ndim != 2 or rows.shape[1] != 2:
+        raise DatasetError(f'{path}: expected rows [query_index, [ref indices]] (shape (Q, 2)), '
+                           f'got shape {rows.shape}')
     gt = np.zeros((n_queries, n_refs), bool)
     clipped = 0
     try:
@@ -168,8 +171,13 @@ def loop(folder, gt_file, min_gap: int = 10, name: str | None = None) -> Dataset
     frames = [f for f in frames if f.resolve() != gt_file.resolve()]
     if not gt_file.is_file():
         raise DatasetError(f'ground truth not found: {gt_file}')
-    if gt_file.suffix == '.npy':
-        matrix = np.load(gt_file)
+    if gt_file.suffix.lower() == '.npy':
+        try:
+            matrix = np.load(gt_file)
+        except Exception as e:  # a corrupt file, or pickled objects
+            raise DatasetError(f'cannot read ground truth {gt_file} (expected a numeric NxN .npy): {e}') from e
+        if not (np.issubdtype(matrix.dtype, np.number) or matrix.dtype == bool):
+            raise DatasetError(f'ground truth {gt_file} must be numeric, got dtype {matrix.dtype}')
     else:
         matrix = cv2.imread(str(gt_file), cv2.IMREAD_GRAYSCALE)
         if matrix is None:
@@ -200,6 +208,8 @@ def parse_spec(spec: str, frac=None) -> Dataset:
     loop:DIR,GT_FILE | gardenspoint:DIR[,REF,QUERY]. frac (start, end) applies to aligned data."""
     kind, _, rest = spec.partition(':')
     args = [a for a in rest.split(',') if a] if rest else []
+    if kind == 'aligned' and len(args) == 3 and not args[2].strip().isdigit():
+        raise DatasetError(f'{spec!r}: the tolerance TOL must be a whole number of frames, got {args[2]!r}')
     if kind == 'aligned' and len(args) in (2, 3):
         return aligned(args[0], args[1], int(args[2]) if len(args) == 3 else 2, frac)
     if frac is not None and kind != 'aligned':

@@ -93,3 +93,23 @@ def test_real_layouts():
     gp = shared_data('gardens_point_gt', 'ground_truth_new.npy')
     gt, clipped = datasets.vprbench_gt(gp, 200, 200)
     assert gt.shape == (200, 200) and clipped > 0 and gt.any(1).all()
+
+
+def test_bad_ground_truth_files_and_specs_are_dataset_errors(tmp_path):
+    seq = write_images(tmp_path / 'seq', 6)
+    (tmp_path / 'corrupt.npy').write_bytes(b'\x93NUMPY garbage')
+    with pytest.raises(DatasetError, match='cannot read ground truth'):
+        datasets.loop(seq, tmp_path / 'corrupt.npy')
+    np.save(tmp_path / 'objects.npy', np.empty((6, 6), object), allow_pickle=True)
+    with pytest.raises(DatasetError, match='ground truth'):
+        datasets.loop(seq, tmp_path / 'objects.npy')
+    write_images(tmp_path / 'vpr' / 'query', 3)
+    write_images(tmp_path / 'vpr' / 'ref', 3)
+    np.save(tmp_path / 'vpr' / 'ground_truth_new.npy', np.zeros((3, 3)))
+    with pytest.raises(DatasetError, match=r'shape \(Q, 2\)'):
+        datasets.vprbench(tmp_path / 'vpr')
+    (tmp_path / 'vpr' / 'ground_truth_new.npy').write_bytes(b'not numpy at all')
+    with pytest.raises(DatasetError, match='cannot read ground truth'):
+        datasets.vprbench(tmp_path / 'vpr')
+    with pytest.raises(DatasetError, match='whole number'):
+        datasets.parse_spec(f'aligned:{seq},{seq},x')
