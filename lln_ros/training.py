@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from . import metrics
 from .datasets import list_images
 from .errors import DatasetError
 from .features import FeatureCache
@@ -248,10 +249,7 @@ class Trainer:
         qs = [ex.from_features(f, s) for f, s in zip(self.val_q, self.val_sizes[0])]
         rs = stack_landmarks([ex.from_features(f, s) for f, s in zip(self.val_r, self.val_sizes[1])])
         ranked, _ = rank_all(qs, rs, self.conf['val_prefilter_k'], allowed=self.val.candidates)
-        has = self.val.gt.any(1)
-        top1 = ranked[:, 0]
-        correct = (top1 >= 0) & self.val.gt[np.arange(len(top1)), np.maximum(top1, 0)]
-        return float(correct[has].mean())
+        return metrics.p_at_100r(ranked, self.val.gt)
 
     def fit(self, resume: bool = True) -> dict:
         self.out.mkdir(parents=True, exist_ok=True)
