@@ -68,8 +68,12 @@ class Extractor:
 
     @torch.inference_mode()
     def backbone_features(self, rgb_batch: np.ndarray) -> torch.Tensor:
-        """RGB uint8 (B, H, W, 3), already at network size -> features (B, D, H/32, W/32)."""
-        return self.backbone(torch.from_numpy(rgb_batch).permute(0, 3, 1, 2).float().div_(255.0))
+        """RGB uint8 (B, H, W, 3), already at network size -> features (B, D, H/32, W/32).
+
+        Rounded to float16 precision: the feature cache stores float16, so live extraction and
+        evaluation from the cache see the same numbers (and agree on every ranking)."""
+        feats = self.backbone(torch.from_numpy(rgb_batch).permute(0, 3, 1, 2).float().div_(255.0))
+        return feats.half().float()
 
     @torch.inference_mode()
     def features(self, rgb_batch: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
@@ -121,7 +125,8 @@ class Extractor:
         centers = ((cells + 0.5) * cell_size).astype(np.float32)
         return LandmarkSet(
             global_descriptor=l2_normalize(local.max(axis=0)).astype(np.float32),
-            descriptors=l2_normalize(local[cells_flat]).astype(np.float32),
+            # float16-exact, as the map stores them: a map answers like the offline evaluation
+            descriptors=l2_normalize(local[cells_flat]).astype(np.float16).astype(np.float32),
             cells=cells,
             centers=centers,
             scores=(rank_by if method == 'act' else activation).ravel()[cells_flat].astype(np.float32),
