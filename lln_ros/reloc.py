@@ -31,7 +31,7 @@ default_conf = {
     'max_keypoints': 1000,      # per image (ORB-SLAM's default for 512x384-ish frames)
     'min_height': 288,          # shorter images are upsampled (INTER_LINEAR) to this height to detect
     'ratio': 0.8,               # Lowe ratio: best / second-best descriptor distance
-    'margin': 0.5,              # region box = matched cell grown by this many cells on each side
+    'margin': 1.0,              # region box = matched cell grown by this many cells on each side
     'ransac_px': 2.0,           # inlier threshold in detection pixels (F: epipolar distance)
     'confidence': 0.999,
     'max_iters': 2000,
@@ -259,7 +259,8 @@ class Relocalizer:
         """Ratio-test matches. Without boxes: every query keypoint against every keyframe keypoint
         (the unconstrained baseline). With boxes (M, 4) each (region pair m): query keypoints in
         query_boxes[m] only against keyframe keypoints in map_boxes[m] (mLLN); a keypoint in
-        several overlapping regions keeps its best match. One match per keypoint on each side."""
+        several overlapping regions is matched against the keypoints of all their partner regions
+        (one masked brute-force pass). One match per keypoint on each side."""
         t0 = time.perf_counter()
         if not len(query) or not len(keyframe):
             return _matches([], [], [], t0, 'no keypoints (textureless image?)')
@@ -279,27 +280,21 @@ class Relocalizer:
             outside = not len(qb) or not (_overlaps(qb, query.image_size).any() and _overlaps(mb, keyframe.image_size).any())
             return _matches([], [], [], t0, 'the matched regions lie outside the images' if outside
                             else 'no keypoints inside the matched regions')
-        all_q, all_m, all_d = [], [], []
-        for a, b in zip(in_q, in_m):
-            ia, ib = np.flatnonzero(a), np.flatnonzero(b)
-            if not len(ia) or not len(ib):
-                continue
-            qi, mi, d = self._ratio_match(query.descriptors[ia], keyframe.descriptors[ib])
-            all_q.append(ia[qi]), all_m.append(ib[mi]), all_d.append(d)
-        if not all_q:
-            return _matches([], [], [], t0, 'no keypoints inside the matched regions')
-        return _matches(np.concatenate(all_q), np.concatenate(all_m), np.concatenate(all_d), t0)
+        # (Nq, Nm) which pairs share a region pair; the matcher skips the rest (no distance computed)
+        allowed = (in_q.T.astype(np.float32) @ in_m.astype(np.float32)) > 0
+        qi, mi, d = self._ratio_match(query.descriptors, keyframe.descriptors, allowed)
+        return _matches(qi, mi, d, t0)
 
-    def _ratio_match(self, da: np.ndarray, db: np.ndarray):
-        """Lowe ratio test a -> b. A single candidate in b has no second neighbour and passes
-        (the region is that small); returns query idx, map idx, distance."""
-        if len(db) == 1:
-            d = np.array([cv2.norm(x, db[0], self.norm) for x in da], np.float32)
-            return np.arange(len(da)), np.zeros(len(da), np.int64), d
-        knn = self.matcher.knnMatch(da, db, k=2)
+    def _ratio_match(self, da: np.ndarray, db: np.ndarray, allowed: np.ndarray | None = None):
+        """Lowe ratio test a -> b, with allowed (Na, Nb) bool among the pairs that may match. A
+        keypoint with a single allowed partner has no second neighbour and passes (its regions
+        hold one keypoint). Returns query idx, map idx, distance."""
+        mask = None if allowed is None else allowed.astype(np.uint8)
+        knn = self.matcher.knnMatch(da, db, k=2, mask=mask) if mask is not None else \
+            self.matcher.knnMatch(da, db, k=2)
         ratio = float(self.conf['ratio'])
         rows = [(m[0].queryIdx, m[0].trainIdx, m[0].distance) for m in knn
-                if len(m) == 2 and m[0].distance < ratio * m[1].distance]
+                if len(m) == 1 or (len(m) == 2 and m[0].distance < ratio * m[1].distance)]
         if not rows:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
         r = np.array(rows, np.float64)
@@ -400,3 +395,111 @@ def _collinear(points: np.ndarray, min_spread: float) -> bool:
         return True
     s = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
     return bool(s[0] == 0 or s[1] < float(min_spread) * s[0])
+
+
+# -------------------------------------------------------------------------------------- evaluation
+
+eval_conf = {
+    'reloc_top': 5,            # pLLN candidates per query (the paper's top 5)
+    'reloc_min_inliers': 30,   # a query succeeds when its best true candidate reaches this
+    'reloc_queries': 0,        # evenly spaced queries evaluated (0 = every query)
+    'reloc_detector': 'orb',
+    'reloc_margin': 1.0,
+}
+
+
+def evaluate_reloc(ds, queries: list, refs: list, ranked: np.ndarray, conf: dict | None = None,
+                   progress: str | None = None) -> dict:
+    """Relocalization on a dataset: for each query its top candidates by the place ranking
+    (`ranked` (Q, K) ref indices from retrieval.rank_all with the LLN sets `queries` / `refs`), both
+    keypoint pipelines against each. A pipeline succeeds on a query when the best candidate that is a
+    true match (ds.gt) reaches reloc_min_inliers RANSAC inliers (F; no intrinsics here).
+
+    Returns the JSON entry: per pipeline ('regions', 'all') success rate over the queries that
+    have a true match, mean inliers of the best true candidate and of false candidates, mean
+    matching + verification ms per query (all its candidates; detection excluded, it is shared
+    and reported as detect_ms per image)."""
+    from .image import load_image
+    from .landmarks import stack_landmarks
+    from .similarity import match_batch
+    conf = {**eval_conf, **(conf or {})}
+    reloc = Relocalizer({'detector': conf['reloc_detector'], 'margin': conf['reloc_margin']})
+    top, need = int(conf['reloc_top']), int(conf['reloc_min_inliers'])
+    with_match = np.flatnonzero(ds.gt.any(axis=1))
+    n = int(conf['reloc_queries'])
+    if 0 < n < len(with_match):
+        with_match = with_match[np.unique(np.linspace(0, len(with_match) - 1, n).astype(int))]
+    kps: dict[str, Keypoints] = {}
+    detect_ms = []
+
+    def keypoints(path) -> Keypoints:
+        if str(path) not in kps:
+            image = load_image(str(path))
+            t0 = time.perf_counter()
+            kps[str(path)] = reloc.detect(image)
+            detect_ms.append(_ms(t0))
+        return kps[str(path)]
+
+    stats = {p: {'success': 0, 'best_true': [], 'false': [], 'ms': [], 'matches': []} for p in ('regions', 'all')}
+    in_top = 0
+    items = with_match
+    if progress:
+        from tqdm import tqdm
+        items = tqdm(with_match, desc=progress, leave=False)
+    for q in items:
+        cands = ranked[q, :top]
+        cands = cands[cands >= 0]
+        if not len(cands):
+            continue
+        kq = keypoints(ds.query_paths[q])
+        place = match_batch(queries[q], stack_landmarks([refs[c] for c in cands]))
+        best = {'regions': -1, 'all': -1}
+        ms = {'regions': 0.0, 'all': 0.0}
+        for j, c in enumerate(cands):
+            km = keypoints(ds.ref_paths[c])
+            qb, mb = pair_boxes(queries[q], refs[c], place.pairs(j), reloc.conf['margin'])
+            for name, boxes in (('regions', (qb, mb)), ('all', (None, None))):
+                r = reloc.relocalize(kq, km, *boxes)
+                ms[name] += r.matches.ms + r.ms
+                stats[name]['matches'].append(len(r.matches))
+                if ds.gt[q, c]:
+                    best[name] = max(best[name], r.inliers)
+                else:
+                    stats[name]['false'].append(r.inliers)
+        in_top += bool(ds.gt[q, cands].any())
+        for name, s in stats.items():
+            s['ms'].append(ms[name])
+            if best[name] >= 0:
+                s['best_true'].append(best[name])
+                s['success'] += best[name] >= need
+    total = len(with_match)
+    out = {'queries': int(total), 'top': top, 'min_inliers': need, 'detector': reloc.name,
+           'margin': float(reloc.conf['margin']), 'true_match_in_top': in_top / total if total else None,
+           'detect_ms': float(np.median(detect_ms)) if detect_ms else None,
+           'keypoints_median': float(np.median([len(k) for k in kps.values()])) if kps else None,
+           'keypoints_zero': int(sum(len(k) == 0 for k in kps.values()))}
+    for name, s in stats.items():
+        out[name] = {'success_rate': s['success'] / total if total else None,
+                     'mean_inliers_true': float(np.mean(s['best_true'])) if s['best_true'] else None,
+                     'mean_inliers_false': float(np.mean(s['false'])) if s['false'] else None,
+                     'ms_per_query': float(np.mean(s['ms'])) if s['ms'] else None,
+                     'matches_per_pair': float(np.mean(s['matches'])) if s['matches'] else None}
+    return out
+
+
+def reloc_markdown(entry: dict) -> list[str]:
+    """Markdown lines of one dataset's relocalization entry (evaluate_reloc)."""
+    pct = (lambda x: '–' if x is None else f'{100 * x:.1f}')
+    num = (lambda x: '–' if x is None else f'{x:.1f}')
+    lines = [f'Relocalization ({entry["detector"]}, top-{entry["top"]} pLLN candidates, success = the best true '
+             f'candidate reaches {entry["min_inliers"]} RANSAC inliers (F); {entry["queries"]} queries, a true '
+             f'match in the top {entry["top"]} for {pct(entry["true_match_in_top"])}%; median '
+             f'{num(entry["keypoints_median"])} keypoints per image ({entry["keypoints_zero"]} images with none), '
+             f'detection {num(entry["detect_ms"])} ms/img; regions grown by {entry["margin"]:g} cells):', '',
+             '| keypoint matching | success % | mean inliers (best true) | mean inliers (false) | '
+             'matches/pair | ms/query |', '|---|---:|---:|---:|---:|---:|']
+    for name, label in (('regions', 'mLLN (matched regions)'), ('all', 'all keypoints')):
+        m = entry[name]
+        lines.append(f'| {label} | {pct(m["success_rate"])} | {num(m["mean_inliers_true"])} | '
+                     f'{num(m["mean_inliers_false"])} | {num(m["matches_per_pair"])} | {num(m["ms_per_query"])} |')
+    return lines

@@ -27,7 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--max-keypoints', type=int, default=default_conf['max_keypoints'])
     p.add_argument('--ratio', type=float, default=default_conf['ratio'], help='Lowe ratio (default 0.8)')
     p.add_argument('--margin', type=float, default=default_conf['margin'],
-                   help='region growth in grid cells on each side (default 0.5)')
+                   help='region growth in grid cells on each side (default 1)')
     p.add_argument('--min-inliers', type=int, default=default_conf['min_inliers'],
                    help='RANSAC inliers needed to call a pair verified (default 15)')
     p.add_argument('--intrinsics', metavar='YAML',
