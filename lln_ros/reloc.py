@@ -397,6 +397,36 @@ def _collinear(points: np.ndarray, min_spread: float) -> bool:
     return bool(s[0] == 0 or s[1] < float(min_spread) * s[0])
 
 
+def detection_scale(image_height: float, min_height: float) -> float:
+    """Detection pixels per original pixel of an image of this height (see Relocalizer.detect)."""
+    return max(1.0, float(min_height) / float(image_height)) if image_height > 0 else 1.0
+
+
+def verify_candidates(reloc: Relocalizer, query: Keypoints, query_cell_size, candidates: list,
+                      keyframe_keypoints) -> list[tuple]:
+    """Region-constrained verification of map candidates (mapstore.MapCandidate: keyframe_id,
+    score, image_size, pairs with query_u/v, map_u/v, cell_w/h), re-ranked by inliers.
+
+    keyframe_keypoints(candidate) -> Keypoints or None (none stored). Returns (candidate,
+    RelocResult or None) best first: verified candidates by inliers, then the rest by inliers,
+    unverifiable ones (no keypoints) last; ties keep the place-recognition order."""
+    margin = reloc.conf['margin']
+    out = []
+    for rank, c in enumerate(candidates):
+        km = keyframe_keypoints(c)
+        if km is None:
+            out.append((c, None, rank))
+            continue
+        p = c.pairs
+        qb = region_boxes(np.stack([p['query_u'], p['query_v']], axis=1), query_cell_size, margin)
+        mb = region_boxes(np.stack([p['map_u'], p['map_v']], axis=1),
+                          np.stack([p['cell_w'], p['cell_h']], axis=1), margin)
+        out.append((c, reloc.relocalize(query, km, qb, mb), rank))
+    out.sort(key=lambda x: (x[1] is None, not (x[1] is not None and x[1].verified),
+                            -(x[1].inliers if x[1] is not None else 0), x[2]))
+    return [(c, r) for c, r, _ in out]
+
+
 # -------------------------------------------------------------------------------------- evaluation
 
 eval_conf = {
