@@ -14,6 +14,7 @@ import json
 import sys
 
 from ..errors import LLNError
+from .match import add_model_arguments, extractor_from_args
 
 PROG = 'lln-reloc'
 
@@ -32,17 +33,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help='RANSAC inliers needed to call a pair verified (default 15)')
     p.add_argument('--intrinsics', metavar='YAML',
                    help='ROS camera-calibration YAML (camera_matrix) or a YAML with K: essential matrix + pose')
-    p.add_argument('--top-n', type=int, default=50, help='landmarks per image (default 50)')
-    p.add_argument('--input-height', type=int, default=288, help='network input height (default 288)')
-    p.add_argument('--backbone', default='efficientnet_lite0')
-    p.add_argument('--weights', default='', help='LLN head checkpoint (default: the shipped one)')
+    add_model_arguments(p)
     p.add_argument('--plot', metavar='PNG', help='write both pipelines\' inlier matches side by side')
     p.add_argument('--json', action='store_true', help='print one JSON object instead of text')
     return p
 
 
 def run(args) -> dict:
-    from ..extractor import Extractor
     from ..image import load_image
     from ..reloc import Relocalizer, camera_matrix, pair_boxes
     from ..similarity import match_pair
@@ -51,8 +48,7 @@ def run(args) -> dict:
     K = camera_matrix(args.intrinsics) if args.intrinsics else None
     reloc = Relocalizer({'detector': args.detector, 'max_keypoints': args.max_keypoints, 'ratio': args.ratio,
                          'margin': args.margin, 'min_inliers': args.min_inliers})
-    extractor = Extractor({'backbone': {'name': args.backbone}, 'weights': args.weights,
-                           'top_n': args.top_n, 'input_height': args.input_height})
+    extractor = extractor_from_args(args)
     a, b = extractor.extract_batch(images)
     place = match_pair(a, b)
     pairs = place.pairs(0)
