@@ -30,6 +30,8 @@ default_conf = {
     'detector': 'orb',          # orb | sift | akaze
     'max_keypoints': 1000,      # per image (ORB-SLAM's default for 512x384-ish frames)
     'min_height': 288,          # shorter images are upsampled (INTER_LINEAR) to this height to detect
+    'fast_threshold': 20,       # ORB's FAST corner threshold (OpenCV's default); upsampled tiny
+                                # images are blurry: 5 gives Nordland ~240 keypoints instead of ~6
     'ratio': 0.8,               # Lowe ratio: best / second-best descriptor distance
     'margin': 1.0,              # region box = matched cell grown by this many cells on each side
     'ransac_px': 2.0,           # inlier threshold in detection pixels (F: epipolar distance)
@@ -218,7 +220,7 @@ class Relocalizer:
         if not 0 < float(conf['ratio']) <= 1:
             raise RelocError(f'ratio must be in (0, 1], got {conf["ratio"]}')
         if name == 'orb':
-            self.detector = cv2.ORB_create(nfeatures=n)
+            self.detector = cv2.ORB_create(nfeatures=n, fastThreshold=int(conf['fast_threshold']))
         elif name == 'sift':
             self.detector = cv2.SIFT_create(nfeatures=n)
         else:
@@ -438,6 +440,7 @@ eval_conf = {
     'reloc_queries': 0,        # evenly spaced queries evaluated (0 = every query)
     'reloc_detector': 'orb',
     'reloc_margin': 1.0,
+    'reloc_fast_threshold': 20,
 }
 
 
@@ -456,7 +459,8 @@ def evaluate_reloc(ds, queries: list, refs: list, ranked: np.ndarray, conf: dict
     from .landmarks import stack_landmarks
     from .similarity import match_batch
     conf = {**eval_conf, **(conf or {})}
-    reloc = Relocalizer({'detector': conf['reloc_detector'], 'margin': conf['reloc_margin']})
+    reloc = Relocalizer({'detector': conf['reloc_detector'], 'margin': conf['reloc_margin'],
+                         'fast_threshold': conf['reloc_fast_threshold']})
     top, need = int(conf['reloc_top']), int(conf['reloc_min_inliers'])
     with_match = np.flatnonzero(ds.gt.any(axis=1))
     n = int(conf['reloc_queries'])
@@ -507,6 +511,7 @@ def evaluate_reloc(ds, queries: list, refs: list, ranked: np.ndarray, conf: dict
                 s['success'] += best[name] >= need
     total = len(with_match)
     out = {'queries': int(total), 'top': top, 'min_inliers': need, 'detector': reloc.name,
+           'fast_threshold': int(reloc.conf['fast_threshold']) if reloc.name == 'orb' else None,
            'margin': float(reloc.conf['margin']), 'true_match_in_top': in_top / total if total else None,
            'detect_ms': float(np.median(detect_ms)) if detect_ms else None,
            'keypoints_median': float(np.median([len(k) for k in kps.values()])) if kps else None,
@@ -524,7 +529,8 @@ def reloc_markdown(entry: dict) -> list[str]:
     """Markdown lines of one dataset's relocalization entry (evaluate_reloc)."""
     pct = (lambda x: '–' if x is None else f'{100 * x:.1f}')
     num = (lambda x: '–' if x is None else f'{x:.1f}')
-    lines = [f'Relocalization ({entry["detector"]}, top-{entry["top"]} pLLN candidates, success = the best true '
+    fast = f' FAST threshold {entry["fast_threshold"]}' if entry.get('fast_threshold') is not None else ''
+    lines = [f'Relocalization ({entry["detector"]}{fast}, top-{entry["top"]} pLLN candidates, success = the best true '
              f'candidate reaches {entry["min_inliers"]} RANSAC inliers (F); {entry["queries"]} queries, a true '
              f'match in the top {entry["top"]} for {pct(entry["true_match_in_top"])}%; median '
              f'{num(entry["keypoints_median"])} keypoints per image ({entry["keypoints_zero"]} images with none), '

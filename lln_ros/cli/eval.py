@@ -73,6 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--reloc-queries', type=int, default=0, help='evenly spaced queries for --reloc (0 = all)')
     p.add_argument('--reloc-detector', default='orb', choices=['orb', 'sift', 'akaze'])
     p.add_argument('--reloc-margin', type=float, default=1.0, help='region growth in cells (default 1)')
+    p.add_argument('--reloc-fast-threshold', type=int, default=20,
+                   help='ORB FAST threshold (default 20; 5 for blurry upsampled images such as Nordland)')
     p.add_argument('--check', action='store_true', help='read and check every dataset and head, then stop')
     p.add_argument('--quiet', action='store_true', help='no progress output')
     return p
@@ -173,7 +175,7 @@ def run(args, argv) -> dict:
             'plots': not args.no_plots, 'progress': not args.quiet,
             'reloc': args.reloc, 'reloc_min_inliers': args.reloc_min_inliers, 'reloc_top': args.reloc_top,
             'reloc_queries': args.reloc_queries, 'reloc_detector': args.reloc_detector,
-            'reloc_margin': args.reloc_margin}
+            'reloc_margin': args.reloc_margin, 'reloc_fast_threshold': args.reloc_fast_threshold}
     command = f'{PROG} ' + ' '.join(shlex.quote(a) for a in argv)
     result = evaluate(dsets, extractor, conf, heads, args.out, specs=args.dataset, command=command, log=log)
     if not any(h.trained for h in heads) and 'lln' in methods:
