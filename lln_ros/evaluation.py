@@ -53,6 +53,7 @@ from .errors import ModelError
 from .features import FeatureCache
 from .landmarks import METHODS as LOCAL_METHODS, LandmarkSet, l2_normalize, stack_landmarks
 from .lln import LLNHead, head_fingerprint, load_checkpoint
+from .reloc import eval_conf as reloc_eval_conf, evaluate_reloc, reloc_markdown
 from .retrieval import rank_all
 from .similarity import match_batch, match_pair
 
@@ -73,6 +74,8 @@ default_conf = {
     'cache_dir': 'cache/features',
     'plots': True,
     'progress': True,       # tqdm bar while backbone features are computed
+    'reloc': False,         # also keypoint relocalization on the first lln row's ranking (reloc.py)
+    **reloc_eval_conf,
 }
 
 UNTRAINED_WORDS = ('', 'xavier', 'untrained', 'none')
@@ -320,7 +323,7 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
     timed = [(answerable[i], prefilter[answerable[i]]) for i in pick]
     reps = int(conf['timing_repeats'])
 
-    rankings, rows_out = {}, {}
+    rankings, rows_out, reloc = {}, {}, None
     extract_jobs, match_jobs = {}, {}
     for row, method, head in row_names(methods, heads):
         t0 = time.perf_counter()
@@ -345,6 +348,12 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
             match_jobs[row] = [(functools.partial(match_batch, qs[q], batch.take(c[c >= 0]), scale),
                                 int((c >= 0).sum())) for q, c in timed]
             n = int(np.median([len(s) for s in qs]))
+            if conf['reloc'] and method == 'lln' and reloc is None:
+                t1 = time.perf_counter()
+                reloc = evaluate_reloc(ds, qs, rs, ranked, conf, f'reloc {ds.name}' if conf['progress'] else None)
+                reloc['row'] = row
+                log(f'{ds.name}: reloc success {reloc["regions"]["success_rate"]} (regions) vs '
+                    f'{reloc["all"]["success_rate"]} (all) ({time.perf_counter() - t1:.1f} s)')
             del qs, rs, batch
         summary = metrics.summary(ranked, scores[:, 0], ds.gt)
         rows_out[row] = {**{key: _finite(float(summary[key])) for key in METRIC_KEYS}, 'n': n}
@@ -381,6 +390,8 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
         'recall_at_k_holistic': [_finite(float(r)) for r in curve],
         'methods': rows_out,
     }
+    if reloc is not None:
+        entry['reloc'] = reloc
     run = DatasetRun(ds.name, entry, rankings, full, curve)
     if out_dir is not None and conf['plots']:
         entry['figures'] = write_figures(run, ds, extractor, heads, conf, feats, ref_sizes, query_sizes,
@@ -525,6 +536,8 @@ def markdown(results: dict) -> str:
             lines += ['', f'Timing: extraction median over {t.get("images")} images, matching median over '
                           f'{t.get("queries")} queries (each the best of {p.get("timing_repeats", 1)} runs), '
                           f'CPU, {t.get("torch_threads")} torch threads.']
+        if d.get('reloc'):
+            lines += [''] + reloc_markdown(d['reloc'])
         figs = d.get('figures') or {}
         if figs:
             lines += ['']

@@ -30,6 +30,10 @@ complete map or not ours (never half-created). Schema version 1::
                centers BLOB      -- float32 LE (n, 2), (u, v) region centre in original pixels
                scores BLOB       -- float32 LE (n,)
                descriptors BLOB  -- float16 LE (n, D), L2-normalised (float16: ~1e-3 relative)
+    keypoints  (optional, created by the first add_keypoints; for the matcher's verify mode)
+               keyframe_id INTEGER PRIMARY KEY REFERENCES keyframes(id) ON DELETE CASCADE
+               n INTEGER, uv BLOB (float32 LE (n, 2), original pixels), descriptors BLOB (uint8 (n, B))
+               -- 40 bytes per ORB keypoint (B = 32): 20 KB per keyframe at 500 keypoints
 
 All landmarks of a keyframe are one row (a row per landmark would be ~50x more rows and far slower to
 insert and fetch). ``landmarks`` is its own table so the scan at open, which rebuilds the FAISS index,
@@ -625,6 +629,46 @@ class MapStore:
             if len(out) == k:
                 break
         return out
+
+    # keypoints for verification (reloc.py): an optional table, created on first use, so maps
+    # without it stay valid and readable; rows go with their keyframe (ON DELETE CASCADE)
+    _KEYPOINTS_TABLE = ('CREATE TABLE IF NOT EXISTS keypoints (keyframe_id INTEGER PRIMARY KEY '
+                        'REFERENCES keyframes(id) ON DELETE CASCADE, n INTEGER NOT NULL, uv BLOB NOT NULL, '
+                        'descriptors BLOB NOT NULL)')
+
+    def add_keypoints(self, keyframe_id: int, uv: np.ndarray, descriptors: np.ndarray) -> None:
+        """Store a keyframe's keypoints: uv (N, 2) float32 original pixels, binary descriptors
+        (N, B) uint8, as float32 / uint8 blobs (8 + B bytes per keypoint). Replaces earlier ones."""
+        uv = np.ascontiguousarray(uv, '<f4').reshape(-1, 2)
+        desc = np.ascontiguousarray(descriptors)
+        if desc.dtype != np.uint8 or desc.ndim != 2 or len(desc) != len(uv):
+            raise DescriptorError(f'keypoints need (N, B) uint8 descriptors for N={len(uv)} points, '
+                                  f'got {desc.dtype} {desc.shape}')
+        with self._lock:
+            self._ready()
+            if int(keyframe_id) not in set(self._ids):
+                raise KeyError(f'no keyframe {keyframe_id} in map {self.path}')
+            self._write(lambda c: (c.execute(self._KEYPOINTS_TABLE), c.execute(
+                'INSERT OR REPLACE INTO keypoints (keyframe_id, n, uv, descriptors) VALUES (?, ?, ?, ?)',
+                (int(keyframe_id), len(uv), uv.tobytes(), desc.tobytes()))))
+
+    def keypoints(self, keyframe_id: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """(uv (N, 2) float32, descriptors (N, B) uint8) of a keyframe, or None when none were stored."""
+        with self._lock:
+            self._ready()
+            with self._read_errors():
+                if not self._conn.execute("SELECT 1 FROM sqlite_master WHERE name = 'keypoints'").fetchone():
+                    return None
+                row = self._conn.execute('SELECT n, uv, descriptors FROM keypoints WHERE keyframe_id = ?',
+                                         (int(keyframe_id),)).fetchone()
+        if row is None:
+            return None
+        n, uv, desc = row
+        if len(uv) != 8 * n or (n and len(desc) % n) or (not n and desc):
+            raise MapError(f'map {self.path} is corrupt: keyframe {keyframe_id} keypoints are {len(uv)} + '
+                           f'{len(desc)} bytes for n={n}')
+        return (np.frombuffer(uv, '<f4').reshape(n, 2).copy(),
+                np.frombuffer(desc, np.uint8).reshape(n, len(desc) // n if n else 32).copy())
 
     def get(self, keyframe_id: int) -> LandmarkSet:
         """The stored landmark set of a keyframe (descriptors back from float16; no activation map)."""

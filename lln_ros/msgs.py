@@ -14,6 +14,9 @@ The specific tables:
     candidates  candidates_to_cloud(rows, header) / cloud_to_candidates(msg)
                 keyframe_id (UINT32), score holistic_score (FLOAT32), stamp_sec (INT32),
                 stamp_nanosec (UINT32), plus any extra FLOAT32 fields (inliers, sequence_score, ...)
+    keypoints   keypoints_to_cloud(kps, header) / cloud_to_keypoints(msg, image_size, scale)
+                one row per ORB keypoint (zero rows: a textureless image), u v size angle response
+                (FLOAT32, original image pixels), octave (INT32), descriptor (UINT8, count 32)
     matches     matches_to_cloud(rows, header) / cloud_to_matches(msg)
                 keyframe_id (UINT32), query_u query_v map_u map_v cell_w cell_h similarity weight
                 (FLOAT32)
@@ -58,6 +61,10 @@ LANDMARK_FIELDS = (('u', PointField.FLOAT32, 1), ('v', PointField.FLOAT32, 1),
 CANDIDATE_FIELDS = (('keyframe_id', PointField.UINT32, 1), ('score', PointField.FLOAT32, 1),
                     ('holistic_score', PointField.FLOAT32, 1), ('stamp_sec', PointField.INT32, 1),
                     ('stamp_nanosec', PointField.UINT32, 1))
+KEYPOINT_FIELDS = (('u', PointField.FLOAT32, 1), ('v', PointField.FLOAT32, 1),
+                   ('size', PointField.FLOAT32, 1), ('angle', PointField.FLOAT32, 1),
+                   ('response', PointField.FLOAT32, 1), ('octave', PointField.INT32, 1),
+                   ('descriptor', PointField.UINT8, 32))  # ORB: 256-bit binary descriptor
 MATCH_FIELDS = (('keyframe_id', PointField.UINT32, 1),) + tuple(
     (name, PointField.FLOAT32, 1) for name in
     ('query_u', 'query_v', 'map_u', 'map_v', 'cell_w', 'cell_h', 'similarity', 'weight'))
@@ -343,6 +350,40 @@ def cloud_to_landmarks(msg: PointCloud2, expected_dim: int | None = None,
         return lset.validate()
     except DescriptorError as exc:
         raise MessageError(f'{what}: {exc}') from exc
+
+
+# --------------------------------------------------------------------------------------------
+# keypoints
+
+def keypoints_to_cloud(kps, header: Header | None = None) -> PointCloud2:
+    """ORB keypoints of one image (reloc.Keypoints, 32-byte descriptors), published beside its
+    landmarks with the same header."""
+    desc = np.asarray(kps.descriptors)
+    if desc.dtype != np.uint8 or desc.ndim != 2 or desc.shape[1] != 32 or len(desc) != len(kps.uv):
+        raise MessageError(f'keypoints cloud: descriptors must be uint8 (N, 32) (ORB), got {desc.dtype} {desc.shape}')
+    table = np.zeros(len(desc), [(n, _DATATYPES[dt]) for n, dt, _ in KEYPOINT_FIELDS[:-1]] + [('descriptor', 'u1', (32,))])
+    table['u'], table['v'] = kps.uv[:, 0], kps.uv[:, 1]
+    for name in ('size', 'angle', 'response', 'octave'):
+        table[name] = getattr(kps, name)
+    table['descriptor'] = desc
+    return array_to_cloud(table, header)
+
+
+def cloud_to_keypoints(msg: PointCloud2, image_size=(0, 0), scale: float = 1.0):
+    """reloc.Keypoints from a keypoints cloud. The image size and the detection scale do not travel:
+    pass them (the landmarks of the same header carry the image size). Raises MessageError for
+    missing or mistyped fields and non-finite values; zero rows is a valid (textureless) image."""
+    from .reloc import Keypoints
+    what = 'keypoints cloud'
+    table = cloud_to_array(msg, KEYPOINT_FIELDS, what)
+    for name in ('u', 'v', 'size', 'angle', 'response'):
+        if not np.isfinite(table[name]).all():
+            raise MessageError(f'{what}: field {name!r} contains NaN or inf')
+    return Keypoints(uv=np.stack([table['u'], table['v']], axis=1).astype(np.float32),
+                     size=table['size'].astype(np.float32), angle=table['angle'].astype(np.float32),
+                     response=table['response'].astype(np.float32), octave=table['octave'].astype(np.int32),
+                     descriptors=np.ascontiguousarray(table['descriptor'], np.uint8).reshape(len(table), 32),
+                     scale=float(scale), image_size=tuple(int(v) for v in image_size))
 
 
 # --------------------------------------------------------------------------------------------

@@ -59,3 +59,40 @@ def plot_matches(image_a: np.ndarray, image_b: np.ndarray, a: LandmarkSet, b: La
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def plot_keypoint_matches(image_a: np.ndarray, image_b: np.ndarray, rows: list[dict], path: str,
+                          title: str = '', max_lines: int = 300) -> None:
+    """Write a PNG with one row per keypoint pipeline: RGB images side by side, the pipeline's
+    RANSAC inliers linked (green) and, when given, its region boxes outlined.
+
+    rows: dicts with 'label', 'query' / 'map' (reloc.Keypoints), 'result' (reloc.RelocResult) and
+    optional 'query_boxes' / 'map_boxes' (M, 4) x0, y0, x1, y1."""
+    ha, wa = image_a.shape[:2]
+    hb, wb = image_b.shape[:2]
+    canvas = np.zeros((max(ha, hb), wa + wb, 3), np.uint8)
+    canvas[:ha, :wa], canvas[:hb, wa:] = image_a, image_b
+    fig, axes = plt.subplots(len(rows), 1, figsize=(12, 4.8 * len(rows)), dpi=110, squeeze=False)
+    for ax, row in zip(axes[:, 0], rows):
+        ax.imshow(canvas)
+        for key, dx in (('query_boxes', 0), ('map_boxes', wa)):
+            for x0, y0, x1, y1 in np.asarray(row.get(key, np.zeros((0, 4)))):
+                ax.add_patch(Rectangle((x0 + dx, y0), x1 - x0, y1 - y0, fill=False, lw=0.8, ec='yellow', alpha=0.6))
+        r = row['result']
+        qi = r.matches.query_index[r.inlier_mask][:max_lines]
+        mi = r.matches.map_index[r.inlier_mask][:max_lines]
+        pa, pb = row['query'].uv[qi], row['map'].uv[mi]
+        for (ua, va), (ub, vb) in zip(pa, pb):
+            ax.plot([ua, ub + wa], [va, vb], '-', color='lime', lw=0.7, alpha=0.8)
+        ax.scatter(row['query'].uv[:, 0], row['query'].uv[:, 1], s=2, c='red', alpha=0.5)
+        ax.scatter(row['map'].uv[:, 0] + wa, row['map'].uv[:, 1], s=2, c='red', alpha=0.5)
+        status = 'verified' if r.verified else f'not verified: {r.reason}'
+        ax.set_title(f'{row["label"]}: {r.inliers} inliers / {len(r.matches)} matches ({status})', fontsize=9)
+        ax.set_xlim(0, wa + wb)
+        ax.set_ylim(canvas.shape[0], 0)
+        ax.set_axis_off()
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

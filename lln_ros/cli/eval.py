@@ -66,6 +66,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--examples', type=int, default=2, help='success and failure match pictures per dataset')
     p.add_argument('--heatmap-images', type=int, default=4, help='images in the heatmap figure (0 = none)')
     p.add_argument('--no-plots', action='store_true', help='write results.json and results.md only')
+    p.add_argument('--reloc', action='store_true',
+                   help='also relocalization: top-5 lln candidates, region-constrained vs all-keypoint matching')
+    p.add_argument('--reloc-min-inliers', type=int, default=30, help='inliers a true candidate needs (default 30)')
+    p.add_argument('--reloc-top', type=int, default=5, help='lln candidates per query for --reloc (default 5)')
+    p.add_argument('--reloc-queries', type=int, default=0, help='evenly spaced queries for --reloc (0 = all)')
+    p.add_argument('--reloc-detector', default='orb', choices=['orb', 'sift', 'akaze'])
+    p.add_argument('--reloc-margin', type=float, default=1.0, help='region growth in cells (default 1)')
+    p.add_argument('--reloc-fast-threshold', type=int, default=20,
+                   help='ORB FAST threshold (default 20; 5 for blurry upsampled images such as Nordland)')
     p.add_argument('--check', action='store_true', help='read and check every dataset and head, then stop')
     p.add_argument('--quiet', action='store_true', help='no progress output')
     return p
@@ -124,6 +133,10 @@ def run(args, argv) -> dict:
         raise UsageError(f'--methods: {e}') from None
     if args.top_n < 1 or args.prefilter_k < 1:
         raise UsageError('--top-n and --prefilter-k must be at least 1')
+    if args.reloc and 'lln' not in methods:
+        raise UsageError('--reloc ranks candidates with lln: add lln to --methods')
+    if args.reloc and (args.reloc_top < 1 or args.reloc_min_inliers < 1):
+        raise UsageError('--reloc-top and --reloc-min-inliers must be at least 1')
     from ..datasets import parse_range
     frac = parse_range(args.range)
     heads = head_specs(args)
@@ -159,7 +172,10 @@ def run(args, argv) -> dict:
             'timing_images': args.timing_images, 'timing_queries': args.timing_queries,
             'timing_repeats': args.timing_repeats,
             'examples': args.examples, 'heatmap_images': args.heatmap_images, 'cache_dir': args.cache,
-            'plots': not args.no_plots, 'progress': not args.quiet}
+            'plots': not args.no_plots, 'progress': not args.quiet,
+            'reloc': args.reloc, 'reloc_min_inliers': args.reloc_min_inliers, 'reloc_top': args.reloc_top,
+            'reloc_queries': args.reloc_queries, 'reloc_detector': args.reloc_detector,
+            'reloc_margin': args.reloc_margin, 'reloc_fast_threshold': args.reloc_fast_threshold}
     command = f'{PROG} ' + ' '.join(shlex.quote(a) for a in argv)
     result = evaluate(dsets, extractor, conf, heads, args.out, specs=args.dataset, command=command, log=log)
     if not any(h.trained for h in heads) and 'lln' in methods:

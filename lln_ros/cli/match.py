@@ -16,28 +16,36 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('image_a')
     p.add_argument('image_b')
     p.add_argument('--method', default='lln', choices=['lln', 'act', 'rand', 'all'])
-    p.add_argument('--top-n', type=int, default=50, help='landmarks per image (default 50)')
-    p.add_argument('--input-height', type=int, default=288, help='network input height (default 288)')
+    add_model_arguments(p)
     p.add_argument('--scale', type=float, default=1.0, help='offset-weight width in grid cells (default 1)')
-    p.add_argument('--backbone', default='efficientnet_lite0')
-    p.add_argument('--layer', default='', help='backbone feature layer (default: the backbone\'s)')
-    p.add_argument('--backbone-weights', default='', help='local backbone state dict (resnet101 needs one)')
-    p.add_argument('--weights', default='', help='LLN head checkpoint (default: the shipped one)')
     p.add_argument('--plot', metavar='PNG', help='write the two images with matched regions linked')
     p.add_argument('--json', action='store_true', help='print one JSON object instead of text')
     return p
 
 
-def run(args) -> dict:
+def add_model_arguments(p: argparse.ArgumentParser) -> None:
+    """The extractor options every pair command shares (lln-match, lln-reloc)."""
+    p.add_argument('--top-n', type=int, default=50, help='landmarks per image (default 50)')
+    p.add_argument('--input-height', type=int, default=288, help='network input height (default 288)')
+    p.add_argument('--backbone', default='efficientnet_lite0')
+    p.add_argument('--layer', default='', help='backbone feature layer (default: the backbone\'s)')
+    p.add_argument('--backbone-weights', default='', help='local backbone state dict (resnet101 needs one)')
+    p.add_argument('--weights', default='', help='LLN head checkpoint (default: the shipped one)')
+
+
+def extractor_from_args(args, method: str = 'lln'):
     from ..extractor import Extractor
+    return Extractor({
+        'backbone': {'name': args.backbone, 'layer': args.layer, 'weights_path': args.backbone_weights},
+        'weights': args.weights, 'top_n': args.top_n, 'method': method, 'input_height': args.input_height})
+
+
+def run(args) -> dict:
     from ..image import load_image
     from ..similarity import match_pair
 
     images = [load_image(args.image_a), load_image(args.image_b)]
-    extractor = Extractor({
-        'backbone': {'name': args.backbone, 'layer': args.layer, 'weights_path': args.backbone_weights},
-        'weights': args.weights, 'top_n': args.top_n, 'method': args.method,
-        'input_height': args.input_height})
+    extractor = extractor_from_args(args, args.method)
     a, b = extractor.extract_batch(images)
     result = match_pair(a, b, args.scale)
     pairs = result.pairs(0)

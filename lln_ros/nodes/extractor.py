@@ -37,6 +37,8 @@ PARAMETERS = {
     'image_transport': ('raw', "raw: sensor_msgs/Image on 'image'; compressed: 'image/compressed'"),
     'reliability': ('best_effort', 'image subscription reliability: best_effort | reliable (for bags)'),
     'publish_activation': (False, "also publish the LLN activation heatmap on 'activation'"),
+    'publish_keypoints': (False, "also publish ORB keypoints on 'keypoints' (matcher verify mode)"),
+    'keypoints_max': (500, 'ORB keypoints per image with publish_keypoints'),
     'num_threads': (0, 'torch intra-op threads; 0 = torch default'),
     'diagnostics_period': (1.0, 'seconds between /diagnostics messages; 0 = off'),
 }
@@ -75,6 +77,11 @@ class ExtractorNode(Node):
         self.health = Health(self)
         self.landmarks_pub = self.create_publisher(PointCloud2, 'landmarks', 10)
         self.activation_pub = self.create_publisher(Image, 'activation', 2) if p['publish_activation'] else None
+        self.keypoints_pub, self.orb = None, None
+        if p['publish_keypoints']:
+            from ..reloc import Relocalizer
+            self.orb = Relocalizer({'detector': 'orb', 'max_keypoints': p['keypoints_max']})
+            self.keypoints_pub = self.create_publisher(PointCloud2, 'keypoints', 10)
         model_pub = self.create_publisher(String, 'model_info', MODEL_QOS)
         model_pub.publish(String(data=json.dumps(self.extractor.model_info)))
         compressed = p['image_transport'] == 'compressed'
@@ -117,9 +124,12 @@ class ExtractorNode(Node):
         try:
             image, order = msgs.message_to_array(msg)
             lset = self.extractor(image, channel_order=order)
+            kps = self.orb.detect(image, order) if self.orb is not None else None
         except LLNError as e:
             self.health.problem('bad_image', str(e))
             return
+        if kps is not None:  # first, so a matcher has them when the landmarks of this header arrive
+            self.keypoints_pub.publish(msgs.keypoints_to_cloud(kps, msg.header))
         self.landmarks_pub.publish(msgs.landmarks_to_cloud(lset, msg.header))
         if self.activation_pub is not None:
             heat = heatmap_bgr(check_image(image, order), lset.activation)

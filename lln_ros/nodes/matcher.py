@@ -1,8 +1,10 @@
 """lln_matcher: the map server (`ros2 run lln_ros matcher`).
 
 Subscribes  keyframes (PointCloud2 landmark sets to store), query (landmark sets to localize),
-            model_info (std_msgs/String, the extractor's model, latched)
-Publishes   candidates (PointCloud2: keyframe_id, score, holistic_score, stamp_sec, stamp_nanosec),
+            model_info (std_msgs/String, the extractor's model, latched), keypoints (PointCloud2,
+            the extractor's ORB keypoints; with verify)
+Publishes   candidates (PointCloud2: keyframe_id, score, holistic_score, stamp_sec, stamp_nanosec;
+            with verify also inliers, NaN where the keyframe or query had no keypoints),
             matches (PointCloud2: the matched region pairs of the best candidate), /diagnostics
 Services    ~/save, ~/clear, ~/info (std_srvs/Trigger; info answers JSON)
 
@@ -10,6 +12,9 @@ mode=localization answers queries and leaves the map alone; mode=mapping answers
 stores it as a keyframe (online loop-closure detection; the newest `exclude_recent` keyframes are
 never answers). A keyframe is committed to the SQLite map before its query's answer is published,
 so whatever a subscriber has seen answered survives kill -9.
+
+verify=true: keypoints are paired with landmark sets by header stamp and stored per keyframe; the
+top candidates are re-ranked by region-constrained RANSAC inliers (lln_ros.reloc.verify_candidates).
 """
 from __future__ import annotations
 
@@ -38,6 +43,9 @@ PARAMETERS = {
     'descriptor_space': ('', "expected model, e.g. efficientnet_lite0/stage6/192; '' = the map's or first seen"),
     'reliability': ('reliable', 'keyframes/query subscriptions: reliable | best_effort'),
     'queue_depth': (100, 'keyframes/query subscription queue depth'),
+    'verify': (False, "re-rank candidates by keypoint inliers (needs the extractor's publish_keypoints)"),
+    'verify_min_inliers': (15, 'verify: RANSAC inliers for a candidate to count as verified'),
+    'verify_margin': (1.0, 'verify: matched regions grown by this many grid cells'),
     'diagnostics_period': (1.0, 'seconds between /diagnostics messages; 0 = off'),
 }
 
@@ -69,6 +77,11 @@ class MatcherNode(Node):
         self.create_subscription(PointCloud2, 'keyframes', self.on_keyframe, qos)
         self.create_subscription(PointCloud2, 'query', self.on_query, qos)
         self.create_subscription(String, 'model_info', self.on_model_info, MODEL_QOS)
+        self.reloc, self.pending_keypoints, self.unmatched_keyframes = None, {}, {}
+        if p['verify']:
+            from ..reloc import Relocalizer
+            self.reloc = Relocalizer({'min_inliers': p['verify_min_inliers'], 'margin': p['verify_margin']})
+            self.create_subscription(PointCloud2, 'keypoints', self.on_keypoints, qos)
         self.create_service(Trigger, '~/save', self.on_save)
         self.create_service(Trigger, '~/clear', self.on_clear)
         self.create_service(Trigger, '~/info', self.on_info)
@@ -103,16 +116,69 @@ class MatcherNode(Node):
             self.health.problem(kind, str(e))
             return None
 
+    def on_keypoints(self, msg: PointCloud2) -> None:
+        """Held until the landmark set with the same stamp arrives (the newest 100 are kept); two
+        topics are not ordered, so keypoints of a keyframe already stored are attached to it."""
+        stamp = msgs.stamp_to_ns(msg.header.stamp)
+        kid = self.unmatched_keyframes.pop(stamp, None)
+        if kid is None:
+            self.pending_keypoints[stamp] = msg
+            _bound(self.pending_keypoints)
+            return
+        try:
+            kps = self.decode_keypoints(msg, self.store.get(kid))
+            if kps is not None:
+                self.store.add_keypoints(kid, kps.uv, kps.descriptors)
+        except (LLNError, KeyError) as e:
+            self.health.problem('bad_keypoints', str(e))
+
+    def take_keypoints(self, stamp, lset):
+        """The keypoints sent with this landmark set (by stamp), decoded, or None."""
+        msg = self.pending_keypoints.pop(msgs.stamp_to_ns(stamp), None) if self.reloc else None
+        if msg is None:
+            if self.reloc:
+                self.health.count('verify_missing_keypoints')
+            return None
+        return self.decode_keypoints(msg, lset)
+
+    def decode_keypoints(self, msg, lset):
+        from ..reloc import detection_scale
+        w, h = (float(v) for v in lset.image_size)
+        try:
+            return msgs.cloud_to_keypoints(msg, (w, h), detection_scale(h, self.reloc.conf['min_height']))
+        except LLNError as e:
+            self.health.problem('bad_keypoints', str(e))
+            return None
+
+    def store_keyframe(self, lset, stamp, kps) -> None:
+        kid = self.store.add(lset, stamp)
+        if kps is not None:
+            self.store.add_keypoints(kid, kps.uv, kps.descriptors)
+        elif self.reloc is not None:   # its keypoints may still come
+            self.unmatched_keyframes[msgs.stamp_to_ns(stamp)] = kid
+            _bound(self.unmatched_keyframes)
+        self.health.count('keyframes_stored')
+
+    def stored_keypoints(self, keyframe_id: int, image_size):
+        from ..reloc import Keypoints, detection_scale
+        found = self.store.keypoints(keyframe_id)
+        if found is None:
+            return None
+        uv, desc = found
+        kps = Keypoints.empty(image_size)
+        kps.uv, kps.descriptors = uv, desc
+        kps.scale = detection_scale(image_size[1], self.reloc.conf['min_height'])
+        return kps
+
     def on_keyframe(self, msg: PointCloud2) -> None:
         lset = self.decode(msg, 'bad_keyframe')
         if lset is None:
             return
         try:
-            self.store.add(lset, msg.header.stamp)
+            self.store_keyframe(lset, msg.header.stamp, self.take_keypoints(msg.header.stamp, lset))
         except (LLNError, ValueError) as e:
             self.health.problem('bad_keyframe', str(e))
             return
-        self.health.count('keyframes_stored')
 
     def on_query(self, msg: PointCloud2) -> None:
         lset = self.decode(msg, 'bad_query')
@@ -120,23 +186,38 @@ class MatcherNode(Node):
             return
         p = self.params
         mapping = p['mode'] == 'mapping'
+        kps = self.take_keypoints(msg.header.stamp, lset)
         try:
             found = self.store.query(lset, prefilter_k=p['prefilter_k'], k=p['k'], min_score=p['min_score'],
                                      exclude_recent=p['exclude_recent'] if mapping else 0,
                                      method_rerank=p['method'] == 'lln', scale=p['offset_scale'])
+            inliers = {}
+            if self.reloc is not None:
+                found, inliers = self.verify(lset, kps, found)
             if mapping:  # committed before the answer goes out: an answered keyframe is never lost
-                self.store.add(lset, msg.header.stamp)
-                self.health.count('keyframes_stored')
+                self.store_keyframe(lset, msg.header.stamp, kps)
         except (LLNError, ValueError) as e:
             self.health.problem('bad_query', str(e))
             return
         self.candidates_pub.publish(msgs.candidates_to_cloud(
             [{'keyframe_id': c.keyframe_id, 'score': c.score, 'holistic_score': c.holistic_score,
-              'stamp_sec': c.stamp[0], 'stamp_nanosec': c.stamp[1]} for c in found], msg.header))
+              'stamp_sec': c.stamp[0], 'stamp_nanosec': c.stamp[1],
+              **({'inliers': inliers.get(c.keyframe_id, float('nan'))} if self.reloc else {})}
+             for c in found], msg.header))
         best = found[0] if found else None
         self.matches_pub.publish(msgs.matches_to_cloud(
             msgs.match_rows(best.keyframe_id, best.pairs) if best else [], msg.header))
         self.health.count('queries_answered')
+
+    def verify(self, lset, kps, found):
+        """Candidates re-ranked by region-constrained inliers, and {keyframe_id: inliers}."""
+        from ..reloc import verify_candidates
+        if kps is None or not found:
+            return found, {}
+        ranked = verify_candidates(self.reloc, kps, lset.cell_size, found,
+                                   lambda c: self.stored_keypoints(c.keyframe_id, c.image_size))
+        self.health.count('queries_verified')
+        return [c for c, _ in ranked], {c.keyframe_id: float(r.inliers) for c, r in ranked if r is not None}
 
     # ------------------------------------------------------------------ services
 
@@ -168,6 +249,12 @@ class MatcherNode(Node):
     def destroy_node(self):
         self.store.close()
         return super().destroy_node()
+
+
+def _bound(pending: dict, size: int = 100) -> None:
+    """Keep the newest `size` entries of an insertion-ordered dict."""
+    while len(pending) > size:
+        pending.pop(next(iter(pending)))
 
 
 def main(args=None):
