@@ -31,6 +31,7 @@ setup(
             'lln-eval = lln_ros.cli.eval:main',
             'lln-train = lln_ros.cli.train:main',
             'lln-demo = lln_ros.cli.demo:main',
+            'lln-map = lln_ros.cli.map:main',
         ],
     },
 )

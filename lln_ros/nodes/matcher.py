@@ -27,7 +27,8 @@ from ..mapstore import MapStore
 from .common import MODEL_QOS, Health, declare, run_node, start_diagnostics, subscription_qos
 
 PARAMETERS = {
-    'map_path': ('~/.ros/lln_ros/map.db', 'SQLite map file; created if missing'),
+    'map_path': ('~/.ros/lln_ros/map.db', 'map URI: SQLite file path (created if missing), '
+                 'milvus-lite:///path.db or milvus://host:port[/db][?map=name]'),
     'mode': ('localization', 'localization: answer queries only | mapping: answer, then store each query'),
     'prefilter_k': (30, 'holistic candidates reranked by the landmark similarity'),
     'k': (5, 'candidates published per query'),
