@@ -217,7 +217,8 @@ class GlobalIndex:
         """Replace the contents with x (N, D) float32 under ids (N,) int64, choosing the index type."""
         x, ids = np.ascontiguousarray(x, np.float32).reshape(-1, self.dim), np.asarray(ids, np.int64)
         if len(ids) > self.conf['index_threshold']:
-            lists = int(self.conf['ivf_lists']) or max(1, int(4 * np.sqrt(len(ids))))
+            # FAISS wants >= 39 training points per cell
+            lists = int(self.conf['ivf_lists']) or max(1, min(int(4 * np.sqrt(len(ids))), len(ids) // 39))
             index = faiss.IndexIVFFlat(faiss.IndexFlatIP(self.dim), self.dim, lists, faiss.METRIC_INNER_PRODUCT)
             index.train(x)
             index.nprobe = int(self.conf['ivf_nprobe'])
@@ -388,7 +389,7 @@ class SQLiteMapStore(MapStore):
 
     default_conf = {
         'index_threshold': 50_000,  # keyframes; above this the global index is IVF, below exact
-        'ivf_lists': 0,             # IVF cells; 0 = 4 * sqrt(keyframes) when the index is (re)built
+        'ivf_lists': 0,             # IVF cells; 0 = 4 * sqrt(keyframes) (at most keyframes / 39) at (re)build
         'ivf_nprobe': 16,           # IVF cells visited per query (recall vs speed: bench/bench_map.py)
     }
 
@@ -831,14 +832,15 @@ class SQLiteMapStore(MapStore):
         with self._lock:
             return dict(self._model) if self._model else None
 
-    def clear(self) -> None:
-        """Remove every keyframe; the model record stays, and ids are not reused."""
+    def clear(self) -> int:
+        """Remove every keyframe (returns how many); the model record stays, and ids are not reused."""
         with self._lock:
             self._ready()
             self._write(lambda c: (c.execute('DELETE FROM landmarks'), c.execute('DELETE FROM keyframes')))
-            self._ids = []
+            removed, self._ids = len(self._ids), []
             if self._index is not None:
                 self._index.reset()
+            return removed
 
     def delete(self, keyframe_ids) -> int:
         """Remove keyframes (and their landmarks) by id; returns how many existed. Ids are not reused."""

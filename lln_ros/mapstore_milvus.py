@@ -387,13 +387,14 @@ class MilvusMapStore(MapStore):
                 self._ids = [i for i in self._ids if i not in gone]
             return len(present)
 
-    def clear(self) -> None:
+    def clear(self) -> int:
         with self._lock, self._errors('clear'):
             self._ready()
             if self._model is not None:
                 self._client.delete(self._kf_c, filter='id >= 0')
                 self._client.delete(self._lm_c, filter='keyframe_id >= 0')
-            self._ids = []
+            removed, self._ids = len(self._ids), []
+            return removed
 
     def __len__(self) -> int:
         with self._lock:

@@ -39,6 +39,8 @@ PARAMETERS = {
     'descriptor_space': ('', "expected model, e.g. efficientnet_lite0/stage6/192; '' = the map's or first seen"),
     'reliability': ('reliable', 'keyframes/query subscriptions: reliable | best_effort'),
     'queue_depth': (100, 'keyframes/query subscription queue depth'),
+    'max_query_age': (0.0, 'seconds; older queries (header stamp vs node clock) are dropped and counted '
+                           'as queries_stale, so a backlog cannot grow latency; 0 = off'),
     'diagnostics_period': (1.0, 'seconds between /diagnostics messages; 0 = off'),
 }
 
@@ -116,6 +118,13 @@ class MatcherNode(Node):
         self.health.count('keyframes_stored')
 
     def on_query(self, msg: PointCloud2) -> None:
+        self.health.count('queries_received')
+        max_age = self.params['max_query_age']
+        if max_age > 0:
+            age = (self.get_clock().now().nanoseconds - msgs.stamp_to_ns(msg.header)) * 1e-9
+            if age > max_age:
+                self.health.count('queries_stale')
+                return
         lset = self.decode(msg, 'bad_query')
         if lset is None:
             return
@@ -149,8 +158,8 @@ class MatcherNode(Node):
 
     def on_clear(self, request, response):
         def clear():
-            self.store.clear()
-            return f'cleared {self.store.path}'
+            removed = self.store.clear()
+            return f'cleared {removed} keyframes from {self.store.path}'
         return self._service(response, clear)
 
     def on_info(self, request, response):
