@@ -28,7 +28,7 @@ def random_set(rng):
 
 
 def noisy_view(rng, lset):
-    return make_set(rng, base=lset, noise=0.02)   # a perturbation of norm ~0.28 per unit vector
+    return make_set(rng, dim=192, base=lset, noise=0.02)   # a perturbation of norm ~0.28 per unit vector
 
 
 @pytest.fixture
@@ -140,3 +140,28 @@ def test_clear_and_save_during_a_burst(rig, tmp_path):
         assert store.check() == []
     assert cleared + len(stamps) == burst
     assert stamps == [stamp_of(header(i)) for i in range(burst - len(stamps), burst)]
+
+
+def test_stale_queries_are_dropped_and_counted(rig, tmp_path):
+    """A query older than max_query_age (a backlog, a stalled link) is dropped, counted and never
+    answered; a fresh one is answered."""
+    rng = np.random.default_rng(2)
+    map_path = tmp_path / 'map.db'
+    sets = [random_set(rng) for _ in range(5)]
+    with MapStore.open(map_path, model={'descriptor_space': SPACE, 'descriptor_dim': 192}) as store:
+        store.add_many(sets, [(i, 0) for i in range(5)])
+    proc = start(rig, map_path, '-p', 'max_query_age:=1.0')
+    q_pub = rig.probe.publisher(PointCloud2, 'query')
+    rig.until(lambda: q_pub.get_subscription_count() > 0, 'query subscription', proc)
+    answers = rig.probe.collect(PointCloud2, 'candidates', lambda m: msgs.stamp_to_ns(m.header))
+    old = [time.time_ns() - 10 * 10**9 + i for i in range(4)]
+    for stamp in old:
+        q_pub.publish(msgs.landmarks_to_cloud(sets[1], msgs.make_header(stamp)))
+    fresh = time.time_ns()
+    q_pub.publish(msgs.landmarks_to_cloud(sets[1], msgs.make_header(fresh)))
+    rig.until(lambda: answers, 'the fresh answer', proc)
+    rig.wait_counter(MATCHER, 'queries_stale', 4, proc)
+    assert answers == [fresh]
+    counters = rig.info()['counters']
+    assert counters['queries_received'] == 5 and counters['queries_stale'] == 4
+    assert counters['queries_answered'] == 1
