@@ -1,11 +1,14 @@
-"""The persistent map behind the matcher node: keyframes' landmark sets in one SQLite file.
+"""The persistent map behind the matcher node: keyframes' landmark sets, embedded or in Milvus.
 
     with MapStore.open('~/.ros/lln/map.db', model=extractor.model_info) as store:
         kf = store.add(landmarks, stamp=(sec, nanosec))           # durable when it returns
         for c in store.query(landmarks, exclude_recent=20):       # online loop closure
             c.keyframe_id, c.score, c.stamp, c.pairs['map_u'], ...
 
-No rclpy here: the node wraps this class, tests use it directly.
+No rclpy here: the node wraps this class, tests use it directly. ``MapStore(uri)`` returns the
+backend the URI names (backend_for): a plain path is the embedded SQLiteMapStore below;
+``milvus://host:port`` and ``milvus-lite:///path.db`` are MilvusMapStore (lln_ros/mapstore_milvus.py).
+Both have the API listed in MapStore's docstring and pass one test suite (test/test_map_backends.py).
 
 Storage
 -------
@@ -47,8 +50,11 @@ part.
 Migrations: ``MIGRATIONS[v]`` upgrades a map from schema v to v+1 inside one transaction at open.
 A map newer than this code is refused, never modified.
 
-In memory: a FAISS ``IndexIDMap(IndexFlatIP(D))`` over the global descriptors, keyed by keyframe id,
-rebuilt from SQLite at open and checked against it (count and ids). Landmarks stay on disk; a query
+In memory: a FAISS index over the global descriptors, keyed by keyframe id (GlobalIndex): exact
+(``IndexIDMap(IndexFlatIP(D))``) up to ``conf['index_threshold']`` keyframes (50,000), IVF above
+(``IndexIVFFlat``, trained on the map's own descriptors at open, ~1 s at 100k). It is rebuilt from
+SQLite at open and checked against it (count and ids); nothing but SQLite is ever written, so there
+is no second file to disagree with after a crash. Landmarks stay on disk; a query
 fetches the prefiltered keyframes' landmarks with one ``SELECT ... WHERE id IN (...)``. If another
 connection (another process) commits to the file, the next call notices (``PRAGMA data_version``)
 and rebuilds the index.
@@ -217,9 +223,11 @@ class GlobalIndex:
         """Replace the contents with x (N, D) float32 under ids (N,) int64, choosing the index type."""
         x, ids = np.ascontiguousarray(x, np.float32).reshape(-1, self.dim), np.asarray(ids, np.int64)
         if len(ids) > self.conf['index_threshold']:
-            # FAISS wants >= 39 training points per cell
-            lists = int(self.conf['ivf_lists']) or max(1, min(int(4 * np.sqrt(len(ids))), len(ids) // 39))
+            # FAISS wants >= 39 training points per cell; 64 per cell keeps k-means (the bulk of a
+            # 100k map's cold start) to about a second
+            lists = int(self.conf['ivf_lists']) or max(1, min(int(np.sqrt(len(ids))), len(ids) // 39))
             index = faiss.IndexIVFFlat(faiss.IndexFlatIP(self.dim), self.dim, lists, faiss.METRIC_INNER_PRODUCT)
+            index.cp.max_points_per_centroid = 64
             index.train(x)
             index.nprobe = int(self.conf['ivf_nprobe'])
         else:
@@ -372,6 +380,52 @@ class MapStore:
         """Store one keyframe; returns its id once it is durably stored."""
         return self.add_many([lset], [stamp])[0]
 
+    def _check_many(self, sets: list[LandmarkSet], stamps, ids) -> tuple[list, dict]:
+        """Validate an add_many call; returns the (sec, nanosec) stamps and the sets' descriptor space."""
+        stamps = [_stamp(st) for st in stamps]
+        if len(stamps) != len(sets) or (ids is not None and len(ids) != len(sets)):
+            raise ValueError(f'{len(sets)} landmark sets need as many stamps (and ids); got {len(stamps)}'
+                             f'{"" if ids is None else f" and {len(ids)}"}')
+        spaces = [self._check_storable(lset) for lset in sets]
+        given = spaces[0]
+        if any(sp != given for sp in spaces):
+            raise MapError(f'landmark sets from different models in one add_many: {given}, '
+                           f'{next(sp for sp in spaces if sp != given)}')
+        return stamps, given
+
+    def __len__(self) -> int:
+        with self._lock:
+            self._ready()
+            return len(self._ids)
+
+    def __contains__(self, keyframe_id) -> bool:
+        with self._lock:
+            self._ready()
+            return int(keyframe_id) in set(self._ids)
+
+    def ids(self) -> list[int]:
+        """Keyframe ids in insertion order (ascending)."""
+        with self._lock:
+            self._ready()
+            return list(self._ids)
+
+    @property
+    def model(self) -> dict | None:
+        with self._lock:
+            return dict(self._model) if self._model else None
+
+    def keyframes(self, batch: int = 256):
+        """Every keyframe as (id, (sec, nanosec), LandmarkSet), in id order, `batch` per read."""
+        ids = self.ids()
+        for start in range(0, len(ids), batch):
+            chunk = ids[start:start + batch]
+            with self._lock:
+                self._ready()
+                sets = self._fetch(chunk)
+            for i in chunk:
+                if i in sets:
+                    yield i, sets[i].meta['stamp'], sets[i]
+
     def __enter__(self) -> 'MapStore':
         return self
 
@@ -389,7 +443,7 @@ class SQLiteMapStore(MapStore):
 
     default_conf = {
         'index_threshold': 50_000,  # keyframes; above this the global index is IVF, below exact
-        'ivf_lists': 0,             # IVF cells; 0 = 4 * sqrt(keyframes) (at most keyframes / 39) at (re)build
+        'ivf_lists': 0,             # IVF cells; 0 = sqrt(keyframes) (at most keyframes / 39) at (re)build
         'ivf_nprobe': 16,           # IVF cells visited per query (recall vs speed: bench/bench_map.py)
     }
 
@@ -581,21 +635,30 @@ class SQLiteMapStore(MapStore):
         self._data_version = c.execute('PRAGMA data_version').fetchone()[0]
         meta = self._meta()
         self._model = json.loads(meta['model']) if 'model' in meta else None
-        rows = c.execute('SELECT id, global_descriptor FROM keyframes ORDER BY id').fetchall()
-        self._ids = [int(r[0]) for r in rows]
+        count = c.execute('SELECT count(*) FROM keyframes').fetchone()[0]
+        self._ids = []
         self._index = None
         if self._model is None:
-            if rows:
-                raise MapError(f'map {self.path} is damaged: {len(rows)} keyframes but no model record')
+            if count:
+                raise MapError(f'map {self.path} is damaged: {count} keyframes but no model record')
             return
         dim = int(self._model['descriptor_dim'])
-        bad = [r[0] for r in rows if len(r[1]) != 4 * dim]
+        # streamed into one preallocated array: a 100k map's rows as Python objects would double the peak
+        x = np.empty((count, dim), np.float32)
+        cursor = c.execute('SELECT id, global_descriptor FROM keyframes ORDER BY id')
+        bad = []
+        while rows := cursor.fetchmany(4096):
+            for kid, blob in rows:
+                if len(blob) != 4 * dim:
+                    bad.append(kid)
+                elif len(self._ids) < count:
+                    x[len(self._ids)] = np.frombuffer(blob, '<f4')
+                    self._ids.append(int(kid))
         if bad:
             raise MapError(f'map {self.path} is corrupt: global descriptors of keyframes {bad[:10]} are '
                            f'not {dim} float32 values')
         self._index = GlobalIndex(dim, self.conf)
-        x = np.frombuffer(b''.join(r[1] for r in rows), '<f4').reshape(len(rows), dim)
-        self._index.build(x, np.asarray(self._ids, np.int64))
+        self._index.build(x[:len(self._ids)], np.asarray(self._ids, np.int64))
         problems = self._faiss_problems()
         if problems:
             raise MapError(f'map {self.path}: in-memory index disagrees with the file: {"; ".join(problems)}')
@@ -720,17 +783,9 @@ class SQLiteMapStore(MapStore):
     def add_many(self, sets: list[LandmarkSet], stamps, ids=None) -> list[int]:
         """Store keyframes in one transaction; returns their ids once they are durably on disk.
         ids: keep these ids (export / import between maps); MapError if one is taken."""
-        stamps = [_stamp(st) for st in stamps]
-        if len(stamps) != len(sets) or (ids is not None and len(ids) != len(sets)):
-            raise ValueError(f'{len(sets)} landmark sets need as many stamps (and ids); got {len(stamps)}'
-                             f'{"" if ids is None else f" and {len(ids)}"}')
         if not sets:
             return []
-        spaces = [self._check_storable(lset) for lset in sets]
-        given = spaces[0]
-        if any(sp != given for sp in spaces):
-            raise MapError(f'landmark sets from different models in one add_many: {given}, '
-                           f'{next(sp for sp in spaces if sp != given)}')
+        stamps, given = self._check_many(sets, stamps, ids)
         records = []
         for lset, (sec, nsec) in zip(sets, stamps):
             rows, cols = (int(v) for v in lset.grid)
@@ -811,27 +866,6 @@ class SQLiteMapStore(MapStore):
             raise KeyError(f'no keyframe {keyframe_id} in map {self.path}')
         return sets[int(keyframe_id)]
 
-    def __len__(self) -> int:
-        with self._lock:
-            self._ready()
-            return len(self._ids)
-
-    def __contains__(self, keyframe_id) -> bool:
-        with self._lock:
-            self._ready()
-            return int(keyframe_id) in set(self._ids)
-
-    def ids(self) -> list[int]:
-        """Keyframe ids in insertion order (ascending)."""
-        with self._lock:
-            self._ready()
-            return list(self._ids)
-
-    @property
-    def model(self) -> dict | None:
-        with self._lock:
-            return dict(self._model) if self._model else None
-
     def clear(self) -> int:
         """Remove every keyframe (returns how many); the model record stays, and ids are not reused."""
         with self._lock:
@@ -862,18 +896,6 @@ class SQLiteMapStore(MapStore):
             self._ids = [i for i in self._ids if i not in gone]
             self._index.remove(present)
             return len(present)
-
-    def keyframes(self, batch: int = 256):
-        """Every keyframe as (id, (sec, nanosec), LandmarkSet), in id order, `batch` rows per read."""
-        ids = self.ids()
-        for start in range(0, len(ids), batch):
-            chunk = ids[start:start + batch]
-            with self._lock:
-                self._ready()
-                sets = self._fetch(chunk)
-            for i in chunk:
-                if i in sets:
-                    yield i, sets[i].meta['stamp'], sets[i]
 
     def compact(self) -> dict:
         """Checkpoint, then VACUUM: give the pages of deleted keyframes back to the filesystem.

@@ -39,7 +39,7 @@ import numpy as np
 
 from .errors import MapError
 from .landmarks import LandmarkSet
-from .mapstore import FORMAT, MapCandidate, MapStore, _stamp
+from .mapstore import FORMAT, MapCandidate, MapStore
 
 log = logging.getLogger(__name__)
 
@@ -228,11 +228,6 @@ class MilvusMapStore(MapStore):
             elif not self._same_space(model):
                 raise self._mismatch(model, 'the extractor')
 
-    @property
-    def model(self) -> dict | None:
-        with self._lock:
-            return dict(self._model) if self._model else None
-
     # ------------------------------------------------------------------ rows <-> sets
 
     def _rows_to_sets(self, kf_rows: list, lm_rows: list) -> dict[int, LandmarkSet]:
@@ -267,6 +262,10 @@ class MilvusMapStore(MapStore):
         ids = [int(i) for i in ids]
         if not ids:
             return {}
+        with self._errors('read'):
+            return self._fetch_rows(ids, kf_rows)
+
+    def _fetch_rows(self, ids: list[int], kf_rows: list | None) -> dict[int, LandmarkSet]:
         if kf_rows is None:
             kf_rows = self._client.query(self._kf_c, filter=f'id in {ids}', output_fields=['*'])
         by_id = {int(k['id']): k for k in kf_rows}
@@ -288,20 +287,15 @@ class MilvusMapStore(MapStore):
     def add_many(self, sets: list[LandmarkSet], stamps, ids=None) -> list[int]:
         """Store keyframes; returns their ids once Milvus acknowledged both inserts.
         ids: keep these ids (export / import between maps); MapError if one is taken."""
-        stamps = [_stamp(st) for st in stamps]
-        if len(stamps) != len(sets) or (ids is not None and len(ids) != len(sets)):
-            raise ValueError(f'{len(sets)} landmark sets need as many stamps (and ids)')
         if not sets:
             return []
-        spaces = [self._check_storable(s) for s in sets]
-        if any(sp != spaces[0] for sp in spaces):
-            raise MapError('landmark sets from different models in one add_many')
+        stamps, given = self._check_many(sets, stamps, ids)
         with self._lock, self._errors('insert'):
             self._ready()
             if self._model is None:
-                self.use_model(spaces[0])
-            elif not self._same_space(spaces[0]):
-                raise self._mismatch(spaces[0], 'a landmark set')
+                self.use_model(given)
+            elif not self._same_space(given):
+                raise self._mismatch(given, 'a landmark set')
             if ids is None:
                 new_ids = list(range(self._next_id, self._next_id + len(sets)))
             else:
@@ -364,17 +358,6 @@ class MilvusMapStore(MapStore):
             raise KeyError(f'no keyframe {keyframe_id} in map {self.path}')
         return sets[int(keyframe_id)]
 
-    def keyframes(self, batch: int = 256):
-        """Every keyframe as (id, (sec, nanosec), LandmarkSet), in id order."""
-        ids = self.ids()
-        for start in range(0, len(ids), batch):
-            chunk = ids[start:start + batch]
-            with self._lock, self._errors('export'):
-                sets = self._fetch(chunk)
-            for i in chunk:
-                if i in sets:
-                    yield i, sets[i].meta['stamp'], sets[i]
-
     def delete(self, keyframe_ids) -> int:
         with self._lock, self._errors('delete'):
             self._ready()
@@ -395,20 +378,6 @@ class MilvusMapStore(MapStore):
                 self._client.delete(self._lm_c, filter='keyframe_id >= 0')
             removed, self._ids = len(self._ids), []
             return removed
-
-    def __len__(self) -> int:
-        with self._lock:
-            self._ready()
-            return len(self._ids)
-
-    def __contains__(self, keyframe_id) -> bool:
-        with self._lock:
-            return int(keyframe_id) in set(self._ids)
-
-    def ids(self) -> list[int]:
-        with self._lock:
-            self._ready()
-            return list(self._ids)
 
     def info(self) -> dict:
         with self._lock, self._errors('info'):

@@ -203,3 +203,36 @@ def test_cli_check_explains_a_damaged_map(tmp_path, rng, damage):
     with pytest.raises(MapError, match=str(path) if damage != 'bad_blob' else 'keyframe 5'):
         with MapStore.open(path, create=False) as store:   # never a silent empty map
             store.get(5)
+
+
+def test_sqlite_migration_runs_once_in_a_transaction(tmp_path, rng, monkeypatch):
+    """A map at an older schema version is upgraded at open by MIGRATIONS[v], once; a failing
+    migration leaves the file at its old version."""
+    import sqlite3
+
+    from lln_ros import mapstore
+    path = tmp_path / 'old.db'
+    with MapStore.open(path, model=MODEL) as store:
+        kid = store.add(make_set(rng))
+    con = sqlite3.connect(path)
+    con.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (str(mapstore.SCHEMA_VERSION - 1),))
+    con.commit()
+    con.close()
+    calls = []
+
+    def broken(conn):
+        conn.execute('CREATE TABLE half_done (x)')
+        raise RuntimeError('migration failed')
+    monkeypatch.setitem(mapstore.MIGRATIONS, mapstore.SCHEMA_VERSION - 1, broken)
+    with pytest.raises(RuntimeError):
+        MapStore.open(path)
+    con = sqlite3.connect(path)
+    assert con.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == \
+        str(mapstore.SCHEMA_VERSION - 1)
+    assert not con.execute("SELECT name FROM sqlite_master WHERE name = 'half_done'").fetchall()
+    con.close()
+    monkeypatch.setitem(mapstore.MIGRATIONS, mapstore.SCHEMA_VERSION - 1, calls.append)
+    with MapStore.open(path) as store:
+        assert store.info()['schema_version'] == mapstore.SCHEMA_VERSION and store.ids() == [kid]
+    with MapStore.open(path) as store:
+        assert len(calls) == 1 and store.check() == []
