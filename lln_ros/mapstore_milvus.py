@@ -78,7 +78,11 @@ class MilvusMapStore(MapStore):
 
     def __init__(self, path, model: dict | None = None, create: bool = True, verify: bool = True,
                  conf: dict | None = None):
-        from pymilvus import MilvusClient  # optional dependency, only for this backend
+        try:
+            from pymilvus import MilvusClient  # needed by this backend only
+        except ImportError as e:
+            raise MapError(f'map {path} needs the Milvus backend: pip install pymilvus==3.0.2 '
+                           f'milvus-lite==3.2.2 ({e})') from e
         self.conf = {**self.default_conf, **(conf or {})}
         where = parse_uri(path)
         self.path = where['label']
