@@ -98,6 +98,11 @@ class MilvusMapStore(MapStore):
                            f'an SQLite map is opened by its plain path')
         if is_lite and not create and not os.path.isdir(where['uri']):
             raise MapError(f'no map at {self.path} (create=False)')
+        if is_lite:
+            try:
+                os.makedirs(os.path.dirname(where['uri']), exist_ok=True)
+            except OSError as e:
+                raise MapError(f'cannot create map {self.path}: {e}') from e
         try:
             kwargs = {'uri': where['uri'], 'timeout': self.conf['timeout']}
             if where['db_name']:

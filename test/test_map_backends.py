@@ -19,7 +19,8 @@ BACKENDS = ['sqlite', pytest.param('milvus', marks=pytest.mark.skipif(
 
 
 def uri_for(kind, tmp_path, name='map'):
-    return str(tmp_path / f'{name}.db') if kind == 'sqlite' else f'milvus-lite://{tmp_path}/{name}.db'
+    # in a folder that does not exist yet: both backends create it
+    return str(tmp_path / 'maps' / f'{name}.db') if kind == 'sqlite' else f'milvus-lite://{tmp_path}/maps/{name}.db'
 
 
 @pytest.fixture
