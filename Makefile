@@ -2,7 +2,7 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup test main bench colcon clean
+.PHONY: setup test main bench bench-map colcon clean
 
 setup:
 	bash scripts/setup.sh
@@ -16,6 +16,10 @@ main: setup
 
 bench: setup
 	$(PY) bench/bench_core.py
+
+# map store at 1k / 10k / 100k keyframes (~5 min, ~2 GB in /tmp); table on stdout, plot in out/
+bench-map: setup
+	$(PY) bench/bench_map.py $(ARGS)
 
 colcon: setup
 	$(VENV)/bin/colcon build --base-paths . --build-base build --install-base install

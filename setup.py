@@ -32,6 +32,7 @@ setup(
             'lln-train = lln_ros.cli.train:main',
             'lln-demo = lln_ros.cli.demo:main',
             'lln-reloc = lln_ros.cli.reloc:main',
+            'lln-map = lln_ros.cli.map:main',
         ],
     },
 )

@@ -1,11 +1,14 @@
-"""The persistent map behind the matcher node: keyframes' landmark sets in one SQLite file.
+"""The persistent map behind the matcher node: keyframes' landmark sets, embedded or in Milvus.
 
     with MapStore.open('~/.ros/lln/map.db', model=extractor.model_info) as store:
         kf = store.add(landmarks, stamp=(sec, nanosec))           # durable when it returns
         for c in store.query(landmarks, exclude_recent=20):       # online loop closure
             c.keyframe_id, c.score, c.stamp, c.pairs['map_u'], ...
 
-No rclpy here: the node wraps this class, tests use it directly.
+No rclpy here: the node wraps this class, tests use it directly. ``MapStore(uri)`` returns the
+backend the URI names (backend_for): a plain path is the embedded SQLiteMapStore below;
+``milvus://host:port`` and ``milvus-lite:///path.db`` are MilvusMapStore (lln_ros/mapstore_milvus.py).
+Both have the API listed in MapStore's docstring and pass one test suite (test/test_map_backends.py).
 
 Storage
 -------
@@ -51,8 +54,11 @@ part.
 Migrations: ``MIGRATIONS[v]`` upgrades a map from schema v to v+1 inside one transaction at open.
 A map newer than this code is refused, never modified.
 
-In memory: a FAISS ``IndexIDMap(IndexFlatIP(D))`` over the global descriptors, keyed by keyframe id,
-rebuilt from SQLite at open and checked against it (count and ids). Landmarks stay on disk; a query
+In memory: a FAISS index over the global descriptors, keyed by keyframe id (GlobalIndex): exact
+(``IndexIDMap(IndexFlatIP(D))``) up to ``conf['index_threshold']`` keyframes (50,000), IVF above
+(``IndexIVFFlat``, trained on the map's own descriptors at open, ~1 s at 100k). It is rebuilt from
+SQLite at open and checked against it (count and ids); nothing but SQLite is ever written, so there
+is no second file to disagree with after a crash. Landmarks stay on disk; a query
 fetches the prefiltered keyframes' landmarks with one ``SELECT ... WHERE id IN (...)``. If another
 connection (another process) commits to the file, the next call notices (``PRAGMA data_version``)
 and rebuilds the index.
@@ -119,6 +125,8 @@ MIGRATIONS: dict = {}
 _KF_COLS = 'k.id, k.stamp_sec, k.stamp_nanosec, k.image_w, k.image_h, k.grid_rows, k.grid_cols, ' \
            'k.cell_w, k.cell_h, k.n, k.global_descriptor'
 _LM_COLS = 'l.cells, l.centers, l.scores, l.descriptors'
+_KF_INSERT = ('stamp_sec, stamp_nanosec, image_w, image_h, grid_rows, grid_cols, cell_w, cell_h, n, '
+              'global_descriptor')
 _SQL_CHUNK = 900  # ids per IN (...) list, below SQLite's oldest variable limit (999)
 
 
@@ -176,17 +184,280 @@ def _stamp(stamp) -> tuple[int, int]:
     return sec, nsec
 
 
-class MapStore:
-    """A persistent map of keyframe landmark sets (see the module docstring for the file format).
+def backend_for(uri) -> tuple[str, str]:
+    """('sqlite' | 'milvus', location) for a map URI.
 
-    MapStore(path, model=None, create=True, verify=True); MapStore.open(...) is the same.
-    model: Extractor.model_info (needs descriptor_space and descriptor_dim). Recorded on first use;
-    a map from another descriptor space is refused with MapError. verify: run SQLite's quick_check
-    at open (reads the whole file once; catches truncation and corruption before they surface as
-    bad answers).
+    plain path or sqlite:///path        the embedded backend (SQLite file + in-memory FAISS)
+    milvus://host:port[/db][?map=name]  a Milvus server or cluster
+    milvus-lite:///path.db              Milvus Lite, the embedded Milvus (a directory at path.db)
+    an existing Milvus Lite directory   Milvus Lite (it holds LOCK, collections/, databases/)
+    """
+    text = os.fspath(uri)
+    if text.startswith('sqlite://'):
+        return 'sqlite', text[len('sqlite://'):]
+    if text.startswith(('milvus://', 'milvus-lite:')):
+        return 'milvus', text
+    path = os.path.abspath(os.path.expanduser(text))
+    if os.path.isdir(path) and os.path.isdir(os.path.join(path, 'collections')):
+        return 'milvus', 'milvus-lite://' + path
+    return 'sqlite', text
+
+
+class GlobalIndex:
+    """The in-memory FAISS index of the global descriptors (D,), keyed by keyframe id, inner product.
+
+    Exact (IndexIDMap(IndexFlatIP)) up to conf['index_threshold'] keyframes; above it an IVF index
+    (IndexIVFFlat, trained on the descriptors it is built from, conf['ivf_lists'] cells, searching
+    conf['ivf_nprobe'] of them). Crossing the threshold while adding rebuilds it once as IVF.
     """
 
-    def __init__(self, path, model: dict | None = None, create: bool = True, verify: bool = True):
+    def __init__(self, dim: int, conf: dict):
+        self.dim, self.conf = int(dim), conf
+        self.index = faiss.IndexIDMap(faiss.IndexFlatIP(self.dim))
+
+    @property
+    def kind(self) -> str:
+        return 'ivf' if isinstance(self.index, faiss.IndexIVF) else 'exact'
+
+    @property
+    def ntotal(self) -> int:
+        return int(self.index.ntotal)
+
+    def build(self, x: np.ndarray, ids: np.ndarray) -> None:
+        """Replace the contents with x (N, D) float32 under ids (N,) int64, choosing the index type."""
+        x, ids = np.ascontiguousarray(x, np.float32).reshape(-1, self.dim), np.asarray(ids, np.int64)
+        if len(ids) > self.conf['index_threshold']:
+            # FAISS wants >= 39 training points per cell; 64 per cell keeps k-means (the bulk of a
+            # 100k map's cold start) to about a second
+            lists = int(self.conf['ivf_lists']) or max(1, min(int(np.sqrt(len(ids))), len(ids) // 39))
+            index = faiss.IndexIVFFlat(faiss.IndexFlatIP(self.dim), self.dim, lists, faiss.METRIC_INNER_PRODUCT)
+            index.cp.max_points_per_centroid = 64
+            index.train(x)
+            index.nprobe = int(self.conf['ivf_nprobe'])
+        else:
+            index = faiss.IndexIDMap(faiss.IndexFlatIP(self.dim))
+        if len(ids):
+            index.add_with_ids(x, ids)
+        self.index = index
+
+    def add(self, x: np.ndarray, ids: np.ndarray) -> None:
+        if self.kind == 'exact' and self.ntotal + len(ids) > self.conf['index_threshold']:
+            old_x = self.index.index.reconstruct_n(0, self.ntotal) if self.ntotal else np.zeros((0, self.dim))
+            self.build(np.concatenate([old_x, np.asarray(x, np.float32).reshape(-1, self.dim)]),
+                       np.concatenate([faiss.vector_to_array(self.index.id_map), np.asarray(ids, np.int64)]))
+            log.info('global index passed %d keyframes: now IVF', self.conf['index_threshold'])
+            return
+        self.index.add_with_ids(np.ascontiguousarray(x, np.float32).reshape(-1, self.dim),
+                                np.asarray(ids, np.int64))
+
+    def remove(self, ids) -> None:
+        self.index.remove_ids(np.asarray(list(ids), np.int64))
+
+    def reset(self) -> None:
+        self.index = faiss.IndexIDMap(faiss.IndexFlatIP(self.dim))
+
+    def search(self, q: np.ndarray, k: int, below: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Top k (scores (k',), ids (k',)) for one query q (D,), only ids < below when given."""
+        params = None
+        if below is not None:
+            selector = faiss.IDSelectorRange(0, int(below))
+            params = (faiss.SearchParametersIVF(sel=selector, nprobe=self.index.nprobe)
+                      if self.kind == 'ivf' else faiss.SearchParameters(sel=selector))
+        scores, ids = self.index.search(np.ascontiguousarray(q, np.float32).reshape(1, self.dim), int(k),
+                                        params=params)
+        keep = ids[0] >= 0
+        return scores[0][keep], ids[0][keep]
+
+    def ids(self) -> list[int]:
+        """Every id in the index, sorted (for the consistency check against SQLite)."""
+        if self.kind == 'exact':
+            return sorted(faiss.vector_to_array(self.index.id_map).tolist())
+        lists = self.index.invlists
+        out = []
+        for cell in range(lists.nlist):
+            size = lists.list_size(cell)
+            if size:
+                out.extend(faiss.rev_swig_ptr(lists.get_ids(cell), size).tolist())
+        return sorted(out)
+
+
+class MapStore:
+    """The map interface; ``MapStore(uri, ...)`` / ``MapStore.open(uri, ...)`` returns the backend the
+    URI names (see backend_for): SQLiteMapStore (default) or MilvusMapStore. Both keep this API:
+
+    add(lset, stamp) -> id; add_many(sets, stamps, ids=None) -> ids; query(lset, ...) -> [MapCandidate];
+    get(id) -> LandmarkSet; delete(ids); ids(); len(); `id in store`; model; use_model(model); clear();
+    info() -> dict; save(); compact(); check() -> [problem]; keyframes(batch) -> iterator of
+    (id, stamp, LandmarkSet); close(); context manager.
+
+    model: Extractor.model_info (needs descriptor_space and descriptor_dim). Recorded on first use;
+    a map from another descriptor space is refused with MapError.
+    """
+
+    def __new__(cls, path=None, *args, **kwargs):
+        if cls is MapStore:
+            kind, _ = backend_for(path)
+            if kind == 'milvus':
+                from .mapstore_milvus import MilvusMapStore
+                cls = MilvusMapStore
+            else:
+                cls = SQLiteMapStore
+        return super().__new__(cls)
+
+    @classmethod
+    def open(cls, path, model: dict | None = None, create: bool = True, verify: bool = True,
+             conf: dict | None = None) -> 'MapStore':
+        return cls(path, model=model, create=create, verify=verify, conf=conf)
+
+    # ------------------------------------------------------------------ shared by the backends
+
+    path: str = ''
+    _model: dict | None = None
+
+    @staticmethod
+    def _check_model_dict(model: dict) -> dict:
+        if not isinstance(model, dict) or not model.get('descriptor_space') or not model.get('descriptor_dim'):
+            raise MapError(f'model for map must be a dict with descriptor_space and descriptor_dim '
+                           f'(Extractor.model_info), got {model!r}')
+        model = dict(model)
+        model['descriptor_dim'] = int(model['descriptor_dim'])
+        return model
+
+    def _mismatch(self, other: dict, what: str) -> MapError:
+        return MapError(f'map {self.path} was built with model {_describe(self._model)}; refusing {what} '
+                        f'from model {_describe(other)}: descriptors from different models cannot be '
+                        f'compared (use a map file made with this model, or delete this one)')
+
+    def _same_space(self, model: dict) -> bool:
+        return (model['descriptor_space'] == self._model['descriptor_space']
+                and int(model['descriptor_dim']) == int(self._model['descriptor_dim']))
+
+    def _check_storable(self, lset: LandmarkSet) -> dict:
+        """Validate a keyframe before storing it; returns its {descriptor_space, descriptor_dim}."""
+        lset.validate()
+        if len(lset) == 0:
+            raise DescriptorError('landmark set has no landmarks; nothing to store')
+        if not lset.descriptor_space:
+            raise MapError(f'landmark set has no descriptor_space; refusing to store it in map {self.path} '
+                           f'(a persistent map must know which model made its descriptors)')
+        rows, cols = (int(v) for v in lset.grid)
+        if not (0 < rows < 32768 and 0 < cols < 32768):
+            raise DescriptorError(f'grid {rows}x{cols} cannot be stored (int16 cells)')
+        return {'descriptor_space': lset.descriptor_space, 'descriptor_dim': lset.dim}
+
+    @staticmethod
+    def _query_args(lset: LandmarkSet, prefilter_k, k, exclude_recent, method_rerank) -> tuple[int, int, int]:
+        if int(prefilter_k) < 1 or int(k) < 1 or int(exclude_recent) < 0:
+            raise ValueError(f'need prefilter_k >= 1, k >= 1, exclude_recent >= 0; got {prefilter_k}, {k}, '
+                             f'{exclude_recent}')
+        lset.validate()
+        if method_rerank and len(lset) == 0:
+            raise DescriptorError('query landmark set has no landmarks; cannot rerank')
+        return int(prefilter_k), int(k), int(exclude_recent)
+
+    def _answer(self, lset: LandmarkSet, ids: np.ndarray, hol: np.ndarray, sets: dict, k: int,
+                min_score: float | None, method_rerank: bool, scale: float) -> list[MapCandidate]:
+        """Rerank the prefiltered keyframes (ids (K,), holistic cosines (K,), their sets by id)."""
+        missing = [int(i) for i in ids if int(i) not in sets]
+        if missing:
+            raise MapError(f'map {self.path}: keyframes {missing[:10]} are in the index but not in the store')
+        if method_rerank:
+            batch = stack_landmarks([sets[int(i)] for i in ids])
+            ranked = rerank(lset, batch, ids, hol, scale)
+        else:
+            ranked = [Candidate(int(i), float(h), float(h)) for i, h in zip(ids, hol)]
+        out = []
+        for c in ranked:
+            if min_score is not None and c.score < min_score:
+                continue
+            s = sets[c.index]
+            pairs = pair_regions(lset, s, c.pairs)
+            out.append(MapCandidate(c.index, float(c.score), float(c.holistic_score), s.meta['stamp'],
+                                    tuple(int(v) for v in c.offset),
+                                    (float(s.cell_size[0]), float(s.cell_size[1])),
+                                    (float(s.image_size[0]), float(s.image_size[1])), pairs))
+            if len(out) == k:
+                break
+        return out
+
+    def add(self, lset: LandmarkSet, stamp=(0, 0)) -> int:
+        """Store one keyframe; returns its id once it is durably stored."""
+        return self.add_many([lset], [stamp])[0]
+
+    def _check_many(self, sets: list[LandmarkSet], stamps, ids) -> tuple[list, dict]:
+        """Validate an add_many call; returns the (sec, nanosec) stamps and the sets' descriptor space."""
+        stamps = [_stamp(st) for st in stamps]
+        if len(stamps) != len(sets) or (ids is not None and len(ids) != len(sets)):
+            raise ValueError(f'{len(sets)} landmark sets need as many stamps (and ids); got {len(stamps)}'
+                             f'{"" if ids is None else f" and {len(ids)}"}')
+        spaces = [self._check_storable(lset) for lset in sets]
+        given = spaces[0]
+        if any(sp != given for sp in spaces):
+            raise MapError(f'landmark sets from different models in one add_many: {given}, '
+                           f'{next(sp for sp in spaces if sp != given)}')
+        return stamps, given
+
+    def __len__(self) -> int:
+        with self._lock:
+            self._ready()
+            return len(self._ids)
+
+    def __contains__(self, keyframe_id) -> bool:
+        with self._lock:
+            self._ready()
+            return int(keyframe_id) in set(self._ids)
+
+    def ids(self) -> list[int]:
+        """Keyframe ids in insertion order (ascending)."""
+        with self._lock:
+            self._ready()
+            return list(self._ids)
+
+    @property
+    def model(self) -> dict | None:
+        with self._lock:
+            return dict(self._model) if self._model else None
+
+    def keyframes(self, batch: int = 256):
+        """Every keyframe as (id, (sec, nanosec), LandmarkSet), in id order, `batch` per read."""
+        ids = self.ids()
+        for start in range(0, len(ids), batch):
+            chunk = ids[start:start + batch]
+            with self._lock:
+                self._ready()
+                sets = self._fetch(chunk)
+            for i in chunk:
+                if i in sets:
+                    yield i, sets[i].meta['stamp'], sets[i]
+
+    def __enter__(self) -> 'MapStore':
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class SQLiteMapStore(MapStore):
+    """The embedded map: one SQLite file plus an in-memory FAISS index (see the module docstring).
+
+    SQLiteMapStore(path, model=None, create=True, verify=True, conf=None). verify: run SQLite's
+    quick_check at open (reads the whole file once; catches truncation and corruption before they
+    surface as bad answers). conf: see default_conf (when the FAISS index turns approximate).
+    """
+
+    default_conf = {
+        'index_threshold': 50_000,  # keyframes; above this the global index is IVF, below exact
+        'ivf_lists': 0,             # IVF cells; 0 = sqrt(keyframes) (at most keyframes / 39) at (re)build
+        'ivf_nprobe': 16,           # IVF cells visited per query (recall vs speed: bench/bench_map.py)
+    }
+
+    def __init__(self, path, model: dict | None = None, create: bool = True, verify: bool = True,
+                 conf: dict | None = None):
+        self.conf = {**self.default_conf, **(conf or {})}
+        kind, location = backend_for(path)
+        if kind != 'sqlite':
+            raise MapError(f'{path} is not an SQLite map URI')
+        path = location
         self.path = os.path.abspath(os.path.expanduser(os.fspath(path)))
         self._lock = threading.RLock()
         self._conn: sqlite3.Connection | None = None
@@ -232,10 +503,6 @@ class MapStore:
             self._conn.close()
             self._conn = None
             raise
-
-    @classmethod
-    def open(cls, path, model: dict | None = None, create: bool = True, verify: bool = True) -> 'MapStore':
-        return cls(path, model=model, create=create, verify=verify)
 
     # ------------------------------------------------------------------ opening
 
@@ -372,22 +639,30 @@ class MapStore:
         self._data_version = c.execute('PRAGMA data_version').fetchone()[0]
         meta = self._meta()
         self._model = json.loads(meta['model']) if 'model' in meta else None
-        rows = c.execute('SELECT id, global_descriptor FROM keyframes ORDER BY id').fetchall()
-        self._ids = [int(r[0]) for r in rows]
+        count = c.execute('SELECT count(*) FROM keyframes').fetchone()[0]
+        self._ids = []
         self._index = None
         if self._model is None:
-            if rows:
-                raise MapError(f'map {self.path} is damaged: {len(rows)} keyframes but no model record')
+            if count:
+                raise MapError(f'map {self.path} is damaged: {count} keyframes but no model record')
             return
         dim = int(self._model['descriptor_dim'])
-        self._index = faiss.IndexIDMap(faiss.IndexFlatIP(dim))
-        bad = [r[0] for r in rows if len(r[1]) != 4 * dim]
+        # streamed into one preallocated array: a 100k map's rows as Python objects would double the peak
+        x = np.empty((count, dim), np.float32)
+        cursor = c.execute('SELECT id, global_descriptor FROM keyframes ORDER BY id')
+        bad = []
+        while rows := cursor.fetchmany(4096):
+            for kid, blob in rows:
+                if len(blob) != 4 * dim:
+                    bad.append(kid)
+                elif len(self._ids) < count:
+                    x[len(self._ids)] = np.frombuffer(blob, '<f4')
+                    self._ids.append(int(kid))
         if bad:
             raise MapError(f'map {self.path} is corrupt: global descriptors of keyframes {bad[:10]} are '
                            f'not {dim} float32 values')
-        if rows:
-            x = np.frombuffer(b''.join(r[1] for r in rows), '<f4').reshape(len(rows), dim)
-            self._index.add_with_ids(np.ascontiguousarray(x, np.float32), np.asarray(self._ids, np.int64))
+        self._index = GlobalIndex(dim, self.conf)
+        self._index.build(x[:len(self._ids)], np.asarray(self._ids, np.int64))
         problems = self._faiss_problems()
         if problems:
             raise MapError(f'map {self.path}: in-memory index disagrees with the file: {"; ".join(problems)}')
@@ -399,7 +674,7 @@ class MapStore:
         problems = []
         if self._index.ntotal != len(ids):
             problems.append(f'FAISS index holds {self._index.ntotal} keyframes, SQLite {len(ids)}')
-        faiss_ids = sorted(faiss.vector_to_array(self._index.id_map).tolist())
+        faiss_ids = self._index.ids()
         if faiss_ids != ids or self._ids != ids:
             only_f, only_s = sorted(set(faiss_ids) - set(ids)), sorted(set(ids) - set(faiss_ids))
             problems.append(f'FAISS and SQLite keyframe ids differ (only in FAISS: {only_f[:10]}, '
@@ -407,23 +682,6 @@ class MapStore:
         return problems
 
     # ------------------------------------------------------------------ model
-
-    def _check_model_dict(self, model: dict) -> dict:
-        if not isinstance(model, dict) or not model.get('descriptor_space') or not model.get('descriptor_dim'):
-            raise MapError(f'model for map must be a dict with descriptor_space and descriptor_dim '
-                           f'(Extractor.model_info), got {model!r}')
-        model = dict(model)
-        model['descriptor_dim'] = int(model['descriptor_dim'])
-        return model
-
-    def _mismatch(self, other: dict, what: str) -> MapError:
-        return MapError(f'map {self.path} was built with model {_describe(self._model)}; refusing {what} '
-                        f'from model {_describe(other)}: descriptors from different models cannot be '
-                        f'compared (use a map file made with this model, or delete this one)')
-
-    def _same_space(self, model: dict) -> bool:
-        return (model['descriptor_space'] == self._model['descriptor_space']
-                and int(model['descriptor_dim']) == int(self._model['descriptor_dim']))
 
     def use_model(self, model: dict) -> None:
         """Declare the model whose descriptors will arrive (e.g. the extractor's model_info):
@@ -438,7 +696,7 @@ class MapStore:
         if self._model is None:
             self._write(lambda c: self._record_model(c, model))
             self._model = model
-            self._index = faiss.IndexIDMap(faiss.IndexFlatIP(model['descriptor_dim']))
+            self._index = GlobalIndex(model['descriptor_dim'], self.conf)
         elif not self._same_space(model):
             raise self._mismatch(model, 'the extractor')
         elif model != self._model:
@@ -526,27 +784,22 @@ class MapStore:
 
     # ------------------------------------------------------------------ public API
 
-    def add(self, lset: LandmarkSet, stamp=(0, 0)) -> int:
-        """Store one keyframe; returns its id once it is durably on disk (one transaction)."""
-        sec, nsec = _stamp(stamp)
-        lset.validate()
-        n, dim = len(lset), lset.dim
-        if n == 0:
-            raise DescriptorError('landmark set has no landmarks; nothing to store')
-        if not lset.descriptor_space:
-            raise MapError(f'landmark set has no descriptor_space; refusing to store it in map {self.path} '
-                           f'(a persistent map must know which model made its descriptors)')
-        rows, cols = (int(v) for v in lset.grid)
-        if not (0 < rows < 32768 and 0 < cols < 32768):
-            raise DescriptorError(f'grid {rows}x{cols} cannot be stored (int16 cells)')
-        values = (sec, nsec, float(lset.image_size[0]), float(lset.image_size[1]), rows, cols,
-                  float(lset.cell_size[0]), float(lset.cell_size[1]), n,
-                  np.ascontiguousarray(lset.global_descriptor, '<f4').tobytes())
-        blobs = (np.ascontiguousarray(lset.cells, '<i2').tobytes(),
-                 np.ascontiguousarray(lset.centers, '<f4').tobytes(),
-                 np.ascontiguousarray(lset.scores, '<f4').tobytes(),
-                 np.ascontiguousarray(lset.descriptors, '<f2').tobytes())
-        given = {'descriptor_space': lset.descriptor_space, 'descriptor_dim': dim}
+    def add_many(self, sets: list[LandmarkSet], stamps, ids=None) -> list[int]:
+        """Store keyframes in one transaction; returns their ids once they are durably on disk.
+        ids: keep these ids (export / import between maps); MapError if one is taken."""
+        if not sets:
+            return []
+        stamps, given = self._check_many(sets, stamps, ids)
+        records = []
+        for lset, (sec, nsec) in zip(sets, stamps):
+            rows, cols = (int(v) for v in lset.grid)
+            records.append(((sec, nsec, float(lset.image_size[0]), float(lset.image_size[1]), rows, cols,
+                             float(lset.cell_size[0]), float(lset.cell_size[1]), len(lset),
+                             np.ascontiguousarray(lset.global_descriptor, '<f4').tobytes()),
+                            (np.ascontiguousarray(lset.cells, '<i2').tobytes(),
+                             np.ascontiguousarray(lset.centers, '<f4').tobytes(),
+                             np.ascontiguousarray(lset.scores, '<f4').tobytes(),
+                             np.ascontiguousarray(lset.descriptors, '<f2').tobytes())))
         with self._lock:
             self._ready()
             new_model = self._model is None
@@ -556,22 +809,32 @@ class MapStore:
             def insert(c):
                 if new_model:
                     self._record_model(c, given)
-                cur = c.execute('INSERT INTO keyframes (stamp_sec, stamp_nanosec, image_w, image_h, grid_rows, '
-                                'grid_cols, cell_w, cell_h, n, global_descriptor) '
-                                'VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)', values)
-                kid = cur.lastrowid
-                c.execute('INSERT INTO landmarks (keyframe_id, cells, centers, scores, descriptors) '
-                          'VALUES (?, ?, ?, ?, ?)', (kid,) + blobs)
-                return int(kid)
+                out = []
+                for i, (values, blobs) in enumerate(records):
+                    try:
+                        if ids is None:
+                            cur = c.execute(f'INSERT INTO keyframes ({_KF_INSERT}) VALUES ({", ".join("?" * 10)})',
+                                            values)
+                        else:
+                            cur = c.execute(f'INSERT INTO keyframes (id, {_KF_INSERT}) '
+                                            f'VALUES ({", ".join("?" * 11)})', (int(ids[i]),) + values)
+                    except sqlite3.IntegrityError:
+                        raise MapError(f'map {self.path} already has a keyframe {ids[i]}') from None
+                    c.execute('INSERT INTO landmarks (keyframe_id, cells, centers, scores, descriptors) '
+                              'VALUES (?, ?, ?, ?, ?)', (cur.lastrowid,) + blobs)
+                    out.append(int(cur.lastrowid))
+                return out
 
-            kid = self._write(insert)
+            new_ids = self._write(insert)
             if new_model:
                 self._model = given
-                self._index = faiss.IndexIDMap(faiss.IndexFlatIP(dim))
-            self._index.add_with_ids(np.ascontiguousarray(lset.global_descriptor, np.float32)[None],
-                                     np.array([kid], np.int64))
-            self._ids.append(kid)
-            return kid
+                self._index = GlobalIndex(given['descriptor_dim'], self.conf)
+            self._index.add(np.stack([s.global_descriptor for s in sets]).astype(np.float32),
+                            np.asarray(new_ids, np.int64))
+            self._ids.extend(new_ids)
+            if ids is not None:
+                self._ids.sort()
+            return new_ids
 
     def query(self, lset: LandmarkSet, prefilter_k: int = 30, k: int = 5, min_score: float | None = None,
               exclude_recent: int = 0, method_rerank: bool = True, scale: float = 1.0) -> list[MapCandidate]:
@@ -581,13 +844,7 @@ class MapStore:
         recently added keyframes are never answers), reranked by the landmark similarity S
         (method_rerank=False: the holistic ranking alone), those below min_score dropped.
         """
-        if int(prefilter_k) < 1 or int(k) < 1 or int(exclude_recent) < 0:
-            raise ValueError(f'need prefilter_k >= 1, k >= 1, exclude_recent >= 0; got {prefilter_k}, {k}, '
-                             f'{exclude_recent}')
-        prefilter_k, k, exclude_recent = int(prefilter_k), int(k), int(exclude_recent)
-        lset.validate()
-        if method_rerank and len(lset) == 0:
-            raise DescriptorError('query landmark set has no landmarks; cannot rerank')
+        prefilter_k, k, exclude_recent = self._query_args(lset, prefilter_k, k, exclude_recent, method_rerank)
         with self._lock:
             self._ready()
             if self._model is None or not self._ids:
@@ -596,39 +853,13 @@ class MapStore:
                      'descriptor_dim': lset.dim}
             if not self._same_space(given):
                 raise self._mismatch(given, 'a query')
-            total = len(self._ids)
-            if exclude_recent >= total:
+            if exclude_recent >= len(self._ids):
                 return []
             cutoff = self._ids[-exclude_recent] if exclude_recent else None
-            q = np.ascontiguousarray(lset.global_descriptor, np.float32)[None]
-            hol, ids = self._index.search(q, min(prefilter_k + exclude_recent, total))
-            keep = ids[0] >= 0
-            if cutoff is not None:
-                keep &= ids[0] < cutoff
-            ids, hol = ids[0][keep][:prefilter_k], hol[0][keep][:prefilter_k]
+            hol, ids = self._index.search(lset.global_descriptor, min(prefilter_k, len(self._ids)), below=cutoff)
             sets = self._fetch(ids)
         # the numeric work runs outside the lock
-        missing = [int(i) for i in ids if int(i) not in sets]
-        if missing:
-            raise MapError(f'map {self.path}: keyframes {missing[:10]} are in the index but not in the file')
-        if method_rerank:
-            batch = stack_landmarks([sets[int(i)] for i in ids])
-            ranked = rerank(lset, batch, ids, hol, scale)
-        else:
-            ranked = [Candidate(int(i), float(h), float(h)) for i, h in zip(ids, hol)]
-        out = []
-        for c in ranked:
-            if min_score is not None and c.score < min_score:
-                continue
-            s = sets[c.index]
-            pairs = pair_regions(lset, s, c.pairs)
-            out.append(MapCandidate(c.index, float(c.score), float(c.holistic_score), s.meta['stamp'],
-                                    tuple(int(v) for v in c.offset),
-                                    (float(s.cell_size[0]), float(s.cell_size[1])),
-                                    (float(s.image_size[0]), float(s.image_size[1])), pairs))
-            if len(out) == k:
-                break
-        return out
+        return self._answer(lset, ids, hol, sets, k, min_score, method_rerank, scale)
 
     # keypoints for verification (reloc.py): an optional table, created on first use, so maps
     # without it stay valid and readable; rows go with their keyframe (ON DELETE CASCADE)
@@ -679,35 +910,50 @@ class MapStore:
             raise KeyError(f'no keyframe {keyframe_id} in map {self.path}')
         return sets[int(keyframe_id)]
 
-    def __len__(self) -> int:
-        with self._lock:
-            self._ready()
-            return len(self._ids)
-
-    def __contains__(self, keyframe_id) -> bool:
-        with self._lock:
-            self._ready()
-            return int(keyframe_id) in set(self._ids)
-
-    def ids(self) -> list[int]:
-        """Keyframe ids in insertion order (ascending)."""
-        with self._lock:
-            self._ready()
-            return list(self._ids)
-
-    @property
-    def model(self) -> dict | None:
-        with self._lock:
-            return dict(self._model) if self._model else None
-
-    def clear(self) -> None:
-        """Remove every keyframe; the model record stays, and ids are not reused."""
+    def clear(self) -> int:
+        """Remove every keyframe (returns how many); the model record stays, and ids are not reused."""
         with self._lock:
             self._ready()
             self._write(lambda c: (c.execute('DELETE FROM landmarks'), c.execute('DELETE FROM keyframes')))
-            self._ids = []
+            removed, self._ids = len(self._ids), []
             if self._index is not None:
                 self._index.reset()
+            return removed
+
+    def delete(self, keyframe_ids) -> int:
+        """Remove keyframes (and their landmarks) by id; returns how many existed. Ids are not reused."""
+        wanted = sorted({int(i) for i in keyframe_ids})
+        with self._lock:
+            self._ready()
+            present = sorted(set(wanted) & set(self._ids))
+            if not present:
+                return 0
+
+            def remove(c):
+                for start in range(0, len(present), _SQL_CHUNK):
+                    chunk = present[start:start + _SQL_CHUNK]
+                    marks = ','.join('?' * len(chunk))
+                    c.execute(f'DELETE FROM landmarks WHERE keyframe_id IN ({marks})', chunk)
+                    c.execute(f'DELETE FROM keyframes WHERE id IN ({marks})', chunk)
+            self._write(remove)
+            gone = set(present)
+            self._ids = [i for i in self._ids if i not in gone]
+            self._index.remove(present)
+            return len(present)
+
+    def compact(self) -> dict:
+        """Checkpoint, then VACUUM: give the pages of deleted keyframes back to the filesystem.
+        Returns {'bytes_before', 'bytes_after'} (the .db plus its WAL)."""
+        with self._lock:
+            self._ready()
+            before = self.info()['file_bytes']
+            self.save()
+            try:
+                self._conn.execute('VACUUM')
+            except sqlite3.DatabaseError as e:
+                raise MapError(f'cannot compact map {self.path}: {e}') from e
+            self.save()
+            return {'bytes_before': before, 'bytes_after': self.info()['file_bytes']}
 
     def info(self) -> dict:
         with self._lock:
@@ -720,7 +966,8 @@ class MapStore:
             return {'path': self.path, 'keyframes': len(self._ids), 'model': self.model,
                     'descriptor_space': self._model and self._model['descriptor_space'],
                     'descriptor_dim': self._model and int(self._model['descriptor_dim']),
-                    'schema_version': int(meta['schema_version']),
+                    'schema_version': int(meta['schema_version']), 'backend': 'sqlite',
+                    'index': self._index.kind if self._index is not None else None,
                     'first_id': self._ids[0] if self._ids else None,
                     'last_id': self._ids[-1] if self._ids else None,
                     'file_bytes': db_bytes + wal_bytes, 'db_bytes': db_bytes, 'wal_bytes': wal_bytes,
@@ -806,12 +1053,6 @@ class MapStore:
                     self._index = None
                     self._ids = []
 
-    def __enter__(self) -> 'MapStore':
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
     def __repr__(self) -> str:
         state = 'closed' if self._conn is None else f'{len(self._ids)} keyframes'
-        return f'MapStore({self.path!r}, {state})'
+        return f'SQLiteMapStore({self.path!r}, {state})'

@@ -32,7 +32,8 @@ from ..mapstore import MapStore
 from .common import MODEL_QOS, Health, declare, run_node, start_diagnostics, subscription_qos
 
 PARAMETERS = {
-    'map_path': ('~/.ros/lln_ros/map.db', 'SQLite map file; created if missing'),
+    'map_path': ('~/.ros/lln_ros/map.db', 'map URI: SQLite file path (created if missing), '
+                 'milvus-lite:///path.db or milvus://host:port[/db][?map=name]'),
     'mode': ('localization', 'localization: answer queries only | mapping: answer, then store each query'),
     'prefilter_k': (30, 'holistic candidates reranked by the landmark similarity'),
     'k': (5, 'candidates published per query'),
@@ -46,6 +47,8 @@ PARAMETERS = {
     'verify': (False, "re-rank candidates by keypoint inliers (needs the extractor's publish_keypoints)"),
     'verify_min_inliers': (15, 'verify: RANSAC inliers for a candidate to count as verified'),
     'verify_margin': (1.0, 'verify: matched regions grown by this many grid cells'),
+    'max_query_age': (0.0, 'seconds; older queries (header stamp vs node clock) are dropped and counted '
+                           'as queries_stale, so a backlog cannot grow latency; 0 = off'),
     'diagnostics_period': (1.0, 'seconds between /diagnostics messages; 0 = off'),
 }
 
@@ -181,6 +184,13 @@ class MatcherNode(Node):
             return
 
     def on_query(self, msg: PointCloud2) -> None:
+        self.health.count('queries_received')
+        max_age = self.params['max_query_age']
+        if max_age > 0:
+            age = (self.get_clock().now().nanoseconds - msgs.stamp_to_ns(msg.header)) * 1e-9
+            if age > max_age:
+                self.health.count('queries_stale')
+                return
         lset = self.decode(msg, 'bad_query')
         if lset is None:
             return
@@ -229,8 +239,8 @@ class MatcherNode(Node):
 
     def on_clear(self, request, response):
         def clear():
-            self.store.clear()
-            return f'cleared {self.store.path}'
+            removed = self.store.clear()
+            return f'cleared {removed} keyframes from {self.store.path}'
         return self._service(response, clear)
 
     def on_info(self, request, response):

@@ -1,0 +1,114 @@
+"""lln-map: look after a map (either backend; see lln_ros.mapstore.backend_for for map URIs).
+
+    lln-map info MAP [--json]          keyframes, model, backend, index, bytes on disk
+    lln-map check MAP                  what is wrong with a map, if anything (exit 1 when damaged)
+    lln-map compact MAP                give deleted keyframes' space back (SQLite VACUUM / Milvus compact)
+    lln-map export MAP DEST            copy every keyframe of MAP into DEST (ids and stamps kept)
+    lln-map import MAP SRC             copy every keyframe of SRC into MAP
+
+MAP, DEST, SRC: a path (SQLite), milvus-lite:///path.db or milvus://host:port[/db][?map=name].
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from ..errors import LLNError, MapError
+
+_BATCH = 256  # keyframes per transaction / insert while copying
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog='lln-map', description=__doc__.strip().splitlines()[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog='\n'.join(__doc__.strip().splitlines()[2:]))
+    sub = p.add_subparsers(dest='command', required=True)
+    info = sub.add_parser('info', help='describe a map')
+    info.add_argument('map')
+    info.add_argument('--json', action='store_true', help='one JSON object')
+    sub.add_parser('check', help='find damage').add_argument('map')
+    sub.add_parser('compact', help='reclaim space').add_argument('map')
+    export = sub.add_parser('export', help='copy MAP into DEST')
+    export.add_argument('map')
+    export.add_argument('dest')
+    imp = sub.add_parser('import', help='copy SRC into MAP')
+    imp.add_argument('map')
+    imp.add_argument('src')
+    return p
+
+
+def copy_map(src_uri: str, dst_uri: str) -> int:
+    """Copy every keyframe of src into dst (created if missing), keeping ids and stamps; returns the count."""
+    from ..mapstore import MapStore
+    with MapStore.open(src_uri, create=False) as src:
+        if src.model is None:
+            raise MapError(f'map {src.path} has no model record (never used); nothing to copy')
+        with MapStore.open(dst_uri, model=src.model) as dst:
+            batch, count = [], 0
+            for item in src.keyframes(_BATCH):
+                batch.append(item)
+                if len(batch) == _BATCH:
+                    count += _flush(dst, batch)
+            count += _flush(dst, batch)
+            dst.save()
+    return count
+
+
+def _flush(dst, batch: list) -> int:
+    if batch:
+        dst.add_many([s for _, _, s in batch], [st for _, st, _ in batch], ids=[i for i, _, _ in batch])
+    n = len(batch)
+    batch.clear()
+    return n
+
+
+def check(uri: str) -> list[str]:
+    """Problems of the map at uri; a map that cannot even be opened is one problem saying why."""
+    from ..mapstore import MapStore
+    try:
+        store = MapStore.open(uri, create=False, verify=False)
+    except MapError as e:
+        return [f'cannot open: {e}']
+    with store:
+        return store.check()
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    from ..mapstore import MapStore
+    try:
+        if args.command == 'info':
+            with MapStore.open(args.map, create=False) as store:
+                info = store.info()
+            if args.json:
+                print(json.dumps(info, default=str))
+            else:
+                for key, value in info.items():
+                    print(f'{key:16s} {value}')
+        elif args.command == 'check':
+            problems = check(args.map)
+            if problems:
+                print(f'{args.map}: {len(problems)} problem(s)')
+                for p in problems:
+                    print(f'  - {p}')
+                return 1
+            print(f'{args.map}: healthy')
+        elif args.command == 'compact':
+            with MapStore.open(args.map, create=False) as store:
+                result = store.compact()
+            sizes = (f": {result['bytes_before']} -> {result['bytes_after']} bytes"
+                     if result else ' (Milvus compacts in the background)')
+            print(f'compacted {args.map}{sizes}')
+        else:
+            src, dst = (args.map, args.dest) if args.command == 'export' else (args.src, args.map)
+            n = copy_map(src, dst)
+            print(f'copied {n} keyframes from {src} to {dst}')
+    except LLNError as e:
+        print(f'lln-map: {e}', file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

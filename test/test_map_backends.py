@@ -1,0 +1,239 @@
+"""One suite, both map backends: the embedded SQLite + FAISS map and Milvus (tested on Milvus Lite,
+which speaks the client API a Milvus cluster does). Small maps of synthetic landmark sets."""
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from lln_ros.errors import MapError
+from lln_ros.mapstore import MapStore, SQLiteMapStore, backend_for
+from test_mapstore import MODEL, OTHER_MODEL, make_set
+
+HAVE_MILVUS = importlib.util.find_spec('pymilvus') is not None and importlib.util.find_spec('milvus_lite') is not None
+BACKENDS = ['sqlite', pytest.param('milvus', marks=pytest.mark.skipif(
+    not HAVE_MILVUS, reason='pymilvus / milvus-lite not installed (requirements.txt)'))]
+
+
+def uri_for(kind, tmp_path, name='map'):
+    # in a folder that does not exist yet: both backends create it
+    return str(tmp_path / 'maps' / f'{name}.db') if kind == 'sqlite' else f'milvus-lite://{tmp_path}/maps/{name}.db'
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(1)
+
+
+@pytest.fixture(params=BACKENDS)
+def uri(request, tmp_path):
+    return uri_for(request.param, tmp_path)
+
+
+def test_uri_picks_backend(tmp_path):
+    assert backend_for(tmp_path / 'a.db') == ('sqlite', str(tmp_path / 'a.db'))
+    assert backend_for('sqlite:///x/a.db') == ('sqlite', '/x/a.db')
+    assert backend_for('milvus://host:19530/db?map=city')[0] == 'milvus'
+    assert backend_for('milvus-lite:///x/a.db')[0] == 'milvus'
+    assert type(MapStore(tmp_path / 'b.db')) is SQLiteMapStore
+
+
+def test_insert_query_get(uri, rng):
+    with MapStore.open(uri, model=MODEL) as store:
+        sets = [make_set(rng) for _ in range(25)]
+        ids = store.add_many(sets[:20], [(100 + i, i) for i in range(20)])
+        ids += [store.add(s, stamp=(120 + i, 7)) for i, s in enumerate(sets[20:])]
+        assert ids == sorted(ids) and len(set(ids)) == 25 and len(store) == 25 and store.ids() == ids
+        for i in (0, 13, 24):
+            top = store.query(sets[i], prefilter_k=10, k=3)
+            assert len(top) == 3 and top[0].keyframe_id == ids[i]
+            assert top[0].holistic_score == pytest.approx(1.0, abs=1e-5)
+            assert top[0].score == pytest.approx(50.0, abs=0.05) and top[0].n_pairs == 50
+        noisy = make_set(rng, base=sets[5], noise=0.3)
+        assert store.query(noisy, prefilter_k=10, k=1)[0].keyframe_id == ids[5]
+        assert [c.keyframe_id for c in store.query(sets[24], k=5, exclude_recent=1)] and \
+            ids[24] not in [c.keyframe_id for c in store.query(sets[24], k=25, exclude_recent=1)]
+        assert store.query(sets[0], k=5, exclude_recent=25) == []
+        got = store.get(ids[3])
+        np.testing.assert_allclose(got.descriptors, sets[3].descriptors, atol=2e-3)
+        np.testing.assert_array_equal(got.cells, sets[3].cells)
+        np.testing.assert_allclose(got.centers, sets[3].centers)
+        np.testing.assert_allclose(got.global_descriptor, sets[3].global_descriptor, atol=1e-6)
+        assert got.meta['stamp'] == (103, 3) and got.grid == (9, 12)
+        with pytest.raises(KeyError):
+            store.get(10_000)
+        assert store.check() == []
+
+
+def test_delete_and_clear_never_reuse_ids(uri, rng):
+    with MapStore.open(uri, model=MODEL) as store:
+        sets = [make_set(rng) for _ in range(10)]
+        ids = store.add_many(sets, [(i, 0) for i in range(10)])
+        assert store.delete([ids[2], ids[7], 999_999]) == 2
+        assert len(store) == 8 and ids[2] not in store and ids[3] in store
+        assert all(c.keyframe_id != ids[2] for c in store.query(sets[2], prefilter_k=10, k=10))
+        assert store.check() == []
+        store.clear()
+        assert len(store) == 0 and store.query(sets[0]) == [] and store.model['descriptor_space'] == MODEL[
+            'descriptor_space']
+        assert store.add(sets[0]) > max(ids)
+
+
+def test_save_reload(uri, rng):
+    sets = [make_set(rng) for _ in range(12)]
+    with MapStore.open(uri, model=MODEL) as store:
+        ids = store.add_many(sets, [(50 + i, 9) for i in range(12)])
+        store.delete([ids[0]])
+        store.save()
+    with MapStore.open(uri, create=False) as store:
+        assert store.ids() == ids[1:] and store.model['descriptor_space'] == MODEL['descriptor_space']
+        top = store.query(sets[4], k=1)[0]
+        assert top.keyframe_id == ids[4] and top.stamp == (54, 9)
+        assert store.check() == []
+        assert store.info()['keyframes'] == 11
+
+
+def test_model_mismatch(uri, rng):
+    with MapStore.open(uri, model=MODEL) as store:
+        store.add(make_set(rng))
+    with pytest.raises(MapError, match='resnet101'):
+        MapStore.open(uri, model=OTHER_MODEL)
+    with MapStore.open(uri) as store:
+        other = make_set(rng, dim=1024, space=OTHER_MODEL['descriptor_space'])
+        with pytest.raises(MapError, match='different models'):
+            store.add(other)
+        with pytest.raises(MapError, match='different models'):
+            store.query(other)
+        assert len(store) == 1
+
+
+def test_missing_map_with_create_false(uri):
+    with pytest.raises(MapError, match='no map'):
+        MapStore.open(uri, create=False)
+
+
+def test_sqlite_ivf_above_threshold(tmp_path, rng):
+    """Past index_threshold the global index turns IVF (while adding, and when reopened) and still
+    finds each keyframe for itself; FAISS and SQLite agree."""
+    conf = {'index_threshold': 60, 'ivf_lists': 8, 'ivf_nprobe': 8}
+    path = tmp_path / 'ivf.db'
+    sets = [make_set(rng) for _ in range(100)]
+    with MapStore.open(path, model=MODEL, conf=conf) as store:
+        ids = store.add_many(sets[:50], [(i, 0) for i in range(50)])
+        assert store.info()['index'] == 'exact'
+        ids += store.add_many(sets[50:], [(i, 0) for i in range(50, 100)])
+        assert store.info()['index'] == 'ivf'
+        assert store.delete([ids[10]]) == 1 and store.check() == []
+    with MapStore.open(path, conf=conf) as store:
+        assert store.info()['index'] == 'ivf' and store.check() == []
+        for i in (0, 55, 99):
+            assert store.query(sets[i], k=1)[0].keyframe_id == ids[i]
+        assert all(c.keyframe_id < ids[95] for c in store.query(sets[99], k=30, exclude_recent=5))
+
+
+def run_cli(*args, check=True):
+    env = {**os.environ, 'PYTHONPATH': os.pathsep.join(
+        p for p in (os.path.dirname(os.path.dirname(os.path.abspath(__file__))), os.environ.get('PYTHONPATH')) if p)}
+    out = subprocess.run([sys.executable, '-m', 'lln_ros.cli.map', *args], capture_output=True, text=True,
+                         env=env, timeout=300)
+    if check and out.returncode:
+        raise AssertionError(f'lln-map {args} exited {out.returncode}:\n{out.stdout}\n{out.stderr}')
+    return out
+
+
+@pytest.mark.skipif(not HAVE_MILVUS, reason='pymilvus / milvus-lite not installed (requirements.txt)')
+def test_cli_export_import_between_backends(tmp_path, rng):
+    src = tmp_path / 'src.db'
+    sets = [make_set(rng) for _ in range(15)]
+    with MapStore.open(src, model=MODEL) as store:
+        ids = store.add_many(sets, [(10 + i, i) for i in range(15)])
+        store.delete([ids[1]])
+    milvus = f'milvus-lite://{tmp_path}/fleet.db'
+    out = run_cli('export', str(src), milvus)
+    assert '14 keyframes' in out.stdout
+    back = tmp_path / 'back.db'
+    run_cli('import', str(back), milvus)
+    with MapStore.open(back, create=False) as store:
+        assert store.ids() == ids[:1] + ids[2:]
+        assert store.query(sets[7], k=1)[0].keyframe_id == ids[7]
+        np.testing.assert_allclose(store.get(ids[9]).descriptors, sets[9].descriptors, atol=2e-3)
+    info = json.loads(run_cli('info', '--json', milvus).stdout)
+    assert info['keyframes'] == 14 and info['backend'] == 'milvus'
+    assert 'healthy' in run_cli('check', milvus).stdout
+    assert run_cli('export', str(src), milvus, check=False).returncode == 1   # ids taken: refused
+
+
+def test_cli_info_check_compact(tmp_path, rng):
+    path = tmp_path / 'm.db'
+    with MapStore.open(path, model=MODEL) as store:
+        ids = store.add_many([make_set(rng) for _ in range(30)], [(i, 0) for i in range(30)])
+        store.delete(ids[:20])
+    info = json.loads(run_cli('info', '--json', str(path)).stdout)
+    assert info['keyframes'] == 10 and info['backend'] == 'sqlite' and info['index'] == 'exact'
+    out = run_cli('compact', str(path)).stdout
+    assert 'bytes' in out
+    assert 'healthy' in run_cli('check', str(path)).stdout
+
+
+@pytest.mark.parametrize('damage', ['truncate', 'garbage', 'bad_blob'])
+def test_cli_check_explains_a_damaged_map(tmp_path, rng, damage):
+    path = tmp_path / 'm.db'
+    with MapStore.open(path, model=MODEL) as store:
+        store.add_many([make_set(rng) for _ in range(40)], [(i, 0) for i in range(40)])
+    if damage == 'truncate':
+        with open(path, 'r+b') as f:
+            f.truncate(os.path.getsize(path) // 2)
+    elif damage == 'garbage':
+        with open(path, 'r+b') as f:
+            f.seek(0)
+            f.write(b'\x00' * 512)
+    else:
+        import sqlite3
+        con = sqlite3.connect(path)
+        con.execute('UPDATE landmarks SET descriptors = zeroblob(10) WHERE keyframe_id = 5')
+        con.commit()
+        con.close()
+    out = run_cli('check', str(path), check=False)
+    assert out.returncode == 1, out.stdout + out.stderr
+    assert str(path) in out.stdout + out.stderr
+    text = out.stdout + out.stderr
+    assert {'truncate': 'truncated', 'garbage': 'not an lln_ros map', 'bad_blob': 'keyframe 5'}[damage] in text
+    with pytest.raises(MapError, match=str(path) if damage != 'bad_blob' else 'keyframe 5'):
+        with MapStore.open(path, create=False) as store:   # never a silent empty map
+            store.get(5)
+
+
+def test_sqlite_migration_runs_once_in_a_transaction(tmp_path, rng, monkeypatch):
+    """A map at an older schema version is upgraded at open by MIGRATIONS[v], once; a failing
+    migration leaves the file at its old version."""
+    import sqlite3
+
+    from lln_ros import mapstore
+    path = tmp_path / 'old.db'
+    with MapStore.open(path, model=MODEL) as store:
+        kid = store.add(make_set(rng))
+    con = sqlite3.connect(path)
+    con.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (str(mapstore.SCHEMA_VERSION - 1),))
+    con.commit()
+    con.close()
+    calls = []
+
+    def broken(conn):
+        conn.execute('CREATE TABLE half_done (x)')
+        raise RuntimeError('migration failed')
+    monkeypatch.setitem(mapstore.MIGRATIONS, mapstore.SCHEMA_VERSION - 1, broken)
+    with pytest.raises(RuntimeError):
+        MapStore.open(path)
+    con = sqlite3.connect(path)
+    assert con.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == \
+        str(mapstore.SCHEMA_VERSION - 1)
+    assert not con.execute("SELECT name FROM sqlite_master WHERE name = 'half_done'").fetchall()
+    con.close()
+    monkeypatch.setitem(mapstore.MIGRATIONS, mapstore.SCHEMA_VERSION - 1, calls.append)
+    with MapStore.open(path) as store:
+        assert store.info()['schema_version'] == mapstore.SCHEMA_VERSION and store.ids() == [kid]
+    with MapStore.open(path) as store:
+        assert len(calls) == 1 and store.check() == []
