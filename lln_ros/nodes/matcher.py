@@ -2,7 +2,8 @@
 
 Subscribes  keyframes (PointCloud2 landmark sets to store), query (landmark sets to localize),
             model_info (std_msgs/String, the extractor's model, latched)
-Publishes   candidates (PointCloud2: keyframe_id, score, holistic_score, stamp_sec, stamp_nanosec),
+Publishes   candidates (PointCloud2: keyframe_id, score, holistic_score, stamp_sec, stamp_nanosec
+            [, sequence_score when sequence_length > 0]),
             matches (PointCloud2: the matched region pairs of the best candidate), /diagnostics
 Services    ~/save, ~/clear, ~/info (std_srvs/Trigger; info answers JSON)
 
@@ -10,6 +11,12 @@ mode=localization answers queries and leaves the map alone; mode=mapping answers
 stores it as a keyframe (online loop-closure detection; the newest `exclude_recent` keyframes are
 never answers). A keyframe is committed to the SQLite map before its query's answer is published,
 so whatever a subscriber has seen answered survives kill -9.
+
+sequence_length L > 0 ranks keyframes by sequence agreement over the last L queries (lln_ros.sequence,
+the search lln-eval --sequence runs offline): candidates come best sequence_score first, min_score
+applies to sequence_score, and `score` / `holistic_score` are this query's own (0 = the keyframe was
+not among this query's prefilter_k). Out-of-order stamps and gaps longer than sequence_max_gap start a
+new sequence (counted as sequence_reset_out_of_order / sequence_reset_gap).
 """
 from __future__ import annotations
 
@@ -24,6 +31,7 @@ from std_srvs.srv import Trigger
 from .. import msgs
 from ..errors import LLNError
 from ..mapstore import MapStore
+from ..sequence import KeyframeSequence
 from .common import MODEL_QOS, Health, declare, run_node, start_diagnostics, subscription_qos
 
 PARAMETERS = {
@@ -39,6 +47,8 @@ PARAMETERS = {
     'reliability': ('reliable', 'keyframes/query subscriptions: reliable | best_effort'),
     'queue_depth': (100, 'keyframes/query subscription queue depth'),
     'diagnostics_period': (1.0, 'seconds between /diagnostics messages; 0 = off'),
+    'sequence_length': (0, 'queries in the sequence search (0 = off, single-frame ranking)'),
+    'sequence_max_gap': (1.0, 'seconds between query stamps beyond which a new sequence starts'),
 }
 
 
@@ -59,6 +69,8 @@ class MatcherNode(Node):
             raise ValueError(f"mode must be 'localization' or 'mapping', got {p['mode']!r}")
         if p['method'] not in ('lln', 'holistic'):
             raise ValueError(f"method must be 'lln' or 'holistic', got {p['method']!r}")
+        self.sequence = KeyframeSequence({'length': p['sequence_length'], 'max_gap_s': p['sequence_max_gap']}) \
+            if p['sequence_length'] > 0 else None
         self.store = MapStore.open(p['map_path'], model=space_model(p['descriptor_space'])
                                    if p['descriptor_space'] else None)
         self.health = Health(self)
@@ -120,8 +132,10 @@ class MatcherNode(Node):
             return
         p = self.params
         mapping = p['mode'] == 'mapping'
+        sequence = self.sequence is not None  # the sequence search needs every reranked candidate
         try:
-            found = self.store.query(lset, prefilter_k=p['prefilter_k'], k=p['k'], min_score=p['min_score'],
+            found = self.store.query(lset, prefilter_k=p['prefilter_k'], k=p['prefilter_k'] if sequence else p['k'],
+                                     min_score=None if sequence else p['min_score'],
                                      exclude_recent=p['exclude_recent'] if mapping else 0,
                                      method_rerank=p['method'] == 'lln', scale=p['offset_scale'])
             if mapping:  # committed before the answer goes out: an answered keyframe is never lost
@@ -130,13 +144,42 @@ class MatcherNode(Node):
         except (LLNError, ValueError) as e:
             self.health.problem('bad_query', str(e))
             return
-        self.candidates_pub.publish(msgs.candidates_to_cloud(
-            [{'keyframe_id': c.keyframe_id, 'score': c.score, 'holistic_score': c.holistic_score,
-              'stamp_sec': c.stamp[0], 'stamp_nanosec': c.stamp[1]} for c in found], msg.header))
+        rows = [{'keyframe_id': c.keyframe_id, 'score': c.score, 'holistic_score': c.holistic_score,
+                 'stamp_sec': c.stamp[0], 'stamp_nanosec': c.stamp[1]} for c in found]
+        if self.sequence is not None:
+            rows, found = self.sequence_rows(found, msg, mapping)
+        self.candidates_pub.publish(msgs.candidates_to_cloud(rows, msg.header))
         best = found[0] if found else None
         self.matches_pub.publish(msgs.matches_to_cloud(
             msgs.match_rows(best.keyframe_id, best.pairs) if best else [], msg.header))
         self.health.count('queries_answered')
+
+    def sequence_rows(self, found: list, msg: PointCloud2, mapping: bool) -> tuple[list, list]:
+        """Candidate rows ranked by sequence_score, and the MapCandidates among them (same order)
+        for the matches topic. Called before a mapping-mode query's own keyframe joins the ids."""
+        p = self.params
+        ids = self.store.ids()
+        if mapping:  # the query was just stored: it is the newest id, never an answer
+            ids = ids[:-1]
+        if len(ids) != len(self.sequence.ids):
+            self.sequence.set_map(ids)
+        allowed = len(ids) - p['exclude_recent'] if mapping else None
+        reason, ranked = self.sequence.update(msgs.stamp_to_ns(msg.header), {c.keyframe_id: c.score for c in found},
+                                              allowed, p['k'])
+        if reason:
+            self.health.count(f'sequence_reset_{reason}')
+        by_id = {c.keyframe_id: c for c in found}
+        rows = []
+        for kf, seq_score in ranked:
+            if seq_score < p['min_score']:
+                continue
+            c = by_id.get(kf)
+            stamp = c.stamp if c else self.store.get(kf).meta['stamp']
+            rows.append({'keyframe_id': kf, 'score': c.score if c else 0.0,
+                         'holistic_score': c.holistic_score if c else 0.0,
+                         'stamp_sec': stamp[0], 'stamp_nanosec': stamp[1], 'sequence_score': seq_score})
+        first = by_id.get(rows[0]['keyframe_id']) if rows else None
+        return rows, [first] if first else []
 
     # ------------------------------------------------------------------ services
 
@@ -149,6 +192,8 @@ class MatcherNode(Node):
     def on_clear(self, request, response):
         def clear():
             self.store.clear()
+            if self.sequence is not None:
+                self.sequence.set_map([])
             return f'cleared {self.store.path}'
         return self._service(response, clear)
 
