@@ -130,7 +130,8 @@ class SequenceMatcher:
         # the window as a dense (n + pad, R) matrix, rows newest first, unscored = the row's minimum
         floor = np.array([r[2].min() if len(r[2]) else np.nan for r in reversed(rows)])
         floor = np.where(np.isfinite(floor), floor, np.nanmin(floor))        # an empty row: the window's minimum
-        dense = np.repeat(floor[:, None], map_size + 1, axis=1)               # last column = off the map
+        dense = np.empty((n, map_size + 1))                                   # last column = off the map
+        dense[:] = floor[:, None]
         for b, (_, pos, sc) in enumerate(reversed(rows)):
             inside = pos < map_size
             dense[b, pos[inside]] = sc[inside]
@@ -144,8 +145,9 @@ class SequenceMatcher:
             return np.zeros(0, np.int64), np.zeros(0, np.float64)
         visit = ends[None, None, :] - back[:, :, None]                       # (V, n, E)
         visit = np.where(visit >= 0, visit, map_size)                         # off the map: the row's floor
-        values = dense[np.arange(n)[None, :, None], visit]                    # (V, n, E)
-        best = values.mean(axis=1).max(axis=0)                                # (E,)
+        visit += (np.arange(n) * (map_size + 1))[None, :, None]               # flat index into dense
+        values = dense.ravel().take(visit)                                    # (V, n, E)
+        best = values.sum(axis=1).max(axis=0) / n                             # (E,) mean along the best line
         order = np.argsort(-best, kind='stable')[:k]
         return ends[order], best[order]
 

@@ -69,6 +69,8 @@ class MatcherNode(Node):
             raise ValueError(f"mode must be 'localization' or 'mapping', got {p['mode']!r}")
         if p['method'] not in ('lln', 'holistic'):
             raise ValueError(f"method must be 'lln' or 'holistic', got {p['method']!r}")
+        if p['sequence_length'] < 0:
+            raise ValueError(f"sequence_length must be 0 (off) or positive, got {p['sequence_length']}")
         self.sequence = KeyframeSequence({'length': p['sequence_length'], 'max_gap_s': p['sequence_max_gap']}) \
             if p['sequence_length'] > 0 else None
         self.store = MapStore.open(p['map_path'], model=space_model(p['descriptor_space'])
