@@ -55,3 +55,17 @@ def test_matcher_sequence_online_equals_offline(rig, places, tmp_path):
     on_route = min(float(c['sequence_score'][0]) for c in route)
     lost = float(cands[-1]['sequence_score'][0])
     assert lost < on_route, (lost, on_route)
+
+
+def test_matcher_refuses_bad_sequence_parameters(rig, tmp_path):
+    """A negative sequence_length or a non-positive sequence_max_gap: exit at start, one FATAL line."""
+    import time
+    for args, text in ((('sequence_length:=-1',), 'sequence_length must be 0 (off) or positive'),
+                       (('sequence_length:=10', 'sequence_max_gap:=0.0'), 'max_gap_s must be positive')):
+        proc = rig.matcher(tmp_path / 'map.db', *[a for arg in args for a in ('-p', arg)])
+        deadline = time.monotonic() + 60
+        while proc.alive() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        log = read_log(proc)
+        assert not proc.alive() and proc.proc.returncode == 1, log
+        assert text in log and 'FATAL' in log and 'Traceback' not in log, log
