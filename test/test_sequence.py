@@ -185,3 +185,14 @@ def test_eval_sequence_longer_than_the_map_is_one_line(tmp_path, capsys):
     rc = run_cli('--dataset', f'loop:{root},{root / "samples_GT.bmp"}', '--out', tmp_path / 'out',
                  '--sequence', -1, '--no-plots', '--quiet')
     assert rc == 2 and '--sequence must be 0' in capsys.readouterr().err
+
+
+def test_candidates_codec_carries_sequence_score_even_with_zero_rows():
+    from lln_ros import msgs
+    rows = [{'keyframe_id': 7, 'score': 3.5, 'holistic_score': 0.8, 'stamp_sec': 1, 'stamp_nanosec': 2,
+             'sequence_score': 2.25}]
+    table = msgs.cloud_to_candidates(msgs.candidates_to_cloud(rows, None, ('sequence_score',)))
+    assert table['sequence_score'].tolist() == [2.25] and table['keyframe_id'].tolist() == [7]
+    empty = msgs.cloud_to_candidates(msgs.candidates_to_cloud([], None, ('sequence_score',)))
+    assert len(empty) == 0 and empty.dtype.names == table.dtype.names
+    assert msgs.candidates_to_cloud([], None, ('sequence_score',)).point_step == 24

@@ -69,3 +69,27 @@ def test_matcher_refuses_bad_sequence_parameters(rig, tmp_path):
         log = read_log(proc)
         assert not proc.alive() and proc.proc.returncode == 1, log
         assert text in log and 'FATAL' in log and 'Traceback' not in log, log
+
+
+def test_matcher_sequence_in_mapping_mode(rig, places, tmp_path):
+    """mode=mapping with sequence_length: the route 0..5 is stored as it is driven, the revisit 1, 2, 3
+    is answered by the sequence (the same places, in order); the newest exclude_recent keyframes never
+    end a line, so the first queries get zero rows."""
+    proc = start_matcher(rig, tmp_path / 'map.db', places, '-p', 'mode:=mapping', '-p', 'exclude_recent:=2',
+                         '-p', 'sequence_length:=3', '-p', 'k:=2')
+    q_pub = rig.probe.publisher(PointCloud2, 'query')
+    cands = rig.probe.collect(PointCloud2, 'candidates', msgs.cloud_to_candidates)
+    rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
+    route = [0, 1, 2, 3, 4, 5, 1, 2, 3]
+    for j, place in enumerate(route):
+        q_pub.publish(cloud(places, place, header(j)))
+        rig.until(lambda: len(cands) > j, f'answer {j}', proc)
+    assert [len(c) for c in cands[:3]] == [0, 0, 0]
+    for j, c in enumerate(cands):
+        allowed = {stamp_of(header(i)) for i in range(j - 2)}
+        assert {(int(s), int(n)) for s, n in zip(c['stamp_sec'], c['stamp_nanosec'])} <= allowed, j
+    # keyframe j holds query j: the revisit of places 1, 2, 3 ends at keyframes of queries 1, 2, 3
+    revisit = [(int(c['stamp_sec'][0]), int(c['stamp_nanosec'][0])) for c in cands[6:]]
+    assert revisit == [stamp_of(header(i)) for i in (1, 2, 3)], revisit
+    assert all('sequence_score' in c.dtype.names for c in cands)  # zero-row answers too
+    assert proc.stop() == 0, read_log(proc)

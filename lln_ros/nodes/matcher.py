@@ -150,7 +150,8 @@ class MatcherNode(Node):
                  'stamp_sec': c.stamp[0], 'stamp_nanosec': c.stamp[1]} for c in found]
         if self.sequence is not None:
             rows, found = self.sequence_rows(found, msg, mapping)
-        self.candidates_pub.publish(msgs.candidates_to_cloud(rows, msg.header))
+        self.candidates_pub.publish(msgs.candidates_to_cloud(
+            rows, msg.header, ('sequence_score',) if self.sequence is not None else ()))
         best = found[0] if found else None
         self.matches_pub.publish(msgs.matches_to_cloud(
             msgs.match_rows(best.keyframe_id, best.pairs) if best else [], msg.header))
@@ -160,12 +161,10 @@ class MatcherNode(Node):
         """Candidate rows ranked by sequence_score, and the MapCandidates among them (same order)
         for the matches topic. Called before a mapping-mode query's own keyframe joins the ids."""
         p = self.params
-        ids = self.store.ids()
-        if mapping:  # the query was just stored: it is the newest id, never an answer
-            ids = ids[:-1]
-        if len(ids) != len(self.sequence.ids):
-            self.sequence.set_map(ids)
-        allowed = len(ids) - p['exclude_recent'] if mapping else None
+        size = len(self.store) - int(mapping)  # mapping: the query was just stored, never its own answer
+        if size != len(self.sequence.ids):  # keyframes only append (or ~/clear): re-read the ids then
+            self.sequence.set_map(self.store.ids()[:size])
+        allowed = size - p['exclude_recent'] if mapping else None
         reason, ranked = self.sequence.update(msgs.stamp_to_ns(msg.header), {c.keyframe_id: c.score for c in found},
                                               allowed, p['k'])
         if reason:
