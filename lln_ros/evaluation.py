@@ -611,8 +611,9 @@ def _pyplot():
 
 def _colours(rows: list[str]) -> dict:
     plt = _pyplot()
-    fixed = {'holistic': 'tab:gray', 'act': 'tab:green', 'rand': 'tab:orange', 'all': 'tab:purple'}
-    lln_cols = iter(['tab:blue', 'tab:red', 'tab:cyan', 'tab:brown', 'tab:pink', 'tab:olive'])
+    fixed = {'holistic': 'tab:gray', 'act': 'tab:green', 'rand': 'tab:orange', 'all': 'tab:purple',
+             'sad': 'black', 'seqslam': 'tab:olive'}
+    lln_cols = iter(['tab:blue', 'tab:red', 'tab:cyan', 'tab:brown', 'tab:pink'])
     out = {}
     for r in rows:
         out[r] = fixed.get(r) or next(lln_cols, None) or plt.get_cmap('tab20')(len(out) % 20)
