@@ -14,6 +14,9 @@ only in which cells become landmarks). Rows:
     act            top-n cells by feature norm (Chen et al.); no head involved
     rand           the same n random cells in every image; no head involved
     all            every cell of the grid; no head involved
+    sad, seqslam   classic peers (lln_ros.peers): patch-normalised thumbnails, single frame / sequence
+    X+seq          with conf['sequence'] = L > 0: row X's ranking made sequence-consistent
+                   (lln_ros.sequence, the search the matcher node runs online)
 
 Every local method reranks the SAME holistic top-K (prefilter_k, the paper's 30) by the landmark
 similarity S (retrieval.rank_all); loop datasets restrict answers with `allowed=ds.candidates`.
@@ -49,15 +52,18 @@ import numpy as np
 import torch
 
 from . import metrics
-from .errors import ModelError
+from .errors import DatasetError, ModelError
 from .features import FeatureCache
 from .landmarks import METHODS as LOCAL_METHODS, LandmarkSet, l2_normalize, stack_landmarks
 from .lln import LLNHead, head_fingerprint, load_checkpoint
 from .reloc import eval_conf as reloc_eval_conf, evaluate_reloc, reloc_markdown
+from .peers import PEER_METHODS, SadFrontEnd, peer_row, sequence_row
+from .sequence import check_conf as sequence_conf, default_conf as sequence_defaults, sad_conf
 from .retrieval import rank_all
 from .similarity import match_batch, match_pair
 
-METHODS = ('holistic',) + tuple(LOCAL_METHODS)
+METHODS = ('holistic',) + tuple(LOCAL_METHODS)   # the paper's rows, the default
+ALL_METHODS = METHODS + PEER_METHODS             # plus the classic peers (opt-in: --methods ...,sad,seqslam)
 METRIC_KEYS = ('p_at_100r', 'r_at_1', 'r_at_5', 'r_at_10', 'auc_pr', 'r_at_100p')
 REPORT_KEYS = METRIC_KEYS + ('extract_ms', 'match_ms_per_pair', 'n')
 
@@ -66,6 +72,8 @@ default_conf = {
     'top_n': 50,
     'prefilter_k': 30,      # holistic candidates every local method reranks (the paper's 30)
     'scale': 1.0,           # offset-weight width in grid cells (similarity)
+    'sequence': 0,          # L > 0: an `X+seq` row per holistic/local row (sequence length L)
+    'seqslam_length': 10,   # seqslam's L when 'sequence' is 0
     'timing_images': 5,     # images per dataset the extraction is timed on
     'timing_queries': 10,   # queries per dataset the rerank is timed on
     'timing_repeats': 3,    # best of this many runs per image / query (a shared CPU is noisy)
@@ -180,9 +188,9 @@ def row_names(methods, heads: list[Head]) -> list[tuple[str, str, Head | None]]:
 
 def parse_methods(text) -> list[str]:
     methods = [m.strip() for m in (text.split(',') if isinstance(text, str) else text) if m.strip()]
-    bad = [m for m in methods if m not in METHODS]
+    bad = [m for m in methods if m not in ALL_METHODS]
     if bad or not methods:
-        raise ValueError(f'unknown method(s) {bad}; choose from {",".join(METHODS)}')
+        raise ValueError(f'unknown method(s) {bad}; choose from {",".join(ALL_METHODS)}')
     return list(dict.fromkeys(methods))
 
 
@@ -291,6 +299,11 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
     top_n, k, scale = int(conf['top_n']), int(conf['prefilter_k']), float(conf['scale'])
     height = int(extractor.conf['input_height'])
     space = extractor.descriptor_space
+    seq_len = int(conf['sequence'])
+    seq_conf = sequence_conf({**sequence_defaults, 'length': seq_len or int(conf['seqslam_length'])})
+    if (seq_len or 'seqslam' in methods) and seq_conf['length'] > len(ds.ref_paths):
+        raise DatasetError(f'{ds.name}: sequence length {seq_conf["length"]} is longer than its map '
+                           f'({len(ds.ref_paths)} references)')
 
     # one backbone pass per distinct image (a loop sequence is its own map)
     paths = list(dict.fromkeys([str(p) for p in ds.ref_paths] + [str(p) for p in ds.query_paths]))
@@ -322,6 +335,7 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
                      .astype(int)) if answerable else np.zeros(0, int)
     timed = [(answerable[i], prefilter[answerable[i]]) for i in pick]
     reps = int(conf['timing_repeats'])
+    front = SadFrontEnd(ds) if any(m in PEER_METHODS for m in methods) else None
 
     rankings, rows_out, reloc = {}, {}, None
     extract_jobs, match_jobs = {}, {}
@@ -332,6 +346,11 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
             extract_jobs[row] = [(extraction_job(extractor, im, True), 1) for im in timing_images]
             match_jobs[row] = [(functools.partial(np.matmul, hr_batch.globals, hq[q].global_descriptor),
                                 len(hr_batch)) for q, _ in timed]
+            n = 1
+        elif method in PEER_METHODS:
+            ranked, scores = peer_row(method, front, ds.candidates, k, seq_conf)
+            extract_jobs[row] = [(front.extraction_job(ds.query_paths[i]), 1) for i in timing_idx]
+            match_jobs[row] = [(front.match_job(q), len(ds.ref_paths)) for q, _ in timed]
             n = 1
         else:
             v = variant(extractor, method, top_n, head if method == 'lln' else None)
@@ -364,14 +383,29 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
         log(f'{ds.name}: {row:<16} P@100%R {summary["p_at_100r"]:.3f}  R@100%P {summary["r_at_100p"]:.3f}  '
             f'AUC {summary["auc_pr"]:.3f}  ({time.perf_counter() - t0:.1f} s)')
 
+    # X+seq: the same single-frame rankings fed in stream order through the online sequence search
+    for row, method, _ in (row_names(methods, heads) if seq_len else []):
+        if method in PEER_METHODS:
+            continue
+        base = (full, full_scores) if method == 'holistic' else rankings[row]
+        ranked, scores, seq_ms = sequence_row(*base, len(ds.ref_paths), seq_conf, ds.candidates, k)
+        summary = metrics.summary(ranked, scores[:, 0], ds.gt)
+        rows_out[f'{row}+seq'] = {**{key: _finite(float(summary[key])) for key in METRIC_KEYS},
+                                  'n': rows_out[row]['n'], 'sequence_of': row,
+                                  'sequence_ms_per_query': _finite(seq_ms)}
+        rankings[f'{row}+seq'] = (ranked, scores)
+        log(f'{ds.name}: {row + "+seq":<16} P@100%R {summary["p_at_100r"]:.3f}  R@100%P '
+            f'{summary["r_at_100p"]:.3f}  AUC {summary["auc_pr"]:.3f}  ({seq_ms:.2f} ms/query)')
+
     # timing: every method round-robin on the same images / queries, best of `timing_repeats` each
     t0 = time.perf_counter()
     extract_ms = interleaved_times(extract_jobs, reps)
     match_ms = interleaved_times(match_jobs, reps)
     del extract_jobs, match_jobs
     for row, m in rows_out.items():
-        m['extract_ms'] = _finite(extract_ms[row])
-        m['match_ms_per_pair'] = _finite(match_ms[row])
+        src = m.get('sequence_of', row)  # X+seq: X's extraction and matching, plus sequence_ms_per_query
+        m['extract_ms'] = _finite(extract_ms[src])
+        m['match_ms_per_pair'] = _finite(match_ms[src])
         rows_out[row] = {**{key: m[key] for key in REPORT_KEYS}, **m}  # report keys first
     log(f'{ds.name}: timing ({time.perf_counter() - t0:.1f} s)')
 
@@ -417,6 +451,9 @@ def evaluate(datasets: list, extractor, conf: dict | None = None, heads: list[He
         'datasets': {name: r.entry for name, r in runs.items()},
         'parameters': {
             'methods': [r for r, _, _ in row_names(conf['methods'], heads)],
+            'sequence': int(conf['sequence']),
+            'sequence_search': {key: sequence_defaults[key] for key in ('v_min', 'v_max', 'v_steps')},
+            'seqslam': {'length': int(conf['sequence']) or int(conf['seqslam_length']), **sad_conf},
             'top_n': int(conf['top_n']), 'prefilter_k': int(conf['prefilter_k']), 'scale': float(conf['scale']),
             'input_height': int(extractor.conf['input_height']),
             'backbone': extractor.conf['backbone']['name'], 'layer': extractor.backbone.layer,
@@ -553,7 +590,7 @@ def markdown(results: dict) -> str:
         lines += ['## Parameters', '']
         for key in ('backbone', 'layer', 'descriptor_space', 'input_height', 'top_n', 'prefilter_k', 'scale',
                     'rand_seed', 'timing_images', 'timing_queries', 'timing_repeats', 'torch_threads',
-                    'blas_threads', 'feature_cache'):
+                    'blas_threads', 'feature_cache', 'sequence', 'sequence_search', 'seqslam'):
             if key in p:
                 lines.append(f'- {key}: `{p[key]}`')
         for label, h in p.get('heads', {}).items():
@@ -562,7 +599,10 @@ def markdown(results: dict) -> str:
         lines += ['', 'Rows: `holistic` = global max-pool descriptor ranking, no rerank, n = 1 (one vector per '
                       'image); `lln`/`lln[X]` = top-n cells by the activation of LLN head X; `act` = top-n by '
                       'feature norm; `rand` = the same n random cells in every image; `all` = every cell '
-                      '(n = median cells per image). Only the lln rows use a head. `extract ms/img` = full '
+                      '(n = median cells per image); `sad` = mean absolute difference of patch-normalised thumbnails, '
+                      '`seqslam` = the same, contrast-enhanced, with the sequence search; `X+seq` = row X\'s '
+                      'single-frame scores through the causal sequence search (the last L queries, '
+                      'constant velocity in the given range). Only the lln rows use a head. `extract ms/img` = full '
                       'extraction from the original image (resize, backbone, head, selection; holistic: no '
                       'head); `match ms/pair` = one query\'s rerank divided by its candidates (holistic: '
                       'dot products with every reference). Features are cached as float16.', '']
@@ -584,8 +624,9 @@ def _pyplot():
 
 def _colours(rows: list[str]) -> dict:
     plt = _pyplot()
-    fixed = {'holistic': 'tab:gray', 'act': 'tab:green', 'rand': 'tab:orange', 'all': 'tab:purple'}
-    lln_cols = iter(['tab:blue', 'tab:red', 'tab:cyan', 'tab:brown', 'tab:pink', 'tab:olive'])
+    fixed = {'holistic': 'tab:gray', 'act': 'tab:green', 'rand': 'tab:orange', 'all': 'tab:purple',
+             'sad': 'black', 'seqslam': 'tab:olive'}
+    lln_cols = iter(['tab:blue', 'tab:red', 'tab:cyan', 'tab:brown', 'tab:pink'])
     out = {}
     for r in rows:
         out[r] = fixed.get(r) or next(lln_cols, None) or plt.get_cmap('tab20')(len(out) % 20)
@@ -707,7 +748,7 @@ def write_figures(run: DatasetRun, ds, extractor, heads: list[Head], conf: dict,
                       f'{run.name}: score maps and the top-{top_n} cells (queries {", ".join(map(str, idx))})')
 
     # match pictures: the first lln row (else the first local row), confident successes and failures
-    local = [(r, m, h) for r, m, h in row_names(methods, heads) if m != 'holistic']
+    local = [(r, m, h) for r, m, h in row_names(methods, heads) if m in LOCAL_METHODS]
     figs['examples'] = []
     if not local or int(conf['examples']) <= 0:
         return figs

@@ -389,10 +389,14 @@ def cloud_to_keypoints(msg: PointCloud2, image_size=(0, 0), scale: float = 1.0):
 # --------------------------------------------------------------------------------------------
 # candidates and matches
 
-def candidates_to_cloud(rows, header: Header | None = None) -> PointCloud2:
+def candidates_to_cloud(rows, header: Header | None = None, extra_fields: Sequence[str] = ()) -> PointCloud2:
     """The matcher's candidates, in the given order (best first). `rows`: a sequence of mappings
     with keyframe_id, score, holistic_score, stamp_sec, stamp_nanosec and any extra keys (sent as
-    FLOAT32 fields, e.g. inliers, sequence_score), or a structured array with those fields."""
+    FLOAT32 fields, e.g. inliers, sequence_score), or a structured array with those fields.
+    extra_fields: FLOAT32 fields a zero-row answer carries too, so its layout matches the others'."""
+    if not isinstance(rows, np.ndarray) and not len(rows) and extra_fields:
+        rows = np.zeros(0, [(name, _DATATYPES[dt]) for name, dt, _ in CANDIDATE_FIELDS]
+                        + [(name, np.dtype('<f4')) for name in extra_fields])
     return array_to_cloud(_records(rows, CANDIDATE_FIELDS, 'candidates'), header)
 
 

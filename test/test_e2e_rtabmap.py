@@ -30,15 +30,20 @@ def recall_at_precision(correct: np.ndarray, scores: np.ndarray, positives: int,
 
 @pytest.fixture(scope='module')
 def rtabmap_run(colcon_install, tmp_path_factory):
+    return play_rtabmap(colcon_install, tmp_path_factory.mktemp('e2e'), ['-p', 'k:=5'])
+
+
+def play_rtabmap(colcon_install, tmp, matcher_params: list) -> dict:
+    """The rtabmap_loop bag through the installed nodes, the matcher in mapping mode with
+    exclude_recent GAP - 1 plus `matcher_params`; every `candidates` answer (stamp, table)."""
     root = shared_data('rtabmap_loop')
-    tmp = tmp_path_factory.mktemp('e2e')
     frames = bag.list_images(root, '*.jpg')
     assert len(frames) == 84
     stamps = bag.write_image_bag(frames, tmp / 'rtabmap_bag', topic='/camera/image_raw', rate=RATE_HZ)
     env = installed_env(colcon_install, ros_env(tmp))
     lib = colcon_install / 'lln_ros' / 'lib' / 'lln_ros'
     matcher = RosProcess(lib / 'matcher', ['-p', f'map_path:={tmp / "map.db"}', '-p', 'mode:=mapping',
-                                           '-p', f'exclude_recent:={GAP - 1}', '-p', 'k:=5',
+                                           '-p', f'exclude_recent:={GAP - 1}', *matcher_params,
                                            '-r', 'query:=landmarks'], env, tmp / 'matcher.log')
     extractor = RosProcess(lib / 'extractor', ['-p', 'reliability:=reliable', '-p', 'num_threads:=1',
                                                '-r', 'image:=/camera/image_raw'], env, tmp / 'extractor.log')

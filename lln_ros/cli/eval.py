@@ -1,7 +1,7 @@
 """lln-eval: every place-recognition method on every dataset, with the paper's protocol and pictures.
 
     lln-eval --dataset SPEC [--dataset SPEC ...] --out DIR [--methods holistic,lln,act,rand,all]
-             [--top-n 50] [--prefilter-k 30] [--range START:END]
+             [--top-n 50] [--prefilter-k 30] [--range START:END] [--sequence L]
              [--weights [LABEL=]CKPT ...] [--label NAME ...] [--heads LABEL=CKPT,LABEL=,...]
              [--backbone NAME] [--layer LAYER] [--cache DIR] [--download [--download-url URL]]
 
@@ -11,7 +11,9 @@ of the route); other kinds are used whole. Each head named by --weights / --head
 `lln[LABEL]`: `--heads trained=best.pt,untrained=` compares a trained head with the untrained
 (seeded Xavier) head in one run. An empty CKPT (or `xavier`) is the untrained head, `shipped` the head
 shipped with the package; without any, the row `lln` uses the shipped head (untrained if none ships).
-act / rand / all / holistic do not depend on the head and get one row each.
+act / rand / all / holistic do not depend on the head and get one row each. The classic peers
+`sad` and `seqslam` (SeqSLAM, Milford and Wyeth 2012) are methods too; --sequence L adds an `X+seq`
+row per holistic/local row: its scores through the matcher's online sequence search (L queries).
 
 Every dataset is read and checked, and every head loaded, before any feature is computed. Bad input
 exits 2 with one line on stderr. Writes DIR/results.json, DIR/results.md and PNGs.
@@ -37,11 +39,15 @@ def build_parser() -> argparse.ArgumentParser:
                                 epilog='\n'.join(__doc__.strip().splitlines()[1:]))
     p.add_argument('--dataset', action='append', required=True, metavar='SPEC', help='dataset (repeatable)')
     p.add_argument('--methods', default='holistic,lln,act,rand,all',
-                   help='comma-separated subset of holistic,lln,act,rand,all (default: all five)')
+                   help='comma-separated subset of holistic,lln,act,rand,all,sad,seqslam '
+                        '(default: holistic,lln,act,rand,all)')
     p.add_argument('--top-n', type=int, default=50, help='landmarks per image for lln/act/rand (default 50)')
     p.add_argument('--prefilter-k', type=int, default=30,
                    help='holistic candidates every local method reranks (default 30, the paper\'s)')
     p.add_argument('--scale', type=float, default=1.0, help='offset-weight width in grid cells (default 1)')
+    p.add_argument('--sequence', type=int, default=0, metavar='L',
+                   help='add an X+seq row per holistic/local method: sequence search over L queries '
+                        '(0 = off; seqslam uses L, or 10)')
     p.add_argument('--out', required=True, metavar='DIR', help='output folder (results.json, results.md, PNGs)')
     p.add_argument('--range', help='START:END fractions of every aligned dataset (e.g. 0.7:1)')
     p.add_argument('--weights', action='append', metavar='[LABEL=]CKPT',
@@ -137,6 +143,8 @@ def run(args, argv) -> dict:
         raise UsageError('--reloc ranks candidates with lln: add lln to --methods')
     if args.reloc and (args.reloc_top < 1 or args.reloc_min_inliers < 1):
         raise UsageError('--reloc-top and --reloc-min-inliers must be at least 1')
+    if args.sequence < 0:
+        raise UsageError(f'--sequence must be 0 (off) or a length of at least 1, got {args.sequence}')
     from ..datasets import parse_range
     frac = parse_range(args.range)
     heads = head_specs(args)
@@ -169,6 +177,7 @@ def run(args, argv) -> dict:
         return {'checked': [ds.name for ds in dsets]}
 
     conf = {'methods': methods, 'top_n': args.top_n, 'prefilter_k': args.prefilter_k, 'scale': args.scale,
+            'sequence': args.sequence,
             'timing_images': args.timing_images, 'timing_queries': args.timing_queries,
             'timing_repeats': args.timing_repeats,
             'examples': args.examples, 'heatmap_images': args.heatmap_images, 'cache_dir': args.cache,

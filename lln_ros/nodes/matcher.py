@@ -4,7 +4,8 @@ Subscribes  keyframes (PointCloud2 landmark sets to store), query (landmark sets
             model_info (std_msgs/String, the extractor's model, latched), keypoints (PointCloud2,
             the extractor's ORB keypoints; with verify)
 Publishes   candidates (PointCloud2: keyframe_id, score, holistic_score, stamp_sec, stamp_nanosec;
-            with verify also inliers, NaN where the keyframe or query had no keypoints),
+            with verify also inliers, NaN where the keyframe or query had no keypoints;
+            with sequence_length > 0 also sequence_score),
             matches (PointCloud2: the matched region pairs of the best candidate), /diagnostics
 Services    ~/save, ~/clear, ~/info (std_srvs/Trigger; info answers JSON)
 
@@ -15,6 +16,12 @@ so whatever a subscriber has seen answered survives kill -9.
 
 verify=true: keypoints are paired with landmark sets by header stamp and stored per keyframe; the
 top candidates are re-ranked by region-constrained RANSAC inliers (lln_ros.reloc.verify_candidates).
+
+sequence_length L > 0 ranks keyframes by sequence agreement over the last L queries (lln_ros.sequence,
+the search lln-eval --sequence runs offline): candidates come best sequence_score first, min_score
+applies to sequence_score, and `score` / `holistic_score` are this query's own (0 = the keyframe was
+not among this query's prefilter_k). Out-of-order stamps and gaps longer than sequence_max_gap start a
+new sequence (counted as sequence_reset_out_of_order / sequence_reset_gap).
 """
 from __future__ import annotations
 
@@ -29,6 +36,7 @@ from std_srvs.srv import Trigger
 from .. import msgs
 from ..errors import LLNError
 from ..mapstore import MapStore
+from ..sequence import KeyframeSequence
 from .common import MODEL_QOS, Health, declare, run_node, start_diagnostics, subscription_qos
 
 PARAMETERS = {
@@ -50,6 +58,8 @@ PARAMETERS = {
     'max_query_age': (0.0, 'seconds; older queries (header stamp vs node clock) are dropped and counted '
                            'as queries_stale, so a backlog cannot grow latency; 0 = off'),
     'diagnostics_period': (1.0, 'seconds between /diagnostics messages; 0 = off'),
+    'sequence_length': (0, 'queries in the sequence search (0 = off, single-frame ranking)'),
+    'sequence_max_gap': (1.0, 'seconds between query stamps beyond which a new sequence starts'),
 }
 
 
@@ -70,6 +80,10 @@ class MatcherNode(Node):
             raise ValueError(f"mode must be 'localization' or 'mapping', got {p['mode']!r}")
         if p['method'] not in ('lln', 'holistic'):
             raise ValueError(f"method must be 'lln' or 'holistic', got {p['method']!r}")
+        if p['sequence_length'] < 0:
+            raise ValueError(f"sequence_length must be 0 (off) or positive, got {p['sequence_length']}")
+        self.sequence = KeyframeSequence({'length': p['sequence_length'], 'max_gap_s': p['sequence_max_gap']}) \
+            if p['sequence_length'] > 0 else None
         self.store = MapStore.open(p['map_path'], model=space_model(p['descriptor_space'])
                                    if p['descriptor_space'] else None)
         self.health = Health(self)
@@ -197,8 +211,10 @@ class MatcherNode(Node):
         p = self.params
         mapping = p['mode'] == 'mapping'
         kps = self.take_keypoints(msg.header.stamp, lset)
+        sequence = self.sequence is not None  # the sequence search needs every reranked candidate
         try:
-            found = self.store.query(lset, prefilter_k=p['prefilter_k'], k=p['k'], min_score=p['min_score'],
+            found = self.store.query(lset, prefilter_k=p['prefilter_k'], k=p['prefilter_k'] if sequence else p['k'],
+                                     min_score=None if sequence else p['min_score'],
                                      exclude_recent=p['exclude_recent'] if mapping else 0,
                                      method_rerank=p['method'] == 'lln', scale=p['offset_scale'])
             inliers = {}
@@ -209,11 +225,14 @@ class MatcherNode(Node):
         except (LLNError, ValueError) as e:
             self.health.problem('bad_query', str(e))
             return
-        self.candidates_pub.publish(msgs.candidates_to_cloud(
-            [{'keyframe_id': c.keyframe_id, 'score': c.score, 'holistic_score': c.holistic_score,
-              'stamp_sec': c.stamp[0], 'stamp_nanosec': c.stamp[1],
-              **({'inliers': inliers.get(c.keyframe_id, float('nan'))} if self.reloc else {})}
-             for c in found], msg.header))
+        rows = [{'keyframe_id': c.keyframe_id, 'score': c.score, 'holistic_score': c.holistic_score,
+                 'stamp_sec': c.stamp[0], 'stamp_nanosec': c.stamp[1],
+                 **({'inliers': inliers.get(c.keyframe_id, float('nan'))} if self.reloc else {})} for c in found]
+        if sequence:
+            rows, found = self.sequence_rows(found, msg, mapping, inliers if self.reloc else None)
+        # a zero-row answer carries the same optional fields as the others
+        extra = ('inliers',) * (self.reloc is not None) + ('sequence_score',) * sequence
+        self.candidates_pub.publish(msgs.candidates_to_cloud(rows, msg.header, extra))
         best = found[0] if found else None
         self.matches_pub.publish(msgs.matches_to_cloud(
             msgs.match_rows(best.keyframe_id, best.pairs) if best else [], msg.header))
@@ -229,6 +248,34 @@ class MatcherNode(Node):
         self.health.count('queries_verified')
         return [c for c, _ in ranked], {c.keyframe_id: float(r.inliers) for c, r in ranked if r is not None}
 
+    def sequence_rows(self, found: list, msg: PointCloud2, mapping: bool,
+                      inliers: dict | None = None) -> tuple[list, list]:
+        """Candidate rows ranked by sequence_score, and the MapCandidates among them (same order)
+        for the matches topic. Called before a mapping-mode query's own keyframe joins the ids.
+        inliers: verify mode's {keyframe_id: inliers} (rows get an `inliers` field, NaN if unknown)."""
+        p = self.params
+        size = len(self.store) - int(mapping)  # mapping: the query was just stored, never its own answer
+        if size != len(self.sequence.ids):  # keyframes only append (or ~/clear): re-read the ids then
+            self.sequence.set_map(self.store.ids()[:size])
+        allowed = size - p['exclude_recent'] if mapping else None
+        reason, ranked = self.sequence.update(msgs.stamp_to_ns(msg.header), {c.keyframe_id: c.score for c in found},
+                                              allowed, p['k'])
+        if reason:
+            self.health.count(f'sequence_reset_{reason}')
+        by_id = {c.keyframe_id: c for c in found}
+        rows = []
+        for kf, seq_score in ranked:
+            if seq_score < p['min_score']:
+                continue
+            c = by_id.get(kf)
+            stamp = c.stamp if c else self.store.get(kf).meta['stamp']
+            rows.append({'keyframe_id': kf, 'score': c.score if c else 0.0,
+                         'holistic_score': c.holistic_score if c else 0.0,
+                         'stamp_sec': stamp[0], 'stamp_nanosec': stamp[1], 'sequence_score': seq_score,
+                         **({'inliers': inliers.get(kf, float('nan'))} if inliers is not None else {})})
+        first = by_id.get(rows[0]['keyframe_id']) if rows else None
+        return rows, [first] if first else []
+
     # ------------------------------------------------------------------ services
 
     def on_save(self, request, response):
@@ -240,6 +287,8 @@ class MatcherNode(Node):
     def on_clear(self, request, response):
         def clear():
             removed = self.store.clear()
+            if self.sequence is not None:
+                self.sequence.set_map([])
             return f'cleared {removed} keyframes from {self.store.path}'
         return self._service(response, clear)
 

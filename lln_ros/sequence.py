@@ -1,0 +1,279 @@
+"""Sequence-consistent place recognition: SeqSLAM-style search over a stream of single-frame scores.
+
+Milford and Wyeth, "SeqSLAM", ICRA 2012: a place is recognised by a *sequence* of frames whose
+single-frame scores line up along a straight line of the (query x map) score matrix, i.e. the
+vehicle moves along the mapped route at a roughly constant velocity. The same search serves every
+method (any single-frame similarity, higher = better) offline (lln-eval `--sequence L`, `seqslam`)
+and online (the matcher's `sequence_length`), through one class:
+
+    seq = SequenceMatcher({'length': 10})
+    for stamp_ns, positions, scores in stream:       # one query: map positions (K,) and their S (K,)
+        seq.push(stamp_ns, positions, scores)
+        ends, seq_scores = seq.search(map_size)      # map positions, best sequence first
+
+Definitions (causal, so the offline figures are what the node publishes):
+- The window is the last L' <= L queries, oldest first; its newest row is the current query.
+- A line ending at map position j with velocity v (map frames per query frame) visits position
+  j - round(v * b) in the row b frames back (b = 0 .. L'-1); v takes `v_steps` values in
+  [v_min, v_max]. Forward motion only (a route driven backwards is not followed).
+- A row's unscored positions (not among its top-K, excluded, or off the map) count as that row's
+  lowest score: a map frame outside a query's top-K is at most as similar as its worst candidate.
+- The sequence score of j is max over v of the mean row value along the line; lines through
+  no scored entry cannot beat one through a scored entry, so only ends reachable from a scored
+  entry are searched (cost O(L * K * V), independent of the map size).
+
+Stream faults (online): a stamp not newer than the last one (out of order or repeated) or a gap
+longer than `max_gap_s` empties the window first (the constant-velocity model no longer holds);
+smaller gaps (a dropped frame) are absorbed by the velocity range. With fewer than L queries in the
+window the line is shorter (the first frames after a start or reset are single-frame-like).
+
+The classic SeqSLAM front end lives here too: `sad_descriptors` (downsampled, patch-normalised grey
+images), `sad_difference` (mean absolute difference, FAISS L1) and `contrast_enhance` (the local
+normalisation of each query's difference vector over a window of map frames).
+"""
+from __future__ import annotations
+
+from collections import deque
+
+import cv2
+import faiss
+import numpy as np
+
+from .errors import LLNError
+
+default_conf = {
+    'length': 10,        # L: queries in a sequence (SeqSLAM's ds)
+    'v_min': 0.8,        # velocity range, map frames per query frame (OpenSeqSLAM 0.8 .. 1.2)
+    'v_max': 1.2,
+    'v_steps': 5,
+    'max_gap_s': 1.0,    # online: a stamp gap longer than this starts a new sequence
+}
+
+sad_conf = {
+    'width': 32,         # downsampled image width; height keeps the first map image's aspect
+    'patch': 8,          # patch normalisation: zero mean, unit std in P x P pixel patches
+    'enhance_window': 10,  # contrast enhancement: map frames either side (SeqSLAM's R_window / 2)
+}
+
+
+class SequenceError(LLNError):
+    """A sequence search that cannot be set up: bad length or velocity range, bad scores."""
+
+
+def check_conf(conf: dict) -> dict:
+    conf = {**default_conf, **(conf or {})}
+    if int(conf['length']) < 1:
+        raise SequenceError(f'sequence length must be at least 1, got {conf["length"]}')
+    if not 0 <= float(conf['v_min']) <= float(conf['v_max']) or int(conf['v_steps']) < 1:
+        raise SequenceError(f'need 0 <= v_min <= v_max and v_steps >= 1, got {conf["v_min"]}, '
+                            f'{conf["v_max"]}, {conf["v_steps"]}')
+    if not float(conf['max_gap_s']) > 0:
+        raise SequenceError(f'max_gap_s must be positive, got {conf["max_gap_s"]}')
+    return conf
+
+
+class SequenceMatcher:
+    """A bounded ring of the last L queries' single-frame results and the sequence search over it.
+
+    Each entry: (stamp_ns, positions (K,) int map positions, scores (K,) float). Map positions are
+    indices into the map in route order (offline: reference index; online: keyframe order)."""
+
+    def __init__(self, conf: dict | None = None):
+        self.conf = check_conf(conf)
+        self.length = int(self.conf['length'])
+        self.ring: deque = deque(maxlen=self.length)
+        velocities = np.linspace(float(self.conf['v_min']), float(self.conf['v_max']), int(self.conf['v_steps']))
+        # back[v, b]: how many map frames a line of velocity v moved in the last b query frames
+        self.back = np.rint(velocities[:, None] * np.arange(self.length)[None]).astype(np.int64)  # (V, L)
+        self.resets = {'out_of_order': 0, 'gap': 0}
+
+    def __len__(self) -> int:
+        return len(self.ring)
+
+    def reset(self) -> None:
+        self.ring.clear()
+
+    def push(self, stamp_ns: int, positions, scores) -> str | None:
+        """Add one query's scored map positions. Returns why the window was emptied first
+        ('out_of_order', 'gap') or None."""
+        positions = np.asarray(positions, np.int64).reshape(-1)
+        scores = np.asarray(scores, np.float64).reshape(-1)
+        if positions.shape != scores.shape:
+            raise SequenceError(f'{len(positions)} positions but {len(scores)} scores')
+        keep = np.isfinite(scores) & (positions >= 0)
+        positions, scores = positions[keep], scores[keep]
+        reason = None
+        if self.ring:
+            last = self.ring[-1][0]
+            if stamp_ns <= last:
+                reason = 'out_of_order'
+            elif stamp_ns - last > float(self.conf['max_gap_s']) * 1e9:
+                reason = 'gap'
+        if reason:
+            self.resets[reason] += 1
+            self.ring.clear()
+        self.ring.append((int(stamp_ns), positions, scores))
+        return reason
+
+    def search(self, map_size: int, allowed_ends=None, k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Sequence scores of the line ends reachable from the window's scored entries.
+
+        map_size: R, the number of map positions; allowed_ends: optional (R,) bool, which positions
+        may be answers (loop protocol, exclude_recent). Returns (ends (E,), scores (E,)), best
+        first, at most k of them (None = all). Empty when the window holds no scored entry."""
+        rows = [r for r in self.ring]
+        scored = [r for r in rows if len(r[1])]
+        if not scored or map_size < 1:
+            return np.zeros(0, np.int64), np.zeros(0, np.float64)
+        n = len(rows)
+        back = self.back[:, :n]                                               # (V, n), b = 0 is the newest
+        # the window as a dense (n + pad, R) matrix, rows newest first, unscored = the row's minimum
+        floor = np.array([r[2].min() if len(r[2]) else np.nan for r in reversed(rows)])
+        floor = np.where(np.isfinite(floor), floor, np.nanmin(floor))        # an empty row: the window's minimum
+        dense = np.empty((n, map_size + 1))                                   # last column = off the map
+        dense[:] = floor[:, None]
+        for b, (_, pos, sc) in enumerate(reversed(rows)):
+            inside = pos < map_size
+            dense[b, pos[inside]] = sc[inside]
+        # ends: a scored entry b rows back is on the line ending at pos + back[v, b]
+        ends = np.unique(np.concatenate([(pos[:, None] + back[:, b][None]).ravel()
+                                         for b, (_, pos, _) in enumerate(reversed(rows)) if len(pos)]))
+        ends = ends[(ends >= 0) & (ends < map_size)]
+        if allowed_ends is not None:
+            ends = ends[np.asarray(allowed_ends, bool)[ends]]
+        if not len(ends):
+            return np.zeros(0, np.int64), np.zeros(0, np.float64)
+        visit = ends[None, None, :] - back[:, :, None]                       # (V, n, E)
+        visit = np.where(visit >= 0, visit, map_size)                         # off the map: the row's floor
+        visit += (np.arange(n) * (map_size + 1))[None, :, None]               # flat index into dense
+        values = dense.ravel().take(visit)                                    # (V, n, E)
+        best = values.sum(axis=1).max(axis=0) / n                             # (E,) mean along the best line
+        order = np.argsort(-best, kind='stable')[:k]
+        return ends[order], best[order]
+
+
+def rank_sequences(ranked: np.ndarray, scores: np.ndarray, n_refs: int, conf: dict | None = None,
+                   allowed: np.ndarray | None = None, k: int = 30) -> tuple[np.ndarray, np.ndarray]:
+    """Offline: single-frame rankings of a query sequence (in stream order) -> sequence rankings.
+
+    ranked (Q, K) ref indices (-1 = none) and scores (Q, K) of any method; allowed (Q, R) bool or
+    None. Queries are fed to one SequenceMatcher in order with stamps 0, 1, 2 ... (no gaps), the
+    way the node sees a stream. Returns ranked (Q, k) and sequence scores (Q, k), -1 / -inf padded."""
+    seq = SequenceMatcher({**(conf or {}), 'max_gap_s': float('inf')})
+    out = np.full((len(ranked), k), -1, np.int64)
+    out_scores = np.full((len(ranked), k), -np.inf, np.float32)
+    for q in range(len(ranked)):
+        ok = ranked[q] >= 0
+        seq.push(q, ranked[q][ok], scores[q][ok])
+        ends, s = seq.search(n_refs, None if allowed is None else allowed[q], k)
+        out[q, :len(ends)], out_scores[q, :len(ends)] = ends, s
+    return out, out_scores
+
+
+def dense_to_ranked(similarity: np.ndarray, allowed: np.ndarray | None = None,
+                    k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(Q, R) similarity (higher = better) -> ranked (Q, k) indices and scores, disallowed = -1/-inf."""
+    sim = np.asarray(similarity, np.float64)
+    if allowed is not None:
+        sim = np.where(allowed, sim, -np.inf)
+    k = sim.shape[1] if k is None else min(int(k), sim.shape[1])
+    top = np.argsort(-sim, axis=1, kind='stable')[:, :k]
+    top_s = np.take_along_axis(sim, top, axis=1)
+    return np.where(np.isfinite(top_s), top, -1), top_s.astype(np.float32)
+
+
+# ------------------------------------------------------------------------- SeqSLAM front end (sad)
+
+
+def sad_size(image_size, conf: dict | None = None) -> tuple[int, int]:
+    """(width, height) the SAD front end resizes to: conf width, height keeping image_size's aspect,
+    both multiples of the patch size."""
+    c = {**sad_conf, **(conf or {})}
+    p, w = int(c['patch']), int(c['width'])
+    h = max(p, int(round(w * image_size[1] / image_size[0] / p)) * p)
+    return w, h
+
+
+def sad_descriptors(grey_images, size: tuple[int, int], conf: dict | None = None) -> np.ndarray:
+    """Downsampled, patch-normalised grey images, flattened: (N, w*h) float32.
+
+    Each P x P patch is shifted to zero mean and scaled to unit std (a flat patch stays zero), which
+    removes most of the illumination change between traverses (SeqSLAM's front end)."""
+    c = {**sad_conf, **(conf or {})}
+    p = int(c['patch'])
+    w, h = size
+    out = np.empty((len(grey_images), w * h), np.float32)
+    for i, im in enumerate(grey_images):
+        small = cv2.resize(np.asarray(im), (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
+        patches = small.reshape(h // p, p, w // p, p)
+        mean = patches.mean(axis=(1, 3), keepdims=True)
+        std = patches.std(axis=(1, 3), keepdims=True)
+        out[i] = ((patches - mean) / np.where(std > 1e-6, std, 1.0)).reshape(-1)
+    return out
+
+
+def sad_difference(queries: np.ndarray, refs: np.ndarray) -> np.ndarray:
+    """(Q, R) mean absolute difference between descriptor rows (FAISS L1 distances / length)."""
+    q, r = np.ascontiguousarray(queries, np.float32), np.ascontiguousarray(refs, np.float32)
+    return faiss.pairwise_distances(q, r, metric=faiss.METRIC_L1) / max(q.shape[1], 1)
+
+
+def contrast_enhance(difference: np.ndarray, window: int = 10) -> np.ndarray:
+    """SeqSLAM's local contrast enhancement: each query's difference to map frame r is normalised
+    by the mean and std of its differences to map frames r - window .. r + window. (Q, R) -> (Q, R)."""
+    d = np.asarray(difference, np.float64)
+    r = d.shape[1]
+    # windowed sums with cumulative sums along the map axis
+    c1 = np.concatenate([np.zeros((len(d), 1)), np.cumsum(d, axis=1)], axis=1)
+    c2 = np.concatenate([np.zeros((len(d), 1)), np.cumsum(d * d, axis=1)], axis=1)
+    lo = np.clip(np.arange(r) - int(window), 0, r)
+    hi = np.clip(np.arange(r) + int(window) + 1, 0, r)
+    n = (hi - lo)[None]
+    mean = (c1[:, hi] - c1[:, lo]) / n
+    var = np.maximum((c2[:, hi] - c2[:, lo]) / n - mean * mean, 0.0)
+    return (d - mean) / np.sqrt(np.maximum(var, 1e-12))
+
+
+class KeyframeSequence:
+    """Online: a SequenceMatcher over a map of keyframes in insertion (= route) order, keyed by id.
+
+    The caller tells it the map's ids when they change (`set_map`; ids ascending, as MapStore.ids
+    gives them) and feeds every answered query:
+
+        seq = KeyframeSequence({'length': 10})
+        seq.set_map(store.ids())
+        reason, ranked = seq.update(stamp_ns, {keyframe_id: S, ...}, allowed=len(ids) - exclude_recent, k=5)
+        ranked: [(keyframe_id, sequence_score), ...] best first
+
+    Clearing the map (set_map with no ids) empties the window; ids that vanished from the map are
+    dropped from the entries already in the window."""
+
+    def __init__(self, conf: dict | None = None):
+        self.matcher = SequenceMatcher(conf)
+        self.ids = np.zeros(0, np.int64)
+
+    @property
+    def resets(self) -> dict:
+        return self.matcher.resets
+
+    def set_map(self, ids) -> None:
+        ids = np.asarray(ids, np.int64)
+        if not len(ids) or (len(self.ids) and not np.array_equal(ids[:len(self.ids)], self.ids)):
+            self.matcher.reset()  # cleared or rewritten: old positions mean nothing now
+        self.ids = ids
+
+    def update(self, stamp_ns: int, scores: dict, allowed: int | None = None,
+               k: int = 5) -> tuple[str | None, list[tuple[int, float]]]:
+        """Push one query's single-frame scores {keyframe_id: S} and search. allowed: only the first
+        `allowed` keyframes may be answers (mapping mode's exclude_recent); None = all."""
+        ids = np.fromiter(scores.keys(), np.int64, len(scores))
+        values = np.fromiter(scores.values(), np.float64, len(scores))
+        pos = np.searchsorted(self.ids, ids)
+        known = (pos < len(self.ids)) & (self.ids[np.minimum(pos, len(self.ids) - 1)] == ids) \
+            if len(self.ids) else np.zeros(len(ids), bool)
+        reason = self.matcher.push(stamp_ns, pos[known], values[known])
+        mask = None
+        if allowed is not None:
+            mask = np.arange(len(self.ids)) < int(allowed)
+        ends, seq_scores = self.matcher.search(len(self.ids), mask, k)
+        return reason, [(int(self.ids[e]), float(s)) for e, s in zip(ends, seq_scores)]

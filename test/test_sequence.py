@@ -1,0 +1,198 @@
+"""lln_ros.sequence and lln_ros.peers: the sequence search (offline = online), its stream faults, the
+SeqSLAM front end, and lln-eval's sad / seqslam / X+seq rows on real data."""
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import shared_data
+from lln_ros.cli.eval import main
+from lln_ros.errors import LLNError
+from lln_ros.sequence import (KeyframeSequence, SequenceError, SequenceMatcher, contrast_enhance,
+                              rank_sequences, sad_descriptors, sad_difference, sad_size)
+
+S = 10**9  # ns per second
+
+
+def route_scores(n_q=60, n_r=80, k=8, seed=0, true_score=0.5, noise=0.6):
+    """Single-frame top-k of a vehicle driving a mapped route at 1 map frame per query (query q is at
+    map frame q + 5): the true frame scores `true_score`, k-1 distractors score uniformly in
+    [0, noise) at random places. With noise > true_score single frames are often wrong."""
+    rng = np.random.default_rng(seed)
+    ranked = np.zeros((n_q, k), np.int64)
+    scores = np.zeros((n_q, k), np.float32)
+    for q in range(n_q):
+        others = rng.choice(np.setdiff1d(np.arange(n_r), [q + 5]), k - 1, replace=False)
+        ranked[q] = np.r_[q + 5, others]
+        scores[q] = np.r_[true_score, rng.uniform(0, noise, k - 1)]
+        order = np.argsort(-scores[q], kind='stable')
+        ranked[q], scores[q] = ranked[q][order], scores[q][order]
+    return ranked, scores, np.arange(n_q) + 5
+
+
+def test_sequence_recovers_the_route_single_frames_miss():
+    ranked, scores, truth = route_scores()
+    single = (ranked[:, 0] == truth).mean()
+    seq_ranked, seq_scores = rank_sequences(ranked, scores, 80, {'length': 10}, k=5)
+    seq = (seq_ranked[10:, 0] == truth[10:]).mean()  # after the window has filled
+    assert single < 0.6 and seq == 1.0, (single, seq)
+    assert np.all(np.diff(seq_scores, axis=1) <= 0)  # best first
+
+
+def test_online_keyframe_ids_give_the_offline_figures():
+    """KeyframeSequence (the node's) over non-contiguous keyframe ids = rank_sequences over positions."""
+    ranked, scores, _ = route_scores(seed=1)
+    offline, offline_scores = rank_sequences(ranked, scores, 80, {'length': 10}, k=5)
+    ids = np.arange(80) * 3 + 7  # ids grow with insertion but skip values (a cleared map never reuses ids)
+    online = KeyframeSequence({'length': 10})
+    online.set_map(ids)
+    for q in range(len(ranked)):
+        reason, out = online.update(q * S // 20, dict(zip(ids[ranked[q]].tolist(), scores[q].tolist())), k=5)
+        assert reason is None
+        assert [kf for kf, _ in out] == ids[offline[q]].tolist()
+        np.testing.assert_allclose([s for _, s in out], offline_scores[q], rtol=1e-6)
+    assert len(online.matcher) == 10  # the ring never grows past L
+
+
+def test_stream_faults_reset_the_window():
+    seq = SequenceMatcher({'length': 4, 'max_gap_s': 0.5})
+    assert seq.push(1 * S, [1], [0.5]) is None
+    assert seq.push(1 * S + S // 4, [2], [0.5]) is None           # 0.25 s: a dropped frame, absorbed
+    assert len(seq) == 2
+    assert seq.push(1 * S, [3], [0.5]) == 'out_of_order'           # older than the last: new sequence
+    assert len(seq) == 1
+    assert seq.push(1 * S, [4], [0.5]) == 'out_of_order'           # a repeated stamp too
+    assert seq.push(3 * S, [5], [0.5]) == 'gap'                    # 2 s of nothing: new sequence
+    assert len(seq) == 1 and seq.resets == {'out_of_order': 2, 'gap': 1}
+    for i in range(10):
+        seq.push(4 * S + i, [i], [0.1])
+    assert len(seq) == 4
+
+
+def test_length_longer_than_the_map_is_defined():
+    """L = 10 on a 3-frame map: positions off the map count as the row's lowest score."""
+    seq = SequenceMatcher({'length': 10, 'v_min': 1, 'v_max': 1, 'v_steps': 1})
+    for q in range(10):
+        seq.push(q, [0, 1, 2], [0.1, 0.2, 0.9 if q == 9 else 0.3])
+    ends, values = seq.search(3)
+    assert ends[0] == 2
+    # line ending at 2: rows b = 0, 1, 2 visit 2, 1, 0 (0.9, 0.2, 0.1); b = 3..9 are off the map (0.1)
+    assert values[0] == pytest.approx((0.9 + 0.2 + 0.1 + 7 * 0.1) / 10)
+
+
+def test_jump_to_an_unmapped_area_lowers_the_sequence_score():
+    ranked, scores, truth = route_scores(n_q=30, noise=0.3)
+    seq = SequenceMatcher({'length': 10})
+    for q in range(30):
+        seq.push(q, ranked[q], scores[q])
+    _, on_route = seq.search(80, k=1)
+    for q in range(30, 40):  # unmapped: every candidate is a weak, random match
+        rng = np.random.default_rng(q)
+        seq.push(q, rng.choice(80, 8, replace=False), rng.uniform(0, 0.3, 8))
+    _, lost = seq.search(80, k=1)
+    assert on_route[0] >= 0.5 > 0.3 >= lost[0]  # a min_score between the two says "new place"
+
+
+def test_allowed_ends_and_bad_conf():
+    seq = SequenceMatcher({'length': 3})
+    seq.push(0, [5], [1.0])
+    seq.push(1, [6], [1.0])
+    ends, _ = seq.search(10, allowed_ends=np.arange(10) < 7)  # v in 0.8..1.2: a line through 5 ends at 6
+    assert ends.tolist() == [6]
+    ends, _ = seq.search(10, allowed_ends=np.arange(10) < 5)
+    assert len(ends) == 0  # no line through a scored entry ends at an allowed position: no answer
+    assert len(SequenceMatcher().search(10)[0]) == 0  # nothing pushed: nothing to rank
+    for bad in ({'length': 0}, {'v_min': 2, 'v_max': 1}, {'max_gap_s': 0}):
+        with pytest.raises(SequenceError):
+            SequenceMatcher(bad)
+    with pytest.raises(LLNError, match='2 positions but 1 scores'):
+        seq.push(1, [1, 2], [0.5])
+
+
+def test_keyframe_map_cleared_or_rewritten_empties_the_window():
+    ks = KeyframeSequence({'length': 5})
+    ks.set_map([1, 2, 3])
+    ks.update(0, {1: 0.5, 99: 0.9})  # 99 is not in the map: ignored
+    assert len(ks.matcher) == 1 and ks.matcher.ring[0][1].tolist() == [0]
+    ks.set_map([1, 2, 3, 4])  # appended (mapping mode): the window stays
+    assert len(ks.matcher) == 1
+    ks.set_map([])
+    assert len(ks.matcher) == 0
+    reason, out = ks.update(1, {})
+    assert reason is None and out == []
+
+
+def test_contrast_enhance_matches_its_definition():
+    d = np.random.default_rng(0).uniform(0, 1, (4, 30))
+    got = contrast_enhance(d, 3)
+    for q in range(4):
+        for r in range(30):
+            w = d[q, max(0, r - 3):r + 4]
+            assert got[q, r] == pytest.approx((d[q, r] - w.mean()) / w.std(), rel=1e-6)
+
+
+def test_sad_front_end_on_nordland():
+    """Real frames: patch normalisation removes the winter/summer brightness change; the same place
+    is closer than a place 200 frames away."""
+    root = shared_data('nordland_trimmed')
+    names = sorted((root / 'summer').iterdir())[2600:2603]
+    summer = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in names]
+    winter = [cv2.imread(str(root / 'winter' / p.name), cv2.IMREAD_GRAYSCALE) for p in names]
+    far = [cv2.imread(str(sorted((root / 'summer').iterdir())[2800]), cv2.IMREAD_GRAYSCALE)]
+    size = sad_size((summer[0].shape[1], summer[0].shape[0]))
+    assert size == (32, 16)
+    ref = sad_descriptors(summer + far, size)
+    brighter = sad_descriptors([np.clip(im.astype(int) + 40, 0, 255).astype(np.uint8) for im in summer], size)
+    assert ref.shape == (4, 512)
+    patches = ref[0].reshape(2, 8, 4, 8)
+    np.testing.assert_allclose(patches.mean(axis=(1, 3)), 0, atol=1e-5)
+    assert sad_difference(brighter[:1], ref[:1])[0, 0] < 0.1  # a brightness offset barely matters
+    d = sad_difference(sad_descriptors(winter, size), ref)
+    assert d.shape == (3, 4) and np.all(d[:, :3].min(axis=1) < d[:, 3])
+
+
+def run_cli(*args):
+    return main([str(a) for a in args])
+
+
+def test_eval_peers_and_sequence_rows_on_rtabmap_loop(tmp_path, capsys):
+    """sad, seqslam and X+seq rows in one lln-eval run on the real loop sequence."""
+    root = shared_data('rtabmap_loop')
+    out = tmp_path / 'out'
+    rc = run_cli('--dataset', f'loop:{root},{root / "samples_GT.bmp"}', '--out', out,
+                 '--methods', 'holistic,lln,sad,seqslam', '--sequence', 5, '--cache', tmp_path / 'cache',
+                 '--timing-images', 1, '--timing-queries', 2, '--timing-repeats', 1, '--no-plots', '--quiet')
+    assert rc == 0, capsys.readouterr().err
+    results = json.loads((out / 'results.json').read_text())
+    rows = results['datasets']['rtabmap_loop']['methods']
+    assert list(rows) == ['holistic', 'lln', 'sad', 'seqslam', 'holistic+seq', 'lln+seq']
+    assert results['parameters']['seqslam']['length'] == 5 and results['parameters']['sequence'] == 5
+    for row, m in rows.items():
+        assert 0.0 <= m['p_at_100r'] <= 1.0 and m['extract_ms'] > 0, (row, m)
+    assert rows['lln+seq']['sequence_ms_per_query'] > 0
+    assert rows['lln+seq']['match_ms_per_pair'] == rows['lln']['match_ms_per_pair']
+    md = (out / 'results.md').read_text()
+    assert '| lln+seq |' in md and '| seqslam |' in md
+
+
+def test_eval_sequence_longer_than_the_map_is_one_line(tmp_path, capsys):
+    root = shared_data('rtabmap_loop')
+    rc = run_cli('--dataset', f'loop:{root},{root / "samples_GT.bmp"}', '--out', tmp_path / 'out',
+                 '--methods', 'sad', '--sequence', 85, '--cache', tmp_path / 'cache', '--no-plots', '--quiet')
+    err = capsys.readouterr().err
+    assert rc == 2 and 'sequence length 85 is longer than its map (84 references)' in err
+    rc = run_cli('--dataset', f'loop:{root},{root / "samples_GT.bmp"}', '--out', tmp_path / 'out',
+                 '--sequence', -1, '--no-plots', '--quiet')
+    assert rc == 2 and '--sequence must be 0' in capsys.readouterr().err
+
+
+def test_candidates_codec_carries_sequence_score_even_with_zero_rows():
+    from lln_ros import msgs
+    rows = [{'keyframe_id': 7, 'score': 3.5, 'holistic_score': 0.8, 'stamp_sec': 1, 'stamp_nanosec': 2,
+             'sequence_score': 2.25}]
+    table = msgs.cloud_to_candidates(msgs.candidates_to_cloud(rows, None, ('sequence_score',)))
+    assert table['sequence_score'].tolist() == [2.25] and table['keyframe_id'].tolist() == [7]
+    empty = msgs.cloud_to_candidates(msgs.candidates_to_cloud([], None, ('sequence_score',)))
+    assert len(empty) == 0 and empty.dtype.names == table.dtype.names
+    assert msgs.candidates_to_cloud([], None, ('sequence_score',)).point_step == 24
