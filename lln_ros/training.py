@@ -1,8 +1,21 @@
 """Training the LLN head with image-level labels only (Xin et al., ICRA 2019, Sec. III-B).
 
+Two objectives, both on tuples of 1 query, its positives and K hard negatives re-mined with the
+current head every epoch:
+
+`triplet` (the paper's):
     embedding  F = normalize( sum_ij w_ij * f_ij )     w = LLN activation, f_ij = L2-normalised features
-    tuple      1 query, 1 positive, K hard negatives, re-mined with the current head every epoch
     loss       sum_k max(0, |F_q - F_p| + m - |F_q - F_nk|)       m = 0.3
+
+`rerank` (ours, the default): train the head on the score it is used for. At test time the head only
+picks the top-n cells, and S = sum w_ij s_ij over the mutual matches of the picked cells reranks the
+holistic top-K. The backbone is frozen, so the mutual matches of ALL cells between a query and each
+of its candidates, their cosines s_ij and offset weights w_ij are fixed tables; the head decides a
+soft top-n membership of every cell, a_i = sigmoid((z_i - z_(n)) / T) (z = logits, z_(n) the n-th
+largest, held constant), and
+    S~(q, c)   = sum_i a_i(q) * a_j(i)(c) * w_ij * s_ij / n         over query cells i, j(i) = partner
+    loss       = -log( sum_pos exp(S~/tau) / sum_{pos, negs} exp(S~/tau) )
+Candidates are what the test sees: the holistic top-K (prefilter_k) plus the positives.
 
 The backbone is frozen, so its feature maps come from a FeatureCache and an epoch costs only the
 head. Training data is a `PairSet`: query and reference images with boolean positive / negative
@@ -30,21 +43,26 @@ from .features import FeatureCache
 from .landmarks import stack_landmarks
 from .lln import LLNHead, save_checkpoint
 from .retrieval import rank_all
+from .similarity import cross_match, offset_mode, offset_weights
 
 default_conf = {
+    'objective': 'rerank',     # rerank (train on the test-time score) | triplet (the paper's loss)
     'epochs': 10,
-    'lr': 1e-4,                # the paper's 1e-6 (TensorFlow, SfM-120k) barely moves this head: see docs
+    'lr': 1e-3,                # the paper's 1e-6 (TensorFlow, SfM-120k) barely moves this head: see docs
     'batch_size': 10,          # tuples per optimiser step
     'negatives': 4,            # hard negatives per tuple (K)
     'margin': 0.3,
     'tuples_per_epoch': 1000,  # queries drawn (without replacement) per epoch; 0 = all
-    'train_size': (352, 352),  # training images are squashed to this (the paper's 352x352)
+    'train_size': 288,         # input height, aspect kept (as at test time); (W, H) squashes (paper: 352x352)
     'neg_margin': 10,          # route data: refs within this many frames of a positive are not negatives
     'seed': 0,
     'head': {},                # LLNHead conf overrides
     'val_top_n': 50,
-    'val_prefilter_k': 30,
+    'val_prefilter_k': 30,     # also the rerank objective's holistic candidates per query
+    'tau': 0.05,               # rerank: softmax temperature on S~ (S~ is in [0, 1])
+    'soft_temp': 1.0,          # rerank: width T of the soft top-n membership, in logit units
 }
+OBJECTIVES = ('rerank', 'triplet')
 
 
 @dataclass
@@ -148,6 +166,43 @@ def embed(head: LLNHead, feats: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.normalize((f * w[:, None]).sum((2, 3)) + 1e-8, dim=1)
 
 
+def soft_selection(logits: torch.Tensor, n: int, temp: float) -> torch.Tensor:
+    """logits (B, N) -> (B, N) soft top-n membership in (0, 1): 1/2 at the n-th largest logit."""
+    kth = torch.topk(logits, min(n, logits.shape[1]), dim=1).values[:, -1:].detach()
+    return torch.sigmoid((logits - kth) / temp)
+
+
+def soft_similarity(a_q: torch.Tensor, a_c: torch.Tensor, partner: torch.Tensor, value: torch.Tensor,
+                    n: int) -> torch.Tensor:
+    """S~ of B queries against C candidates each.
+
+    a_q (B, N), a_c (B, C, N) soft memberships; partner (B, C, N) long: the mutual partner of query
+    cell i in candidate c (any index where there is none); value (B, C, N): w_ij * s_ij (0 where none).
+    Returns (B, C)."""
+    return (a_q[:, None] * torch.gather(a_c, 2, partner) * value).sum(2) / n
+
+
+def match_tables(fq: np.ndarray, fc: np.ndarray, cells: np.ndarray, scale: float = 1.0):
+    """Mutual matches of every cell of one query against C candidates, with their offset weights.
+
+    fq (N, D), fc (C, N, D) L2-normalised; cells (N, 2) (col, row). Returns partner (C, N) int
+    (0 where query cell i has no mutual partner) and value (C, N) float32 = w_ij * s_ij (0 there)."""
+    n = len(fq)
+    match, sims = cross_match(fq, fc, np.ones(n, bool), np.ones(fc.shape[:2], bool))
+    matched = match >= 0
+    offsets = cells[None] - cells[np.maximum(match, 0)]
+    weight = np.where(matched, offset_weights(offsets, offset_mode(offsets, matched, sims), scale), 0.0)
+    return np.maximum(match, 0), (weight * sims).astype(np.float32)
+
+
+def rerank_loss(scores: torch.Tensor, n_pos: torch.Tensor, valid: torch.Tensor, tau: float) -> torch.Tensor:
+    """scores (B, C) S~ with the positives first (n_pos (B,) of them); valid (B, C) bool.
+    Mean over queries of -log(softmax mass of the positives)."""
+    s = scores.masked_fill(~valid, -1e4) / tau
+    pos = (torch.arange(s.shape[1])[None] < n_pos[:, None]) & valid
+    return (torch.logsumexp(s, 1) - torch.logsumexp(s.masked_fill(~pos, -1e4), 1)).mean()
+
+
 def triplet_loss(fq: torch.Tensor, fp: torch.Tensor, fn: torch.Tensor, margin: float) -> torch.Tensor:
     """fq, fp (B, D); fn (B, K, D). Sum over negatives of the hinge, mean over tuples."""
     d_pos = (fq - fp).norm(dim=1)                                        # (B,)
@@ -171,6 +226,8 @@ class Trainer:
         self.out = Path(out_dir)
         self.meta = meta or {}
         self.cache = FeatureCache(cache_dir, extractor)
+        if conf['objective'] not in OBJECTIVES:
+            raise DatasetError(f"unknown objective {conf['objective']!r}; choose one of {OBJECTIVES}")
         self.queries = pairs.usable()
         if not len(self.queries):
             raise DatasetError(f'{pairs.name}: no query has both a positive and a negative')
@@ -202,12 +259,33 @@ class Trainer:
         self.head.eval()
         return torch.cat([embed(self.head, feats[i:i + batch].float()) for i in range(0, len(feats), batch)])
 
+    # ------------------------------------------------------------------ loop
+
     def mine(self) -> np.ndarray:
+        """This epoch's tuples under the current head (see mine_triplets / mine_rerank)."""
+        n = self.conf['tuples_per_epoch'] or len(self.queries)
+        chosen = self.rng.permutation(self.queries)[:n]
+        return self.mine_rerank(chosen) if self.conf['objective'] == 'rerank' else self.mine_triplets(chosen)
+
+    def train_epoch(self, tuples: np.ndarray) -> float:
+        step = self.rerank_step if self.conf['objective'] == 'rerank' else self.triplet_step
+        self.head.train()
+        losses = []
+        bs = self.conf['batch_size']
+        for start in tqdm(range(0, len(tuples), bs), desc=f'epoch {self.epoch + 1}', leave=False, unit='batch'):
+            loss = step(tuples[start:start + bs])
+            self.optimizer.zero_grad()
+            loss.backward()
+            self.optimizer.step()
+            losses.append(loss.item())
+        return float(np.mean(losses))
+
+    # ------------------------------------------------------------------ triplet objective
+
+    def mine_triplets(self, chosen: np.ndarray) -> np.ndarray:
         """(T, 2 + K) tuples of indices: a query, its most similar positive ref,
         and its K most similar negatives, under the current head."""
         k = self.conf['negatives']
-        n = self.conf['tuples_per_epoch'] or len(self.queries)
-        chosen = self.rng.permutation(self.queries)[:n]
         eq = self.embed_all(self.fq[chosen])
         er = self.embed_all(self.fr)
         sims = (eq @ er.T).numpy()                                                   # (T, R)
@@ -219,23 +297,94 @@ class Trainer:
         negs[short] = np.broadcast_to(negs[:, :1], negs.shape)[short]
         return np.concatenate([chosen[:, None], pos[:, None], negs], axis=1)
 
-    # ------------------------------------------------------------------ loop
+    def triplet_step(self, t: np.ndarray) -> torch.Tensor:
+        k = self.conf['negatives']
+        feats = torch.cat([self.fq[t[:, 0]], self.fr[t[:, 1]], self.fr[t[:, 2:].ravel()]]).float()
+        e = embed(self.head, feats)
+        b = len(t)
+        return triplet_loss(e[:b], e[b:2 * b], e[2 * b:].view(b, k, -1), self.conf['margin'])
 
-    def train_epoch(self, tuples: np.ndarray) -> float:
-        self.head.train()
-        bs, k = self.conf['batch_size'], self.conf['negatives']
-        losses = []
-        for start in tqdm(range(0, len(tuples), bs), desc=f'epoch {self.epoch + 1}', leave=False, unit='batch'):
-            t = tuples[start:start + bs]
-            feats = torch.cat([self.fq[t[:, 0]], self.fr[t[:, 1]], self.fr[t[:, 2:].ravel()]]).float()
-            e = embed(self.head, feats)
-            b = len(t)
-            loss = triplet_loss(e[:b], e[b:2 * b], e[2 * b:].view(b, k, -1), self.conf['margin'])
-            self.optimizer.zero_grad()
-            loss.backward()
-            self.optimizer.step()
-            losses.append(loss.item())
-        return float(np.mean(losses))
+    # ------------------------------------------------------------------ rerank objective
+
+    def prepare_rerank(self) -> None:
+        """Candidates and match tables of every usable query, once (they do not depend on the head):
+        cand (U, C) ref indices, positives first, -1 padding; n_pos (U,); partner, value (U, C, N)."""
+        if self.fq.shape[1:] != self.fr.shape[1:]:
+            raise DatasetError(f'rerank training needs one feature grid; queries have {tuple(self.fq.shape[2:])}, '
+                               f'refs {tuple(self.fr.shape[2:])}: use a fixed --train-size WxH')
+        d, h, w = self.fq.shape[1:]
+
+        def local(f):  # (M, D, h, w) -> (M, N, D) L2-normalised cells
+            x = f.float().numpy().reshape(len(f), d, h * w).transpose(0, 2, 1)
+            return x / np.maximum(np.linalg.norm(x, axis=2, keepdims=True), 1e-12)
+
+        def holistic(f):  # the extractor's global descriptor: max pool, L2-normalised
+            g = f.float().amax((2, 3)).numpy()
+            return g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-12)
+
+        lq, lr = local(self.fq[self.queries]), local(self.fr)
+        hol = holistic(self.fq[self.queries]) @ holistic(self.fr).T                    # (U, R)
+        cells = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 2)
+        k = int(self.conf['val_prefilter_k'])
+        rows = []
+        for u, q in enumerate(tqdm(self.queries, desc='match tables', leave=False, unit='query')):
+            top = np.argsort(-hol[u], kind='stable')[:k]
+            cand = np.concatenate([np.flatnonzero(self.pairs.positive[q]), top[self.pairs.negative[q, top]]])
+            rows.append((cand, int(self.pairs.positive[q].sum())) + match_tables(lq[u], lr[cand], cells))
+        c = max(len(r[0]) for r in rows)
+        u, n = len(rows), h * w
+        self.rr_cand = np.full((u, c), -1, np.int64)
+        self.rr_partner = np.zeros((u, c, n), np.int16)
+        self.rr_value = np.zeros((u, c, n), np.float32)
+        self.rr_npos = np.array([r[1] for r in rows])
+        for i, (cand, _, partner, value) in enumerate(rows):
+            self.rr_cand[i, :len(cand)], self.rr_partner[i, :len(cand)], self.rr_value[i, :len(cand)] = \
+                cand, partner, value
+        self.rr_row = {int(q): i for i, q in enumerate(self.queries)}
+
+    def soft_scores(self, rows: np.ndarray, cols: np.ndarray) -> torch.Tensor:
+        """S~ (B, C') of query rows (B,) against their candidate columns cols (B, C') (-1 = none)."""
+        n, temp = int(self.conf['val_top_n']), float(self.conf['soft_temp'])
+        cand = np.where(cols >= 0, np.take_along_axis(self.rr_cand[rows], np.maximum(cols, 0), 1), 0)
+        refs, inv = np.unique(cand, return_inverse=True)
+        a_q = soft_selection(self.head.logits(self.fq[self.queries[rows]].float()).flatten(1), n, temp)
+        a_r = soft_selection(self.head.logits(self.fr[refs].float()).flatten(1), n, temp)
+        a_c = a_r[torch.from_numpy(inv.reshape(cand.shape))]                          # (B, C', N)
+        pick = (rows[:, None], np.maximum(cols, 0))
+        partner = torch.from_numpy(self.rr_partner[pick].astype(np.int64))
+        return soft_similarity(a_q, a_c, partner, torch.from_numpy(self.rr_value[pick]), n)
+
+    @torch.no_grad()
+    def mine_rerank(self, chosen: np.ndarray, batch: int = 64) -> np.ndarray:
+        """(T, 1 + P + K) rows: the query's table row, then candidate columns: its positives and the
+        K negatives with the highest S~ under the current head (-1 pads)."""
+        self.head.eval()
+        k, p = self.conf['negatives'], int(self.rr_npos.max())
+        rows = np.array([self.rr_row[int(q)] for q in chosen])
+        out = np.full((len(rows), 1 + p + k), -1, np.int64)
+        out[:, 0] = rows
+        cols_all = np.arange(self.rr_cand.shape[1])
+        for start in range(0, len(rows), batch):
+            r = rows[start:start + batch]
+            cols = np.where(self.rr_cand[r] >= 0, cols_all[None], -1)
+            s = self.soft_scores(r, cols).numpy()
+            for j, row in enumerate(r):
+                npos, valid = self.rr_npos[row], cols[j] >= 0
+                neg = np.flatnonzero(valid & (cols_all >= npos))
+                hard = neg[np.argsort(-s[j, neg], kind='stable')[:k]]
+                out[start + j, 1:1 + npos] = cols_all[:npos]
+                out[start + j, 1 + p:1 + p + len(hard)] = hard
+        return out
+
+    def rerank_step(self, t: np.ndarray) -> torch.Tensor:
+        rows, cols = t[:, 0], t[:, 1:]
+        p = int(self.rr_npos.max())
+        # positives first, then negatives: the loss needs the positives packed at the front
+        order = np.argsort(cols < 0, axis=1, kind='stable')
+        cols = np.take_along_axis(cols, order, 1)
+        scores = self.soft_scores(rows, cols)
+        n_pos = torch.from_numpy(np.minimum(self.rr_npos[rows], p))
+        return rerank_loss(scores, n_pos, torch.from_numpy(cols >= 0), float(self.conf['tau']))
 
     @torch.no_grad()
     def validate(self) -> float:
@@ -256,6 +405,8 @@ class Trainer:
         if resume and (self.out / 'last.pt').is_file():
             self._restore(self.out / 'last.pt')
         self.load_features()
+        if self.conf['objective'] == 'rerank':
+            self.prepare_rerank()
         if self.epoch == 0 and self.val is not None:
             untrained = self.validate()
             self.history.append({'epoch': 0, 'val_p_at_100r': untrained})

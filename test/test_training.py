@@ -82,12 +82,80 @@ def test_loss_and_embedding():
     assert loss.item() == pytest.approx((2 ** 0.5 + 0.3) + 0.3, rel=1e-5)
 
 
-def test_training_is_deterministic_resumable_and_ships_metadata(traverses, tmp_path):
+def rerank_trainer(traverses, tmp_path):
+    ds = datasets.aligned(traverses / 'ref', traverses / 'query', tol=0)
+    t = training.Trainer(small_extractor(), training.pairs_from_dataset(ds, neg_margin=1), ds,
+                         conf(val_prefilter_k=5, val_top_n=6), cache_dir=str(tmp_path / 'cache'), out_dir=str(tmp_path))
+    t.load_features()
+    t.prepare_rerank()
+    return t
+
+
+def test_match_tables_reproduce_the_similarity_of_all_cells(traverses, tmp_path):
+    """The rerank objective's fixed tables hold exactly the paper's S (method `all`): summed over
+    query cells they give match_batch's score for every candidate."""
+    from lln_ros.landmarks import stack_landmarks
+    from lln_ros.similarity import match_batch
+    t = rerank_trainer(traverses, tmp_path)
+    ex = small_extractor()
+    ex.conf = {**ex.conf, 'method': 'all'}
+    q, refs = t.fq[3].numpy(), t.fr.numpy()
+    d, h, w = q.shape
+    local = lambda f: f.reshape(d, h * w).T / np.linalg.norm(f.reshape(d, h * w).T, axis=1, keepdims=True)
+    cells = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 2)
+    partner, value = training.match_tables(local(q), np.stack([local(f) for f in refs]), cells)
+    assert partner.shape == value.shape == (10, h * w)
+    want = match_batch(ex.from_features(q, (128, 96)),
+                       stack_landmarks([ex.from_features(f, (128, 96)) for f in refs])).scores
+    np.testing.assert_allclose(value.sum(1), want, rtol=2e-3)
+    assert value.sum(1).argmax() == 3  # the query's own place wins
+
+
+def test_rerank_scores_use_each_querys_own_candidates(traverses, tmp_path):
+    t = rerank_trainer(traverses, tmp_path)
+    rows = np.array([4, 1, 7])
+    cols = np.array([[0, 1, 2], [2, 0, -1], [1, 3, 0]])
+    with torch.no_grad():
+        got = t.soft_scores(rows, cols).numpy()
+        n, temp = 6, 1.0
+        for b, (row, cs) in enumerate(zip(rows, cols)):
+            for j, c in enumerate(cs):
+                if c < 0:
+                    continue
+                ref = t.rr_cand[row, c]
+                a_q = training.soft_selection(t.head.logits(t.fq[t.queries[row]][None].float()).flatten(1), n, temp)
+                a_c = training.soft_selection(t.head.logits(t.fr[ref][None].float()).flatten(1), n, temp)
+                p = torch.from_numpy(t.rr_partner[row, c].astype(np.int64))[None, None]
+                v = torch.from_numpy(t.rr_value[row, c])[None, None]
+                want = training.soft_similarity(a_q, a_c[:, None], p, v, n)[0, 0].item()
+                # (batched and single convolutions differ in the last bits)
+                assert got[b, j] == pytest.approx(want, rel=1e-4), (row, c)
+    # positives first in every candidate list
+    for row in range(len(t.queries)):
+        q = t.queries[row]
+        assert t.pairs.positive[q, t.rr_cand[row, :t.rr_npos[row]]].all()
+        assert not t.pairs.positive[q, t.rr_cand[row, t.rr_npos[row]:][t.rr_cand[row, t.rr_npos[row]:] >= 0]].any()
+
+
+def test_rerank_loss_prefers_positives():
+    scores = torch.tensor([[0.9, 0.1, 0.2], [0.1, 0.9, 0.0]])
+    n_pos, valid = torch.tensor([1, 1]), torch.ones(2, 3, dtype=torch.bool)
+    good = training.rerank_loss(scores, n_pos, valid, 0.05).item()
+    assert good < training.rerank_loss(scores.flip(1), n_pos, valid, 0.05).item()
+    # padding never counts: masking a candidate out equals leaving it away
+    valid[0, 2] = False
+    masked = training.rerank_loss(scores[:1], n_pos[:1], valid[:1], 0.05)
+    assert masked.item() == pytest.approx(training.rerank_loss(scores[:1, :2], n_pos[:1], valid[:1, :2], 0.05).item())
+
+
+@pytest.mark.parametrize('objective', ['rerank', 'triplet'])
+def test_training_is_deterministic_resumable_and_ships_metadata(traverses, tmp_path, objective):
     ds = datasets.aligned(traverses / 'ref', traverses / 'query', tol=0)
     pairs = training.pairs_from_dataset(ds, neg_margin=1)
 
     def run(out, epochs, resume=True):
-        t = training.Trainer(small_extractor(), pairs, ds, conf(epochs=epochs), cache_dir=str(tmp_path / 'cache'),
+        t = training.Trainer(small_extractor(), pairs, ds, conf(epochs=epochs, objective=objective),
+                             cache_dir=str(tmp_path / 'cache'),
                              out_dir=str(out), meta={'command': 'test'})
         return t.fit(resume=resume), t
 
@@ -110,8 +178,8 @@ def test_training_is_deterministic_resumable_and_ships_metadata(traverses, tmp_p
     assert meta['trained'] and meta['command'] == 'test' and meta['train_data'] == pairs.name
     assert 0 <= meta['val_p_at_100r'] <= 1
     with pytest.raises(DatasetError, match='another training configuration'):
-        training.Trainer(small_extractor(), pairs, ds, conf(epochs=3, lr=0.5), cache_dir=str(tmp_path / 'cache'),
-                         out_dir=str(tmp_path / 'c')).fit()
+        training.Trainer(small_extractor(), pairs, ds, conf(epochs=3, lr=0.5, objective=objective),
+                         cache_dir=str(tmp_path / 'cache'), out_dir=str(tmp_path / 'c')).fit()
 
 
 def test_cli_rejects_bad_data_before_work(tmp_path, capsys):

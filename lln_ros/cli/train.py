@@ -1,7 +1,11 @@
-"""lln-train: train the LLN head on cached backbone features (the paper's recipe).
+"""lln-train: train the LLN head on cached backbone features.
 
     lln-train --data SPEC [--data SPEC ...] [--range START:END] [--val SPEC --val-range START:END]
-              --out DIR [--epochs 10] [--lr 1e-4] [--tuples-per-epoch 1000] [--seed 0]
+              --out DIR [--objective rerank|triplet] [--epochs 10] [--lr 1e-3] [--seed 0]
+
+--objective rerank (default) trains on a differentiable form of the test-time reranking score;
+triplet is the paper's loss on the LLN-weighted embedding (the paper's recipe:
+--objective triplet --train-size 352x352 --lr 1e-4). See lln_ros/training.py.
 
 SPEC: any lln-eval dataset (aligned:REF,QUERY[,TOL], vprbench:DIR, loop:DIR,GT, gardenspoint:DIR),
 or places:DIR (DIR/<place>/*.jpg), or sfm:PICKLE,IMS_ROOT (Retrieval-SfM-120k layout). The best
@@ -22,15 +26,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--val', metavar='SPEC', help='validation dataset (an lln-eval SPEC)')
     p.add_argument('--val-range', help='START:END fractions of an aligned --val')
     p.add_argument('--out', required=True, help='output folder (best.pt, last.pt, history.json)')
+    p.add_argument('--objective', choices=('rerank', 'triplet'), default='rerank',
+                   help='rerank: the test-time score (default) | triplet: the paper\'s embedding loss')
     p.add_argument('--epochs', type=int, default=10)
-    p.add_argument('--lr', type=float, default=1e-4)
+    p.add_argument('--lr', type=float, default=1e-3)
     p.add_argument('--batch-size', type=int, default=10, help='tuples per step (paper: 10)')
     p.add_argument('--negatives', type=int, default=4, help='hard negatives per tuple (paper: 4)')
-    p.add_argument('--margin', type=float, default=0.3)
+    p.add_argument('--margin', type=float, default=0.3, help='triplet margin')
+    p.add_argument('--tau', type=float, default=0.05, help='rerank: softmax temperature on the score')
+    p.add_argument('--soft-temp', type=float, default=1.0, help='rerank: width of the soft top-n, in logits')
+    p.add_argument('--top-n', type=int, default=50, help='landmarks per image (validation, and rerank training)')
     p.add_argument('--tuples-per-epoch', type=int, default=1000, help='0 = every usable query')
-    p.add_argument('--train-size', default='352x352',
-                   help="WxH training images are squashed to (the paper's 352x352), or a height H "
-                        '(aspect kept, as at test time)')
+    p.add_argument('--train-size', default='288',
+                   help="training input height H (aspect kept, as at test time; default 288), or WxH "
+                        "to squash (the paper's 352x352)")
     p.add_argument('--neg-margin', type=int, default=10, help='route data: frames beside a match are not negatives')
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--backbone', default='efficientnet_lite0')
@@ -58,7 +67,8 @@ def run(args) -> dict:
     from ..extractor import Extractor
     size = args.train_size.lower()
     train_size = tuple(int(v) for v in size.split('x')) if 'x' in size else int(size)
-    conf = {'epochs': args.epochs, 'lr': args.lr, 'batch_size': args.batch_size, 'negatives': args.negatives,
+    conf = {'objective': args.objective, 'tau': args.tau, 'soft_temp': args.soft_temp,
+            'val_top_n': args.top_n, 'epochs': args.epochs, 'lr': args.lr, 'batch_size': args.batch_size, 'negatives': args.negatives,
             'margin': args.margin, 'tuples_per_epoch': args.tuples_per_epoch, 'train_size': train_size,
             'neg_margin': args.neg_margin, 'seed': args.seed}
     # every dataset is read and checked before any feature is computed
