@@ -162,3 +162,13 @@ def test_lln_ranks_by_head_logits_not_by_index(extractor, photo):
     want = np.argsort(-logits.ravel(), kind='stable')[:50]
     np.testing.assert_array_equal(s.cells[:, 1] * s.grid[1] + s.cells[:, 0], want)
     np.testing.assert_allclose(s.scores, np.maximum(logits.ravel()[want], 0), rtol=1e-5)
+
+
+def test_default_head_is_the_shipped_trained_one(extractor):
+    """The package ships a head trained on the first 60% of the Nordland route (validated on
+    60-70%), never on the 70-100% test split, with the command that reproduces it."""
+    info = extractor.model_info
+    assert info['head_trained'] is True and info['weights'].endswith('lln_efficientnet_lite0_stage6.pt')
+    meta = extractor.head_meta
+    assert meta['train_conf']['objective'] == 'rerank'
+    assert '--range 0:0.6' in meta['command'] and '--val-range 0.6:0.7' in meta['command']
