@@ -1,8 +1,10 @@
 # One-command entry points. Setup is idempotent (scripts/setup.sh keeps a stamp in .venv).
 VENV ?= .venv
 PY := $(VENV)/bin/python
+DATA ?= ../shared/data
+NORDLAND := aligned:$(DATA)/nordland_trimmed/summer,$(DATA)/nordland_trimmed/winter,1
 
-.PHONY: setup test main bench bench-map colcon clean
+.PHONY: setup test main results train bench bench-map colcon clean
 
 setup:
 	bash scripts/setup.sh
@@ -13,6 +15,16 @@ test: setup
 # the main job: a map from one traverse, queried with another through the ROS 2 nodes
 main: setup
 	bash scripts/main_job.sh $(ARGS)
+
+# docs/results.md and docs/results/*.png from ../shared/data (~5 min with a warm feature cache)
+results: setup
+	bash scripts/results.sh $(ARGS)
+
+# the shipped head, lln_ros/weights/lln_efficientnet_lite0_stage6.pt, from ../shared/data (~5 min + features)
+train: setup
+	$(VENV)/bin/lln-train --data $(NORDLAND) --range 0:0.6 --val $(NORDLAND) --val-range 0.6:0.7 \
+	  --out out/train --epochs 6 --tuples-per-epoch 0 $(ARGS)
+	cp out/train/best.pt lln_ros/weights/lln_efficientnet_lite0_stage6.pt
 
 bench: setup
 	$(PY) bench/bench_core.py
