@@ -917,11 +917,12 @@ def compare(online: dict, off_ranked: np.ndarray, off_scores: np.ndarray, off_su
         if n_tie:
             parts.append(f'{n_tie} near-ties of S decided by rounding')
         notes.append(f'{len(differ)} of {q} queries have another top-1 online than offline (' + '; '.join(parts) +
-                     '). Not transport: the nodes and the evaluator round to float16 in different places '
-                     '(offline: the backbone feature cache, before the head and the descriptors; online: '
-                     "the map's stored landmark descriptors), and S is not continuous in the descriptors "
-                     '(mutual nearest neighbours, offset mode), so where neighbouring cells are almost '
-                     'identical (e.g. tiny upsampled frames) a 1e-4 difference flips a pair')
+                     '). Not transport: both paths round features and descriptors to float16 at the same '
+                     'places, but the backbone itself runs at another batch size online (1 frame) than in '
+                     'the offline feature cache (a batch), and its kernels then differ in the last bits; a '
+                     'value near a float16 rounding boundary can round the other way, and S is not '
+                     'continuous in the descriptors (mutual nearest neighbours, offset mode), so where '
+                     'neighbouring cells are almost identical (e.g. tiny upsampled frames) that flips a pair')
     if len(rel_all) and jumps:
         notes.append(f'Over all {len(rel_all)} query-candidate pairs scored on both sides, {jumps} '
                      f'({100 * jumps / len(rel_all):.2f}%) differ in S by more than {100 * JUMP:g}%; the '
