@@ -252,7 +252,9 @@ def _gone(pid: int) -> bool:
 
 
 def test_ctrl_c_stops_every_node(tiny_dataset, tmp_path):
-    proc = subprocess.Popen([*DEMO, '--dataset', tiny_dataset, '--out', str(tmp_path / 'out'), '--no-offline'],
+    # played at 1 Hz, so the run lasts long enough for the interrupt to land mid-run on any machine
+    proc = subprocess.Popen([*DEMO, '--dataset', tiny_dataset, '--out', str(tmp_path / 'out'), '--no-offline',
+                             '--rate', '1'],
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 120

@@ -54,12 +54,19 @@ def play_rtabmap(colcon_install, tmp, matcher_params: list) -> dict:
             probe.spin_until(lambda: probe.node.count_publishers('candidates') > 0
                              and probe.node.count_subscribers('/camera/image_raw') > 0
                              and probe.node.count_subscribers('landmarks') > 0, 120, 'both nodes up')
+            # the graph shows the matcher's subscription before the extractor's publisher has matched
+            # it; a frame published in between would be lost, so let endpoint matching settle
+            probe.spin_for(2.0)
             # played by a separate process, as `ros2 bag play` would be
             play = subprocess.Popen([str(lib / 'lln-bag'), 'play', str(tmp / 'rtabmap_bag'), '--wait-subscribers',
                                      '1', '--wait-timeout', '30'], env=env, stdout=subprocess.PIPE,
                                     stderr=subprocess.STDOUT, text=True)
-            probe.spin_until(lambda: len(got) >= len(frames) or play.poll() not in (None, 0), 120,
-                             'an answer for every frame')
+            try:
+                probe.spin_until(lambda: len(got) >= len(frames) or play.poll() not in (None, 0), 120,
+                                 'an answer for every frame')
+            except TimeoutError as e:
+                raise TimeoutError(f'{e}: {len(got)} answers of {len(frames)}; matcher log:\n{matcher.log()}'
+                                   f'\nextractor log:\n{extractor.log()}') from None
             played = play.communicate(timeout=30)[0]
             assert play.returncode == 0, played
             probe.spin_for(1.0)
