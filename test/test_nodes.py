@@ -663,7 +663,7 @@ def test_matcher_kill9_in_mapping_mode_loses_no_answered_keyframe(rig, places, t
     restarted = start_matcher(rig, map_path, places, *args)
     info = rig.info()
     assert info['keyframes'] == len(stamps) and info['last_id'] == len(stamps)
-    assert restarted.stop() == 0
+    assert restarted.stop() == 0, restarted.log()
 
 
 # ============================================================================================
