@@ -40,7 +40,7 @@ from . import metrics
 from .datasets import list_images
 from .errors import DatasetError
 from .features import FeatureCache
-from .landmarks import stack_landmarks
+from .landmarks import l2_normalize, stack_landmarks
 from .lln import LLNHead, save_checkpoint
 from .retrieval import rank_all
 from .similarity import cross_match, offset_mode, offset_weights
@@ -316,11 +316,10 @@ class Trainer:
 
         def local(f):  # (M, D, h, w) -> (M, N, D) L2-normalised cells
             x = f.float().numpy().reshape(len(f), d, h * w).transpose(0, 2, 1)
-            return x / np.maximum(np.linalg.norm(x, axis=2, keepdims=True), 1e-12)
+            return l2_normalize(x)
 
         def holistic(f):  # the extractor's global descriptor: max pool, L2-normalised
-            g = f.float().amax((2, 3)).numpy()
-            return g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-12)
+            return l2_normalize(f.float().amax((2, 3)).numpy())
 
         lq, lr = local(self.fq[self.queries]), local(self.fr)
         hol = holistic(self.fq[self.queries]) @ holistic(self.fr).T                    # (U, R)
@@ -356,8 +355,8 @@ class Trainer:
 
     @torch.no_grad()
     def mine_rerank(self, chosen: np.ndarray, batch: int = 64) -> np.ndarray:
-        """(T, 1 + P + K) rows: the query's table row, then candidate columns: its positives and the
-        K negatives with the highest S~ under the current head (-1 pads)."""
+        """(T, 1 + P + K) rows: the query's table row, then candidate columns: its positives, then the
+        K negatives with the highest S~ under the current head, then -1 pads (P = most positives)."""
         self.head.eval()
         k, p = self.conf['negatives'], int(self.rr_npos.max())
         rows = np.array([self.rr_row[int(q)] for q in chosen])
@@ -373,17 +372,13 @@ class Trainer:
                 neg = np.flatnonzero(valid & (cols_all >= npos))
                 hard = neg[np.argsort(-s[j, neg], kind='stable')[:k]]
                 out[start + j, 1:1 + npos] = cols_all[:npos]
-                out[start + j, 1 + p:1 + p + len(hard)] = hard
+                out[start + j, 1 + npos:1 + npos + len(hard)] = hard
         return out
 
     def rerank_step(self, t: np.ndarray) -> torch.Tensor:
-        rows, cols = t[:, 0], t[:, 1:]
-        p = int(self.rr_npos.max())
-        # positives first, then negatives: the loss needs the positives packed at the front
-        order = np.argsort(cols < 0, axis=1, kind='stable')
-        cols = np.take_along_axis(cols, order, 1)
+        rows, cols = t[:, 0], t[:, 1:]  # mine_rerank packs the positives first, as the loss needs
         scores = self.soft_scores(rows, cols)
-        n_pos = torch.from_numpy(np.minimum(self.rr_npos[rows], p))
+        n_pos = torch.from_numpy(self.rr_npos[rows])
         return rerank_loss(scores, n_pos, torch.from_numpy(cols >= 0), float(self.conf['tau']))
 
     @torch.no_grad()
