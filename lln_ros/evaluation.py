@@ -20,6 +20,7 @@ only in which cells become landmarks). Rows:
 
 Every local method reranks the SAME holistic top-K (prefilter_k, the paper's 30) by the landmark
 similarity S (retrieval.rank_all); loop datasets restrict answers with `allowed=ds.candidates`.
+prefilter_k 0 scores every reference (exhaustive): no holistic ceiling, K = R.
 Per method the metrics.summary numbers are reported, plus
 
     extract_ms         median per image of the full extraction (resize, backbone, head, selection;
@@ -70,7 +71,7 @@ REPORT_KEYS = METRIC_KEYS + ('extract_ms', 'match_ms_per_pair', 'n')
 default_conf = {
     'methods': METHODS,
     'top_n': 50,
-    'prefilter_k': 30,      # holistic candidates every local method reranks (the paper's 30)
+    'prefilter_k': 30,      # holistic candidates every local method reranks (the paper's 30; 0 = all)
     'scale': 1.0,           # offset-weight width in grid cells (similarity)
     'sequence': 0,          # L > 0: an `X+seq` row per holistic/local row (sequence length L)
     'seqslam_length': 10,   # seqslam's L when 'sequence' is 0
@@ -296,7 +297,8 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
     heads = heads or load_heads(extractor, None)
     log = log or (lambda msg: None)
     methods = parse_methods(conf['methods'])
-    top_n, k, scale = int(conf['top_n']), int(conf['prefilter_k']), float(conf['scale'])
+    top_n, scale = int(conf['top_n']), float(conf['scale'])
+    k = int(conf['prefilter_k']) or len(ds.ref_paths)  # 0: every reference
     height = int(extractor.conf['input_height'])
     space = extractor.descriptor_space
     seq_len = int(conf['sequence'])
@@ -322,7 +324,7 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
     hr_batch = stack_landmarks(hr)
     full, full_scores = rank_all(hq, hr_batch, len(hr), allowed=ds.candidates, rerank_local=False)
     prefilter = full[:, :min(k, len(hr))]
-    kmax = min(len(hr), max(2 * k, 50))
+    kmax = min(len(hr), max(2 * k, 50) if int(conf['prefilter_k']) else 100)
     curve = [metrics.recall_at_k(full, ds.gt, kk) for kk in range(1, kmax + 1)]
 
     timing_idx = np.unique(np.linspace(0, len(ds.query_paths) - 1,
@@ -535,8 +537,9 @@ def markdown(results: dict) -> str:
         lines += ['Regenerate with:', '', '```bash', p['command'], '```', '']
     lines += ['Percentages of the queries that have a true match; P@100%R = precision when every query is '
               'answered (= top-1 accuracy, the paper\'s headline), R@100%P = largest recall at precision 1, '
-              'AUC-PR = area under the precision-recall curve of a threshold on the top-1 score. Every local '
-              'method reranks the same holistic top-K.', '']
+              'AUC-PR = area under the precision-recall curve of a threshold on the top-1 score. ' +
+              ('Every local method reranks the same holistic top-K.' if p.get('prefilter_k', 30) else
+               'Every local method scores every reference (prefilter_k 0: exhaustive, no holistic prefilter).'), '']
     for name, d in results['datasets'].items():
         lines += [f'## {name}', '']
         facts = [f'{d["queries"]} queries ({d.get("queries_with_match", "?")} with a true match), '
@@ -564,7 +567,10 @@ def markdown(results: dict) -> str:
                          f'{_ms(m["extract_ms"])} | {_ms(m["match_ms_per_pair"])} |')
         curve = d.get('recall_at_k_holistic') or []
         k = p.get('prefilter_k')
-        if curve and k:
+        if curve and k == 0:
+            lines += ['', 'Exhaustive (prefilter_k 0): every reference is scored, so the holistic ranking '
+                          f'caps nothing (holistic recall@30 = {_pct(curve[min(30, len(curve)) - 1])}% for comparison).']
+        elif curve and k:
             at = curve[min(k, len(curve)) - 1]
             lines += ['', f'Holistic recall@{min(k, len(curve))} = {_pct(at)}%: the ceiling of every reranking '
                           'method (a true match outside the holistic top-K cannot be recovered).']
@@ -666,11 +672,12 @@ def plot_recall_at_k(run: DatasetRun, gt: np.ndarray, prefilter_k: int, path) ->
     for row, (ranked, _) in run.rankings.items():
         if row == 'holistic':
             continue
-        kk = np.arange(1, ranked.shape[1] + 1)
+        kk = np.arange(1, min(ranked.shape[1], len(run.recall_curve)) + 1)
         ax.plot(kk, [metrics.recall_at_k(ranked, gt, int(k)) for k in kk], '--', lw=1, color=colours[row],
                 label=f'{row} (reranked top-{ranked.shape[1]})')
-    ax.axvline(prefilter_k, color='k', lw=0.8, ls=':')
-    ax.text(prefilter_k, 0.02, f' K = {prefilter_k}', fontsize=8)
+    if prefilter_k:  # 0: exhaustive, no cut-off to mark
+        ax.axvline(prefilter_k, color='k', lw=0.8, ls=':')
+        ax.text(prefilter_k, 0.02, f' K = {prefilter_k}', fontsize=8)
     ax.set_ylim(0, 1.02)
     ax.set_xlabel('K (candidates)')
     ax.set_ylabel('recall@K')

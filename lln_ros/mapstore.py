@@ -347,20 +347,36 @@ class MapStore:
 
     @staticmethod
     def _query_args(lset: LandmarkSet, prefilter_k, k, exclude_recent, method_rerank) -> tuple[int, int, int]:
-        if int(prefilter_k) < 1 or int(k) < 1 or int(exclude_recent) < 0:
-            raise ValueError(f'need prefilter_k >= 1, k >= 1, exclude_recent >= 0; got {prefilter_k}, {k}, '
-                             f'{exclude_recent}')
+        if int(prefilter_k) < 0 or int(k) < 1 or int(exclude_recent) < 0:
+            raise ValueError(f'need prefilter_k >= 0 (0 = every keyframe), k >= 1, exclude_recent >= 0; '
+                             f'got {prefilter_k}, {k}, {exclude_recent}')
         lset.validate()
         if method_rerank and len(lset) == 0:
             raise DescriptorError('query landmark set has no landmarks; cannot rerank')
         return int(prefilter_k), int(k), int(exclude_recent)
 
-    def _answer(self, lset: LandmarkSet, ids: np.ndarray, hol: np.ndarray, sets: dict, k: int,
-                min_score: float | None, method_rerank: bool, scale: float) -> list[MapCandidate]:
-        """Rerank the prefiltered keyframes (ids (K,), holistic cosines (K,), their sets by id)."""
+    def _every_keyframe(self, lset: LandmarkSet, exclude_recent: int) -> tuple[np.ndarray, np.ndarray, dict]:
+        """The exhaustive prefilter (prefilter_k = 0): every allowed keyframe in holistic order, as
+        the index search would give them: (cosines (K,), ids (K,), their sets by id)."""
+        ids = np.asarray(self._ids[:len(self._ids) - exclude_recent], np.int64)
+        sets = self._fetch(ids)
+        self._check_fetched(ids, sets)
+        if not len(ids):
+            return np.zeros(0, np.float32), ids, sets
+        hol = np.stack([sets[int(i)].global_descriptor for i in ids]).astype(np.float32) @ \
+            np.asarray(lset.global_descriptor, np.float32)
+        order = np.argsort(-hol, kind='stable')
+        return hol[order], ids[order], sets
+
+    def _check_fetched(self, ids, sets: dict) -> None:
         missing = [int(i) for i in ids if int(i) not in sets]
         if missing:
             raise MapError(f'map {self.path}: keyframes {missing[:10]} are in the index but not in the store')
+
+    def _answer(self, lset: LandmarkSet, ids: np.ndarray, hol: np.ndarray, sets: dict, k: int,
+                min_score: float | None, method_rerank: bool, scale: float) -> list[MapCandidate]:
+        """Rerank the prefiltered keyframes (ids (K,), holistic cosines (K,), their sets by id)."""
+        self._check_fetched(ids, sets)
         if method_rerank:
             batch = stack_landmarks([sets[int(i)] for i in ids])
             ranked = rerank(lset, batch, ids, hol, scale)
@@ -841,8 +857,9 @@ class SQLiteMapStore(MapStore):
         """The best k keyframes for a query landmark set, best first.
 
         Holistic top prefilter_k by cosine among the allowed keyframes (the exclude_recent most
-        recently added keyframes are never answers), reranked by the landmark similarity S
-        (method_rerank=False: the holistic ranking alone), those below min_score dropped.
+        recently added keyframes are never answers; prefilter_k 0 = all of them, bypassing the
+        index), reranked by the landmark similarity S (method_rerank=False: the holistic ranking
+        alone), those below min_score dropped.
         """
         prefilter_k, k, exclude_recent = self._query_args(lset, prefilter_k, k, exclude_recent, method_rerank)
         with self._lock:
@@ -856,8 +873,11 @@ class SQLiteMapStore(MapStore):
             if exclude_recent >= len(self._ids):
                 return []
             cutoff = self._ids[-exclude_recent] if exclude_recent else None
-            hol, ids = self._index.search(lset.global_descriptor, min(prefilter_k, len(self._ids)), below=cutoff)
-            sets = self._fetch(ids)
+            if prefilter_k:
+                hol, ids = self._index.search(lset.global_descriptor, min(prefilter_k, len(self._ids)), below=cutoff)
+                sets = self._fetch(ids)
+            else:
+                hol, ids, sets = self._every_keyframe(lset, exclude_recent)
         # the numeric work runs outside the lock
         return self._answer(lset, ids, hol, sets, k, min_score, method_rerank, scale)
 

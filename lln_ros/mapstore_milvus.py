@@ -338,7 +338,7 @@ class MilvusMapStore(MapStore):
 
     def query(self, lset: LandmarkSet, prefilter_k: int = 30, k: int = 5, min_score: float | None = None,
               exclude_recent: int = 0, method_rerank: bool = True, scale: float = 1.0) -> list[MapCandidate]:
-        """As SQLiteMapStore.query: holistic top prefilter_k in Milvus, reranked here."""
+        """As SQLiteMapStore.query: holistic top prefilter_k in Milvus (0 = every keyframe), reranked here."""
         prefilter_k, k, exclude_recent = self._query_args(lset, prefilter_k, k, exclude_recent, method_rerank)
         with self._lock, self._errors('query'):
             self._ready()
@@ -350,13 +350,16 @@ class MilvusMapStore(MapStore):
                 raise self._mismatch(given, 'a query')
             if exclude_recent >= len(self._ids):
                 return []
-            where = f'id < {self._ids[-exclude_recent]}' if exclude_recent else ''
-            hits = self._client.search(self._kf_c, data=[np.asarray(lset.global_descriptor, np.float32).tolist()],
-                                       anns_field='global_descriptor', limit=prefilter_k, filter=where,
-                                       search_params={'metric_type': 'IP'}, output_fields=['*'])[0]
-            ids = np.array([int(h['id']) for h in hits], np.int64)
-            hol = np.array([float(h['distance']) for h in hits], np.float32)
-            sets = self._fetch(ids, [{**h['entity'], 'id': h['id']} for h in hits])
+            if prefilter_k:
+                where = f'id < {self._ids[-exclude_recent]}' if exclude_recent else ''
+                hits = self._client.search(self._kf_c, data=[np.asarray(lset.global_descriptor, np.float32).tolist()],
+                                           anns_field='global_descriptor', limit=prefilter_k, filter=where,
+                                           search_params={'metric_type': 'IP'}, output_fields=['*'])[0]
+                ids = np.array([int(h['id']) for h in hits], np.int64)
+                hol = np.array([float(h['distance']) for h in hits], np.float32)
+                sets = self._fetch(ids, [{**h['entity'], 'id': h['id']} for h in hits])
+            else:
+                hol, ids, sets = self._every_keyframe(lset, exclude_recent)
         return self._answer(lset, ids, hol, sets, k, min_score, method_rerank, scale)
 
     def get(self, keyframe_id: int) -> LandmarkSet:

@@ -17,7 +17,7 @@ from .landmarks import LandmarkBatch, LandmarkSet, stack_landmarks
 from .similarity import match_batch
 
 default_conf = {
-    'prefilter_k': 30,  # holistic candidates reranked by S (the paper's 30)
+    'prefilter_k': 30,  # holistic candidates reranked by S (the paper's 30); 0 = every map entry
     'scale': 1.0,       # offset-weight Gaussian width, in grid cells
 }
 
@@ -48,11 +48,11 @@ def rank_all(queries: list[LandmarkSet], refs: LandmarkBatch, prefilter_k: int =
     """Offline retrieval of many queries against a stacked map (evaluation and validation).
 
     refs: LandmarkBatch of R map sets; allowed (Q, R) bool: which refs each query may be answered
-    with (None = all). Returns ranked (Q, K) ref indices, best first, and their scores (Q, K): S
+    with (None = all); prefilter_k 0 = every ref (exhaustive rerank, K = R). Returns ranked (Q, K) ref indices, best first, and their scores (Q, K): S
     after the holistic top-K prefilter (or the holistic cosine when rerank_local is False).
     Rows with fewer than K allowed refs are padded with index -1 and score -inf.
     """
-    k = min(int(prefilter_k), len(refs))
+    k = min(int(prefilter_k), len(refs)) if int(prefilter_k) > 0 else len(refs)
     hol = np.stack([q.global_descriptor for q in queries]).astype(np.float32) @ refs.globals.T   # (Q, R)
     if allowed is not None:
         hol = np.where(allowed, hol, -np.inf)
@@ -125,8 +125,9 @@ class LandmarkDatabase:
 
     def retrieve(self, query: LandmarkSet, prefilter_k: int | None = None,
                  rerank_local: bool = True) -> list[Candidate]:
-        """Holistic top-K reranked by S (rerank_local=False: the holistic ranking alone)."""
-        k = int(prefilter_k or self.conf['prefilter_k'])
+        """Holistic top-K reranked by S (rerank_local=False: the holistic ranking alone); K = 0:
+        every map entry."""
+        k = int(self.conf['prefilter_k'] if prefilter_k is None else prefilter_k) or len(self.sets)
         idx, hol = self.holistic(query, k)
         if not rerank_local:
             return [Candidate(int(i), float(h), float(h)) for i, h in zip(idx, hol)]

@@ -136,7 +136,7 @@ def test_outputs_exist(tiny_run):
     (['--range', '1:0.5'], '--range'),
     (['--range', 'half'], '--range'),
     (['--top-n', '0'], '--top-n'),
-    (['--prefilter-k', '0'], '--prefilter-k'),
+    (['--prefilter-k', '-1'], '--prefilter-k'),
     (['--weights', '/nonexistent.pt'], '--weights'),
 ], ids=['missing-folders', 'unknown-kind', 'loop', 'gardenspoint-no-download', 'range-order', 'range-text',
         'top-n', 'prefilter-k', 'weights'])

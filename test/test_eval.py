@@ -209,6 +209,41 @@ def test_cli_trained_vs_untrained_in_one_command(tiny, tiny_run, other_head, tmp
     assert not list((tmp_path / 'b').glob('*.png'))
 
 
+def test_cli_exhaustive_prefilter_scores_every_reference(tiny, tiny_run, extractor, tmp_path, capsys):
+    """--prefilter-k 0: every local method ranks all 12 references by S (no holistic cap), X+seq too,
+    and the report says so."""
+    _, results_dir, ds = tiny_run
+    rc = run_cli('--dataset', f'aligned:{tiny / "ref"},{tiny / "query"},0', '--methods', 'holistic,act',
+                 '--top-n', 20, '--prefilter-k', 0, '--sequence', 3, '--out', tmp_path / 'x',
+                 '--cache', results_dir.parent / 'cache', '--timing-images', 1, '--timing-queries', 2,
+                 '--examples', 0, '--no-plots', '--threads', 1, '--quiet')
+    assert rc == 0, capsys.readouterr().err
+    results = json.loads((tmp_path / 'x' / 'results.json').read_text())
+    assert results['parameters']['prefilter_k'] == 0
+    assert list(results['datasets']['ref-vs-query']['methods']) == ['holistic', 'act', 'holistic+seq', 'act+seq']
+    from lln_ros.image import load_image
+    v = variant(extractor, 'act', 20)
+    refs = v.extract_batch([load_image(str(p)) for p in ds.ref_paths])
+    queries = v.extract_batch([load_image(str(p)) for p in ds.query_paths])
+    ranked, _ = rank_all(queries, stack_landmarks(refs), 0)
+    assert ranked.shape == (12, 12)  # every reference, by S
+    top1 = np.mean(ds.gt[np.arange(12), ranked[:, 0]])
+    # within one query: features are cached as float16
+    assert abs(results['datasets']['ref-vs-query']['methods']['act']['p_at_100r'] - top1) <= 1 / 12 + 1e-9
+    run = evaluate([datasets.parse_spec(f'aligned:{tiny / "ref"},{tiny / "query"},0')], extractor,
+                   {'methods': 'act', 'top_n': 20, 'prefilter_k': 0, 'sequence': 3, 'plots': False,
+                    'cache_dir': str(results_dir.parent / 'cache'), 'timing_images': 1, 'timing_queries': 1})
+    rankings = run.datasets['ref-vs-query'].rankings
+    assert rankings['act'][0].shape == rankings['act+seq'][0].shape == (12, 12)
+    assert (np.sort(rankings['act'][0], axis=1) == np.arange(12)).all()
+    assert (ranked[:, 0] == rankings['act'][0][:, 0]).mean() >= 11 / 12
+    md = (tmp_path / 'x' / 'results.md').read_text()
+    assert 'scores every reference' in md and 'Exhaustive (prefilter_k 0)' in md
+    assert run_cli('--dataset', f'aligned:{tiny / "ref"},{tiny / "query"},0', '--prefilter-k', -1,
+                   '--out', tmp_path / 'y', '--quiet') == 2
+    assert '--prefilter-k at least 0' in capsys.readouterr().err
+
+
 def make_bad_inputs(root: Path, photo) -> dict:
     good = crops(photo, 3)
     for i, im in enumerate(good):

@@ -41,6 +41,27 @@ def test_uri_picks_backend(tmp_path):
     assert type(MapStore(tmp_path / 'b.db')) is SQLiteMapStore
 
 
+def test_exhaustive_query_scores_every_allowed_keyframe(uri, rng):
+    """prefilter_k 0 bypasses the index: every allowed keyframe is reranked, the same as a holistic
+    top-K with K = the map size; negative prefilter_k is refused."""
+    with MapStore.open(uri, model=MODEL) as store:
+        sets = [make_set(rng) for _ in range(12)]
+        ids = store.add_many(sets, [(i, 0) for i in range(12)])
+        query = make_set(rng, base=sets[4], noise=0.5)
+        every = store.query(query, prefilter_k=0, k=12)
+        assert sorted(c.keyframe_id for c in every) == ids
+        assert [c.score for c in every] == sorted((c.score for c in every), reverse=True)
+        assert [(c.keyframe_id, c.score) for c in every] == \
+            [(c.keyframe_id, c.score) for c in store.query(query, prefilter_k=12, k=12)]
+        assert [c.keyframe_id for c in store.query(query, prefilter_k=0, k=3)] == \
+            [c.keyframe_id for c in every[:3]]
+        allowed = store.query(query, prefilter_k=0, k=12, exclude_recent=5)
+        assert sorted(c.keyframe_id for c in allowed) == ids[:7]
+        assert store.query(query, prefilter_k=0, k=5, exclude_recent=12) == []
+        with pytest.raises(ValueError, match='prefilter_k >= 0'):
+            store.query(query, prefilter_k=-1)
+
+
 def test_insert_query_get(uri, rng):
     with MapStore.open(uri, model=MODEL) as store:
         sets = [make_set(rng) for _ in range(25)]
@@ -132,6 +153,8 @@ def test_sqlite_ivf_above_threshold(tmp_path, rng):
         for i in (0, 55, 99):
             assert store.query(sets[i], k=1)[0].keyframe_id == ids[i]
         assert all(c.keyframe_id < ids[95] for c in store.query(sets[99], k=30, exclude_recent=5))
+        # exhaustive queries bypass the approximate index: every keyframe, whatever nprobe misses
+        assert len(store.query(sets[7], prefilter_k=0, k=200)) == 99
 
 
 def run_cli(*args, check=True):

@@ -106,7 +106,9 @@ def test_k_min_score_and_holistic_only(map_path, rng):
         assert all(c.score == c.holistic_score and c.n_pairs == 0 for c in hol)
         assert [c.score for c in hol] == sorted((c.score for c in hol), reverse=True)
         with pytest.raises(ValueError):
-            store.query(sets[3], prefilter_k=0)
+            store.query(sets[3], prefilter_k=-1)
+        with pytest.raises(ValueError):
+            store.query(sets[3], k=0)
 
 
 def test_exclude_recent(map_path, rng):

@@ -9,7 +9,7 @@ from lln_ros.errors import DescriptorError
 from lln_ros.extractor import Extractor
 from lln_ros.image import load_image
 from lln_ros.landmarks import stack_landmarks
-from lln_ros.retrieval import LandmarkDatabase
+from lln_ros.retrieval import LandmarkDatabase, rank_all
 from lln_ros.similarity import match_batch
 
 
@@ -31,6 +31,12 @@ def test_each_view_retrieves_itself_first(extractor, photo):
         # the neighbour view one step (one cell) away matches with offset (0, -1) or (0, 1)
         nb = [c for c in cands if abs(c.index - i) == 1]
         assert nb and all(c.offset in ((0, 1), (0, -1)) for c in nb)
+    every = db.retrieve(sets[2], prefilter_k=0)  # exhaustive: every view, by S
+    assert sorted(c.index for c in every) == list(range(len(sets))) and every[0].index == 2
+    batch = stack_landmarks(sets)
+    ranked, scores = rank_all([sets[2]], batch, prefilter_k=0)
+    assert ranked.shape == (1, len(sets)) and ranked[0, 0] == 2
+    np.testing.assert_allclose(np.sort(scores[0]), np.sort(match_batch(sets[2], batch).scores), rtol=1e-6)
     hol = db.retrieve(sets[3], rerank_local=False)
     assert hol[0].index == 3 and hol[0].score == pytest.approx(1.0, abs=1e-5) and hol[0].pairs == {}
 

@@ -61,6 +61,7 @@ def test_matcher_refuses_bad_sequence_parameters(rig, tmp_path):
     """A negative sequence_length or a non-positive sequence_max_gap: exit at start, one FATAL line."""
     import time
     for args, text in ((('sequence_length:=-1',), 'sequence_length must be 0 (off) or positive'),
+                       (('prefilter_k:=-1',), 'prefilter_k must be 0 (every keyframe) or positive'),
                        (('sequence_length:=10', 'sequence_max_gap:=0.0'), 'max_gap_s must be positive')):
         proc = rig.matcher(tmp_path / 'map.db', *[a for arg in args for a in ('-p', arg)])
         deadline = time.monotonic() + 60
@@ -74,9 +75,9 @@ def test_matcher_refuses_bad_sequence_parameters(rig, tmp_path):
 def test_matcher_sequence_in_mapping_mode(rig, places, tmp_path):
     """mode=mapping with sequence_length: the route 0..5 is stored as it is driven, the revisit 1, 2, 3
     is answered by the sequence (the same places, in order); the newest exclude_recent keyframes never
-    end a line, so the first queries get zero rows."""
+    end a line, so the first queries get zero rows. prefilter_k 0: every allowed keyframe is scored."""
     proc = start_matcher(rig, tmp_path / 'map.db', places, '-p', 'mode:=mapping', '-p', 'exclude_recent:=2',
-                         '-p', 'sequence_length:=3', '-p', 'k:=2')
+                         '-p', 'sequence_length:=3', '-p', 'k:=2', '-p', 'prefilter_k:=0')
     q_pub = rig.probe.publisher(PointCloud2, 'query')
     cands = rig.probe.collect(PointCloud2, 'candidates', msgs.cloud_to_candidates)
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)

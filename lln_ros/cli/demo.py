@@ -140,7 +140,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help='landmark selection of the extractor (lln, act, rand, all) or holistic (the matcher '
                         'ranks by the global descriptor alone); default lln')
     p.add_argument('--top-n', type=int, default=50, help='landmarks per image (default 50)')
-    p.add_argument('--prefilter-k', type=int, default=30, help='holistic candidates reranked (default 30)')
+    p.add_argument('--prefilter-k', type=int, default=30,
+                   help='holistic candidates reranked (default 30; 0 = every map frame)')
     p.add_argument('--weights', default='', help="LLN head checkpoint (default '': the shipped head)")
     p.add_argument('--threads', type=int, default=1,
                    help='torch threads per extractor and offline, BLAS threads per node (default 1)')
@@ -159,8 +160,8 @@ def build_parser() -> argparse.ArgumentParser:
 def check_args(args) -> None:
     if args.top_n < 1:
         raise UsageError(f'--top-n must be at least 1, got {args.top_n}')
-    if args.prefilter_k < 1:
-        raise UsageError(f'--prefilter-k must be at least 1, got {args.prefilter_k}')
+    if args.prefilter_k < 0:
+        raise UsageError(f'--prefilter-k must be at least 0 (0 = every map frame), got {args.prefilter_k}')
     if args.threads < 1:
         raise UsageError(f'--threads must be at least 1, got {args.threads}')
     if args.examples < 0:
@@ -629,7 +630,7 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
                                        start_ns=DEFAULT_START_NS + DAY_NS)
     timing['write_bags'] = time.monotonic() - t
 
-    k = min(args.prefilter_k, len(ds.ref_paths))
+    k = min(args.prefilter_k or len(ds.ref_paths), len(ds.ref_paths))
     ext_method = 'lln' if args.method == 'holistic' else args.method
     logs = out / 'logs'
     logs.mkdir(parents=True, exist_ok=True)

@@ -1,7 +1,7 @@
 """lln-eval: every place-recognition method on every dataset, with the paper's protocol and pictures.
 
     lln-eval --dataset SPEC [--dataset SPEC ...] --out DIR [--methods holistic,lln,act,rand,all]
-             [--top-n 50] [--prefilter-k 30] [--range START:END] [--sequence L]
+             [--top-n 50] [--prefilter-k 30|0] [--range START:END] [--sequence L]
              [--weights [LABEL=]CKPT ...] [--label NAME ...] [--heads LABEL=CKPT,LABEL=,...]
              [--backbone NAME] [--layer LAYER] [--cache DIR] [--download [--download-url URL]]
 
@@ -43,7 +43,8 @@ def build_parser() -> argparse.ArgumentParser:
                         '(default: holistic,lln,act,rand,all)')
     p.add_argument('--top-n', type=int, default=50, help='landmarks per image for lln/act/rand (default 50)')
     p.add_argument('--prefilter-k', type=int, default=30,
-                   help='holistic candidates every local method reranks (default 30, the paper\'s)')
+                   help='holistic candidates every local method reranks (default 30, the paper\'s; '
+                        '0 = every reference, an exhaustive rerank)')
     p.add_argument('--scale', type=float, default=1.0, help='offset-weight width in grid cells (default 1)')
     p.add_argument('--sequence', type=int, default=0, metavar='L',
                    help='add an X+seq row per holistic/local method: sequence search over L queries '
@@ -137,8 +138,8 @@ def run(args, argv) -> dict:
         methods = parse_methods(args.methods)
     except ValueError as e:
         raise UsageError(f'--methods: {e}') from None
-    if args.top_n < 1 or args.prefilter_k < 1:
-        raise UsageError('--top-n and --prefilter-k must be at least 1')
+    if args.top_n < 1 or args.prefilter_k < 0:
+        raise UsageError('--top-n must be at least 1 and --prefilter-k at least 0 (0 = every reference)')
     if args.reloc and 'lln' not in methods:
         raise UsageError('--reloc ranks candidates with lln: add lln to --methods')
     if args.reloc and (args.reloc_top < 1 or args.reloc_min_inliers < 1):
