@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Regenerate docs/results.md and its figures (docs/results/): every method, the shipped (trained)
 # head against an untrained one, sequence rows and relocalization, on the Nordland test split (the
-# last 30% of the route, never trained on) and on rtabmap_loop. Needs ../shared/data (or LLN_DATA).
+# last 30% of the route, never trained on) and on rtabmap_loop, with the paper's holistic top-30
+# prefilter; then Nordland again with exhaustive matching. Needs ../shared/data (or LLN_DATA).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DATA=${LLN_DATA:-../shared/data}
@@ -18,5 +19,12 @@ rm -rf docs/results
   --methods holistic,lln,act,rand,all,sad,seqslam --sequence 10 \
   --heads trained=shipped,untrained= --reloc \
   --cache "$CACHE" --out docs/results "$@"
-.venv/bin/python scripts/results_md.py docs/results docs/results.md
+# the same Nordland queries with every reference scored (no holistic prefilter): what the holistic
+# top-30 costs each reranker, and lln+seq against seqslam, which also compares every map frame
+.venv/bin/lln-eval \
+  --dataset "aligned:$DATA/nordland_trimmed/summer,$DATA/nordland_trimmed/winter,1" --range 0.7:1 \
+  --methods holistic,lln,act,rand,all,sad,seqslam --sequence 10 --prefilter-k 0 \
+  --heads trained=shipped,untrained= \
+  --cache "$CACHE" --out docs/results/exhaustive "$@"
+.venv/bin/python scripts/results_md.py docs/results.md docs/results docs/results/exhaustive
 echo "results: wrote docs/results.md"
