@@ -379,7 +379,7 @@ class MapStore:
         self._check_fetched(ids, sets)
         if method_rerank:
             batch = stack_landmarks([sets[int(i)] for i in ids])
-            ranked = rerank(lset, batch, ids, hol, scale)
+            ranked = rerank(lset, batch, ids, hol, scale, limit=k)  # sorted: min_score drops a tail
         else:
             ranked = [Candidate(int(i), float(h), float(h)) for i, h in zip(ids, hol)]
         out = []

@@ -34,10 +34,11 @@ class Candidate:
 
 
 def rerank(query: LandmarkSet, batch: LandmarkBatch, indices: np.ndarray, holistic: np.ndarray,
-           scale: float = 1.0) -> list[Candidate]:
-    """Score `batch` (the prefiltered candidates, in `indices` order) against the query; sort by S."""
+           scale: float = 1.0, limit: int | None = None) -> list[Candidate]:
+    """Score `batch` (the prefiltered candidates, in `indices` order) against the query; sort by S.
+    limit: only the best `limit` come back (their pair tables are what costs, per candidate)."""
     result = match_batch(query, batch, scale)
-    order = np.argsort(-result.scores, kind='stable')
+    order = np.argsort(-result.scores, kind='stable')[:limit]
     return [Candidate(int(indices[k]), float(result.scores[k]), float(holistic[k]),
                       tuple(int(v) for v in result.offsets[k]), result.pairs(k)) for k in order]
 
