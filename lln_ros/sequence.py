@@ -135,10 +135,13 @@ class SequenceMatcher:
         for b, (_, pos, sc) in enumerate(reversed(rows)):
             inside = pos < map_size
             dense[b, pos[inside]] = sc[inside]
-        # ends: a scored entry b rows back is on the line ending at pos + back[v, b]
-        ends = np.unique(np.concatenate([(pos[:, None] + back[:, b][None]).ravel()
-                                         for b, (_, pos, _) in enumerate(reversed(rows)) if len(pos)]))
-        ends = ends[(ends >= 0) & (ends < map_size)]
+        # ends: a scored entry b rows back is on the line ending at pos + back[v, b] (a mask, not a
+        # sort: with every keyframe scored, prefilter_k 0, there are L * R * V of them)
+        reach = np.zeros(map_size, bool)
+        for b, (_, pos, _) in enumerate(reversed(rows)):
+            e = (pos[:, None] + back[:, b][None]).ravel()
+            reach[e[(e >= 0) & (e < map_size)]] = True
+        ends = np.flatnonzero(reach)
         if allowed_ends is not None:
             ends = ends[np.asarray(allowed_ends, bool)[ends]]
         if not len(ends):
