@@ -14,6 +14,8 @@ At each table size:
   insert/s (bulk)   add_many of 1000 keyframes per transaction, while growing the map
   insert/s (online) add() one keyframe per transaction (fsync each), 100 of them, as the node does
   p50 / p99 ms      query latency, 200 queries, warm (in the growing process)
+  exhaustive p50    prefilter_k 0 (every keyframe fetched and reranked, what Nordland-like routes
+                    need, see docs/results.md), 20 queries, maps up to --exhaustive-max keyframes
   top-1             the query's source keyframe ranked first (sanity: the map answers)
   recall@30         IVF holistic top 30 vs exact brute force (1 by construction while exact)
   cold start s      MapStore.open in a fresh process: verify=True (quick_check reads the file) and
@@ -110,8 +112,9 @@ store.close()
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def query_stats(store, rng, count: int) -> dict:
-    """Latency, top-1 and holistic recall@30 vs brute force over `count` noisy revisits."""
+def query_stats(store, rng, count: int, exhaustive: int = 0) -> dict:
+    """Latency, top-1 and holistic recall@30 vs brute force over `count` noisy revisits; with
+    exhaustive > 0, the median latency of that many prefilter_k 0 queries too."""
     ids = np.asarray(store.ids())
     picks = rng.choice(len(ids), count, replace=len(ids) < count)
     truth = {int(i): store.get(int(ids[i])) for i in picks}
@@ -130,8 +133,15 @@ def query_stats(store, rng, count: int) -> dict:
             exact = _exact_top(store, q.global_descriptor, 30)
             recall.append(len(approx & exact) / len(exact))
     ms = np.array(times) * 1000
+    every = []
+    for i in picks[:exhaustive]:
+        q = synthetic_set(rng, truth[int(i)])
+        t = time.perf_counter()
+        store.query(q, prefilter_k=0, k=5)
+        every.append(time.perf_counter() - t)
     return {'p50_ms': float(np.percentile(ms, 50)), 'p99_ms': float(np.percentile(ms, 99)),
-            'top1': top1 / count, 'recall30': float(np.mean(recall)) if recall else None}
+            'top1': top1 / count, 'recall30': float(np.mean(recall)) if recall else None,
+            'exhaustive_p50_ms': float(np.median(every)) * 1000 if every else None}
 
 
 def _exact_top(store, q: np.ndarray, k: int) -> set:
@@ -167,6 +177,8 @@ def main(argv=None) -> int:
     ap.add_argument('--threads', default='1', help='BLAS / OpenMP threads (read before numpy loads)')
     ap.add_argument('--index-threshold', type=int, default=None,
                     help='SQLite backend: keyframes above which the global index is IVF (default: the store\'s)')
+    ap.add_argument('--exhaustive-max', type=int, default=10_000,
+                    help='largest map also timed with prefilter_k 0 (every keyframe reranked)')
     ap.add_argument('--json', action='store_true')
     args = ap.parse_args(argv)
     sizes = sorted(int(s) for s in args.sizes.split(','))
@@ -188,7 +200,8 @@ def main(argv=None) -> int:
             store.add_many(sets, [(len(store) + i, 0) for i in range(batch)])
             bulk_time += time.perf_counter() - t
             bulk_count += batch
-        stats = query_stats(store, rng, args.queries if step in sizes else 50)
+        stats = query_stats(store, rng, args.queries if step in sizes else 50,
+                            20 if step in sizes and step <= args.exhaustive_max else 0)
         curve.append({'keyframes': step, **stats})
         print(f'{step:>7} keyframes: p50 {stats["p50_ms"]:.1f} ms, p99 {stats["p99_ms"]:.1f} ms', file=sys.stderr)
         if step not in sizes:
@@ -218,15 +231,17 @@ def main(argv=None) -> int:
     else:
         print(f"backend {args.backend}, n={N_LANDMARKS}, D={DIM}, {info['cpus']} CPUs, "
               f"load {', '.join(f'{v:.2f}' for v in info['load'])}")
-        head = ('keyframes', 'index', 'ins/s bulk', 'ins/s online', 'p50 ms', 'p99 ms', 'top-1', 'recall@30',
+        head = ('keyframes', 'index', 'ins/s bulk', 'ins/s online', 'p50 ms', 'p99 ms', 'exhaustive p50 ms',
+                'top-1', 'recall@30',
                 'cold s', 'cold s (no verify)', 'RSS MB', 'RSS growth MB', 'index MB', 'KB/kf')
         print('| ' + ' | '.join(head) + ' |')
         print('|' + '---|' * len(head))
         for r in rows:
+            every = f"{r['exhaustive_p50_ms']:.0f}" if r['exhaustive_p50_ms'] is not None else '-'
             recall = f"{r['recall30']:.2f}" if r['recall30'] is not None else (
                 '1 (exact)' if r['index'] == 'exact' else 'n/a')
             print(f"| {r['keyframes']:,} | {r['index']} | {r['insert_bulk_per_s']:.0f} | {r['insert_online_per_s']:.0f} "
-                  f"| {r['p50_ms']:.1f} | {r['p99_ms']:.1f} | {r['top1']:.2f} | {recall} "
+                  f"| {r['p50_ms']:.1f} | {r['p99_ms']:.1f} | {every} | {r['top1']:.2f} | {recall} "
                   f"| {r['cold_start_s']:.2f} | {r['cold_start_noverify_s']:.2f} | {r['rss_mb']:.0f} "
                   f"| {r['rss_growth_mb']:.0f} | {r['index_mb']:.0f} | {r['kb_per_keyframe']:.1f} |")
     if args.plot:
