@@ -7,6 +7,7 @@ import subprocess
 import cv2
 import numpy as np
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import PointCloud2
 
 from conftest import shared_data
@@ -51,21 +52,29 @@ def play_rtabmap(colcon_install, tmp, matcher_params: list) -> dict:
         with Probe(env) as probe:
             got = probe.collect(PointCloud2, 'candidates', lambda m: (msgs.stamp_to_ns(m.header),
                                                                        msgs.cloud_to_candidates(m)))
+            diag = {}  # the nodes' latest counters, to say where a missing answer was lost
+            probe.node.create_subscription(DiagnosticArray, '/diagnostics', lambda m: diag.update(
+                {st.name: {kv.key: kv.value for kv in st.values} for st in m.status}), 50)
             probe.spin_until(lambda: probe.node.count_publishers('candidates') > 0
                              and probe.node.count_subscribers('/camera/image_raw') > 0
                              and probe.node.count_subscribers('landmarks') > 0, 120, 'both nodes up')
             # the graph shows the matcher's subscription before the extractor's publisher has matched
-            # it; a frame published in between would be lost, so let endpoint matching settle
-            probe.spin_for(2.0)
+            # it (and the probe sees the candidates publisher before that writer has matched the probe);
+            # a message sent in between is lost (volatile QoS), so let endpoint matching settle. 2 s
+            # lost one answer of 84 in about one run of four here
+            probe.spin_for(4.0)
             # played by a separate process, as `ros2 bag play` would be
             play = subprocess.Popen([str(lib / 'lln-bag'), 'play', str(tmp / 'rtabmap_bag'), '--wait-subscribers',
-                                     '1', '--wait-timeout', '30'], env=env, stdout=subprocess.PIPE,
+                                     '1', '--wait-timeout', '30', '--start-delay', '1'], env=env, stdout=subprocess.PIPE,
                                     stderr=subprocess.STDOUT, text=True)
             try:
                 probe.spin_until(lambda: len(got) >= len(frames) or play.poll() not in (None, 0), 120,
                                  'an answer for every frame')
             except TimeoutError as e:
-                raise TimeoutError(f'{e}: {len(got)} answers of {len(frames)}; matcher log:\n{matcher.log()}'
+                answered = {t for t, _ in got}
+                missing = [i for i, t in enumerate(stamps) if t not in answered]
+                raise TimeoutError(f'{e}: {len(got)} answers of {len(frames)}, frames {missing[:10]} unanswered; '
+                                   f'player: {play.poll()}; counters {diag}\nmatcher log:\n{matcher.log()}'
                                    f'\nextractor log:\n{extractor.log()}') from None
             played = play.communicate(timeout=30)[0]
             assert play.returncode == 0, played
