@@ -287,12 +287,14 @@ def test_default_dataset_is_the_nordland_test_split(tmp_path):
     assert not (tmp_path / 'o').exists()
 
 
-def test_nordland_slice_through_the_nodes(tmp_path):
-    """11 places of the default dataset (64x32 frames upsampled to the network): online == offline.
-    (Not the very end: the last 15 winter frames are one repeated image.)"""
+@pytest.mark.parametrize('prefilter', ['30', '0'], ids=['prefilter30', 'exhaustive'])
+def test_nordland_slice_through_the_nodes(tmp_path, prefilter):
+    """11 places of the default dataset (64x32 frames upsampled to the network): online == offline,
+    with the holistic prefilter and with every map frame scored. (Not the very end: the last 15
+    winter frames are one repeated image.)"""
     shared_data('nordland_trimmed')
     out = tmp_path / 'o'
-    done = run_demo('--out', str(out), '--range', '0.99:0.993', '--examples', '1')
+    done = run_demo('--out', str(out), '--range', '0.99:0.993', '--examples', '1', '--prefilter-k', prefilter)
     assert done.returncode == 0, f'{done.stdout}\n{done.stderr}'
     r = json.loads((out / 'results_online.json').read_text())
     assert r['dataset']['refs'] == r['dataset']['queries'] == 11
