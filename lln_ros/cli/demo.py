@@ -33,7 +33,8 @@ a restart (model load, discovery again) or a relay hop that a real system does n
 
 Playback: by default each frame is published as soon as the extractor has published the previous
 frame's landmarks (paced: its one-frame mailbox never holds two frames, so none is dropped, as fast
-as the extractor goes). The first frame of each phase is a handshake: it is sent again until it has
+as the extractor goes), and queries also wait while the matcher has MAX_IN_FLIGHT unanswered (with
+--prefilter-k 0 on a large map it is the slower node). The first frame of each phase is a handshake: it is sent again until it has
 arrived downstream (a keyframe in the map / an answer), because a frame published before the
 extractor's writer has matched the matcher's reader is lost even when the graph already shows both.
 --rate HZ instead plays the bags at HZ frames per second with `lln-bag play` (what `ros2 bag play`
@@ -77,6 +78,7 @@ OUTPUTS = ('map_bag', 'query_bag', 'map.db', 'map.db-wal', 'map.db-shm', 'result
 DEFAULT_DOWNLOAD_DIR = '~/.cache/lln_ros/gardens_point'
 HANDSHAKE_TRIES = 5    # sends of a phase's first frame until it is seen downstream
 HANDSHAKE_WAIT = 3.0   # seconds to wait for that, after the extractor published it
+MAX_IN_FLIGHT = 10     # paced queries the matcher may have unanswered (its queue holds queue_depth 100)
 
 
 class UsageError(Exception):
@@ -497,10 +499,12 @@ class Graph:
         return self.node.create_publisher(Image, topic, QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
 
     def play_paced(self, bag_path: Path, publisher, out_kind: str, stamps: list, timeout: float,
-                   extractor: str, confirm, bar=None) -> dict:
+                   extractor: str, confirm, bar=None, backlog=None) -> dict:
         """Publish the bag's frames (the recorded CDR bytes, as a bag player does), each once the
         extractor has published the previous frame's landmarks on `out_kind`: its one-frame mailbox
-        never holds two frames, so none is dropped.
+        never holds two frames, so none is dropped. backlog: a count of what the next node has not
+        finished (unanswered queries); frames wait while it is MAX_IN_FLIGHT or more, so a matcher
+        slower than the extractor (prefilter_k 0 on a large map) never overflows its queue.
 
         Frame 0 is a handshake: seeing every endpoint in the graph does not mean the extractor's
         writer has matched the matcher's reader yet (discovery is not symmetric in time), and a
@@ -535,6 +539,8 @@ class Graph:
                 except DemoError:
                     pass
             else:
+                if backlog is not None:
+                    self.spin_until(lambda: backlog() < MAX_IN_FLIGHT, timeout, f'the matcher to catch up ({i})')
                 publisher.publish(bytes(raw))
                 self.spin_until(lambda s=stamp: s in seen, timeout,
                                 f'the landmarks of frame {i} of {bag_path.name} on /{out_kind}')
@@ -734,7 +740,8 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
             else:
                 play_query = graph.play_paced(
                     out / 'query_bag', query_pub, 'query', query_stamps, args.timeout, '/lln_extractor_query',
-                    lambda stamp: graph.wait_quietly(lambda: stamp in graph.candidates, HANDSHAKE_WAIT), bar)
+                    lambda stamp: graph.wait_quietly(lambda: stamp in graph.candidates, HANDSHAKE_WAIT), bar,
+                    backlog=lambda: len(graph.landmarks['query']) - len(graph.candidates))
         finally:
             bar.close()
         sent = set(graph.landmarks['query'])
