@@ -34,9 +34,10 @@ a restart (model load, discovery again) or a relay hop that a real system does n
 Playback: by default each frame is published as soon as the extractor has published the previous
 frame's landmarks (paced: its one-frame mailbox never holds two frames, so none is dropped, as fast
 as the extractor goes), and queries also wait while the matcher has MAX_IN_FLIGHT unanswered (with
---prefilter-k 0 on a large map it is the slower node). The first frame of each phase is a handshake: it is sent again until it has
-arrived downstream (a keyframe in the map / an answer), because a frame published before the
-extractor's writer has matched the matcher's reader is lost even when the graph already shows both.
+--prefilter-k 0 on a large map it is the slower node). The first frame of each phase is a handshake:
+it is sent again until it has arrived downstream (a keyframe in the map / an answer), because a frame
+published before the extractor's writer has matched the matcher's reader is lost even when the graph
+already shows both.
 --rate HZ instead plays the bags at HZ frames per second with `lln-bag play` (what `ros2 bag play`
 does); frames the extractor cannot keep up with are dropped by its newest-frame policy, counted and
 reported (the extractors' /diagnostics `received`/`published`/`dropped`, the stamps in the map file,
