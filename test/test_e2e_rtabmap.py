@@ -14,7 +14,11 @@ from conftest import shared_data
 from lln_ros import bag, msgs
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 
-RATE_HZ = 4.0
+# the extractor keeps only the newest waiting frame (by design: bounded latency), so a frame is
+# dropped when one extraction stalls for two frame periods; at 4 Hz that happened (a 500 ms stall,
+# /diagnostics: received 84, published 83, dropped 1) in about one run of four on the shared 2-core
+# CI machine, and every frame must be answered here
+RATE_HZ = 2.0
 GAP = 10  # a frame may be answered only with frames at least 10 older (the dataset's protocol)
 
 
@@ -59,13 +63,11 @@ def play_rtabmap(colcon_install, tmp, matcher_params: list) -> dict:
                              and probe.node.count_subscribers('/camera/image_raw') > 0
                              and probe.node.count_subscribers('landmarks') > 0, 120, 'both nodes up')
             # the graph shows the matcher's subscription before the extractor's publisher has matched
-            # it (and the probe sees the candidates publisher before that writer has matched the probe);
-            # a message sent in between is lost (volatile QoS), so let endpoint matching settle. 2 s
-            # lost one answer of 84 in about one run of four here
-            probe.spin_for(4.0)
+            # it; a frame published in between would be lost, so let endpoint matching settle
+            probe.spin_for(2.0)
             # played by a separate process, as `ros2 bag play` would be
             play = subprocess.Popen([str(lib / 'lln-bag'), 'play', str(tmp / 'rtabmap_bag'), '--wait-subscribers',
-                                     '1', '--wait-timeout', '30', '--start-delay', '1'], env=env, stdout=subprocess.PIPE,
+                                     '1', '--wait-timeout', '30'], env=env, stdout=subprocess.PIPE,
                                     stderr=subprocess.STDOUT, text=True)
             try:
                 probe.spin_until(lambda: len(got) >= len(frames) or play.poll() not in (None, 0), 120,
