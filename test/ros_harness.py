@@ -62,20 +62,15 @@ def installed_env(install: Path, env: dict) -> dict:
     return env
 
 
-def default_sigint() -> None:
-    """preexec_fn: Ctrl-C acts as at a terminal even when the test run itself was started in the
-    background (`cmd &` makes a non-interactive shell ignore SIGINT, and children inherit that)."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 class RosProcess:
     """An executable started as `ros2 run lln_ros <exe> --ros-args ...` would start it."""
 
     def __init__(self, exe: Path, ros_args: list[str], env: dict, log: Path):
         self.log_path = log
         self._log = open(log, 'w')
+        # No preexec_fn: it forces fork() instead of vfork(), and fork() in a process where gRPC
+        # (pymilvus) has live threads can leave the child dead before exec (conftest.py says more).
         self.proc = subprocess.Popen([str(exe), '--ros-args', *ros_args], env=env, stdout=self._log,
-                                     preexec_fn=default_sigint,
                                      stderr=subprocess.STDOUT, cwd=log.parent)
 
     def alive(self) -> bool:

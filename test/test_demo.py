@@ -12,7 +12,6 @@ import cv2
 import numpy as np
 import pytest
 
-from ros_harness import default_sigint
 
 from conftest import shared_data
 from lln_ros.cli import demo
@@ -256,7 +255,7 @@ def _gone(pid: int) -> bool:
 def test_ctrl_c_stops_every_node(tiny_dataset, tmp_path):
     # played at 1 Hz, so the run lasts long enough for the interrupt to land mid-run on any machine
     proc = subprocess.Popen([*DEMO, '--dataset', tiny_dataset, '--out', str(tmp_path / 'out'), '--no-offline',
-                             '--rate', '1'], preexec_fn=default_sigint,
+                             '--rate', '1'],
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 120
