@@ -80,11 +80,14 @@ def run_node(make_node, name: str, args=None) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
+    from ..dds import apply_large_data_profile
     from ..errors import LLNError
+    dds_level, dds_note = apply_large_data_profile()  # before rclpy.init: Fast DDS reads it then
     rclpy.init(args=args)
     node = None
     try:
         node = make_node()
+        getattr(node.get_logger(), 'warning' if dds_level == 'warn' else 'info')(dds_note)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
