@@ -14,8 +14,10 @@ Every refusal is counted under one counter and logged by kind (Counters.problem)
 declares is used to size an allocation before lln_ros.limits has checked it. Counters (documented in
 docs/interfaces.md §3.6) keep these sums for every input:
 
-    queries_received   = queries_answered + queries_stale + bad_query + queries_failed
-    keyframes_received = keyframes_stored + bad_keyframe + keyframes_failed
+    queries_received                  = queries_answered + queries_stale + bad_query + queries_failed
+    keyframes_received + queries_stored = keyframes_stored + bad_keyframe + keyframes_failed
+
+(queries_stored: mapping mode's queries stored as keyframes.)
 
 *_failed: the map, not the message, was at fault (a keyframe damaged after start, a write that
 failed, or an internal error): the message is not blamed as bad_*.
@@ -123,6 +125,7 @@ class Localizer:
         self.sequence = KeyframeSequence({'length': conf['sequence_length'], 'max_gap_s': conf['sequence_max_gap']}) \
             if conf['sequence_length'] > 0 else None
         self.refusing = ''  # set when the extractor's model differs from the map's
+        self.extractor_model = None  # the last valid model_info: its input_height fixes the grid rows
         self.reloc, self.pending_keypoints, self.unmatched_keyframes = None, {}, {}
         # decode_keypoints(payload, image_size (w, h), scale, max_rows) -> reloc.Keypoints
         self.decode_keypoints = decode_keypoints or (lambda kps, *_: kps)
@@ -162,6 +165,7 @@ class Localizer:
         except (ValueError, RecursionError) as e:  # JSONDecodeError and ModelError are ValueErrors
             self.counters.problem('bad_model_info', f'cannot use model_info: {e}')
             return
+        self.extractor_model = model
         try:
             self.store.use_model(model)
             self.refusing = ''
@@ -190,7 +194,7 @@ class Localizer:
         lset.validate()
         if len(lset) == 0:
             raise DescriptorError('landmark set has no landmarks')
-        check_landmark_set(lset, self.store.model, self.limits)
+        check_landmark_set(lset, self.extractor_model, self.limits)
 
     # ------------------------------------------------------------------ keyframes and keypoints
 
@@ -314,6 +318,7 @@ class Localizer:
             found, inliers = self.verify(lset, kps, found)
         if self.mapping:  # committed before the answer goes out: an answered keyframe is never lost
             self._store_keyframe(lset, stamp_ns, kps)
+            self.count('queries_stored')
         rows = [{'keyframe_id': m.keyframe_id, 'score': m.score, 'holistic_score': m.holistic_score,
                  'stamp_sec': m.stamp[0], 'stamp_nanosec': m.stamp[1],
                  **({'inliers': inliers.get(m.keyframe_id, float('nan'))} if self.reloc else {})} for m in found]
