@@ -1,14 +1,13 @@
 """ROS glue shared by the lln_ros nodes: parameter declaration, QoS, counters and diagnostics."""
 from __future__ import annotations
 
-import threading
-from collections import Counter
-
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
+
+from ..counters import Counters
 
 RELIABILITY = {'reliable': ReliabilityPolicy.RELIABLE, 'best_effort': ReliabilityPolicy.BEST_EFFORT}
 
@@ -36,33 +35,12 @@ def subscription_qos(reliability: str, depth: int) -> QoSProfile:
     return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 
 
-class Health:
-    """Counters of a node plus 'log each distinct problem once, count all of them'."""
+class Health(Counters):
+    """A node's counters (lln_ros.counters: problems logged by kind, rate-limited) plus /diagnostics."""
 
     def __init__(self, node: Node):
+        super().__init__(log=node.get_logger().warning)
         self.node = node
-        self.counts: Counter = Counter()
-        self._seen: set = set()
-        self._lock = threading.Lock()
-
-    def count(self, key: str, n: int = 1) -> None:
-        with self._lock:
-            self.counts[key] += n
-
-    def problem(self, kind: str, message: str) -> None:
-        """Count a rejected input; the first time a given message is seen, log it as a warning."""
-        with self._lock:
-            self.counts[kind] += 1
-            first = (kind, message) not in self._seen
-            self._seen.add((kind, message))
-            total = self.counts[kind]
-        if first:
-            self.node.get_logger().warning(f'{kind}: {message} (skipped; further identical problems are '
-                                           f'counted, not logged; {total} so far)')
-
-    def snapshot(self) -> dict:
-        with self._lock:
-            return dict(self.counts)
 
     def diagnostics(self, extra: dict | None = None) -> DiagnosticArray:
         values = {**self.snapshot(), **(extra or {})}

@@ -7,6 +7,10 @@ Publishes   landmarks (sensor_msgs/PointCloud2, see lln_ros.msgs), activation (s
 
 Only the newest frame waits for the network: when extraction falls behind, an older waiting frame
 is replaced and counted as dropped, so latency stays bounded by one extraction.
+
+Counters: received = published + dropped + bad_image + internal_error (+ at most one frame in
+flight). Every property of an input (encoding, size, a PNG/JPEG header above max_image_pixels,
+undecodable data) is bad_image; internal_error counts only faults of this code.
 """
 from __future__ import annotations
 
@@ -23,6 +27,7 @@ from .. import msgs
 from ..errors import LLNError
 from ..extractor import Extractor
 from ..image import check_image
+from ..limits import default_conf as LIMITS
 from ..plotting import heatmap_bgr
 from .common import MODEL_QOS, Health, declare, run_node, start_diagnostics, subscription_qos
 
@@ -41,6 +46,8 @@ PARAMETERS = {
     'keypoints_max': (500, 'ORB keypoints per image with publish_keypoints'),
     'num_threads': (0, 'torch intra-op threads; 0 = torch default'),
     'diagnostics_period': (1.0, 'seconds between /diagnostics messages; 0 = off'),
+    'max_image_pixels': (LIMITS['max_image_pixels'], 'limit: width x height of an image, raw or decoded (checked '
+                                                     'from the PNG/JPEG header before decoding); more is bad_image'),
 }
 
 
@@ -116,13 +123,13 @@ class ExtractorNode(Node):
             try:
                 self.process(msg)
             except Exception as e:  # noqa: BLE001  the worker must outlive any one frame
-                self.get_logger().error(f'unexpected error on a frame (skipped): {type(e).__name__}: {e}')
-                self.health.count('internal_error')
+                self.health.problem('internal_error', f'unexpected error on a frame: {type(e).__name__}: {e}',
+                                    kind=type(e).__name__)
 
     def process(self, msg) -> None:
         start = time.perf_counter()
         try:
-            image, order = msgs.message_to_array(msg)
+            image, order = msgs.message_to_array(msg, self.params['max_image_pixels'])
             lset = self.extractor(image, channel_order=order)
             kps = self.orb.detect(image, order) if self.orb is not None else None
         except LLNError as e:
