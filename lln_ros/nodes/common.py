@@ -1,29 +1,19 @@
-"""ROS glue shared by the lln_ros nodes: parameter declaration, QoS, counters and diagnostics."""
+"""ROS glue shared by the lln_ros nodes (parameters: nodes/parameters.py): QoS, counters and diagnostics
+(levels: WARN for losses and refused input, ERROR when all input is refused)."""
 from __future__ import annotations
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
 
-from ..counters import Counters
+from ..counters import Counters, problem_kind
 
 RELIABILITY = {'reliable': ReliabilityPolicy.RELIABLE, 'best_effort': ReliabilityPolicy.BEST_EFFORT}
 
 # the extractor's model_info: latched so a matcher started later still learns the model
 MODEL_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-
-def declare(node: Node, spec: dict) -> dict:
-    """Declare every parameter of `spec` {name: (default, description)} and return their values.
-    Read-only: the nodes read them once at start, so `ros2 param set` says so instead of pretending."""
-    values = {}
-    for name, (default, description) in spec.items():
-        node.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=True))
-        values[name] = node.get_parameter(name).value
-    return values
 
 
 def subscription_qos(reliability: str, depth: int) -> QoSProfile:
@@ -42,10 +32,11 @@ class Health(Counters):
         super().__init__(log=node.get_logger().warning)
         self.node = node
 
-    def diagnostics(self, extra: dict | None = None) -> DiagnosticArray:
+    def diagnostics(self, extra: dict | None = None, level: int = DiagnosticStatus.OK,
+                    message: str = 'running') -> DiagnosticArray:
         values = {**self.snapshot(), **(extra or {})}
-        status = DiagnosticStatus(level=DiagnosticStatus.OK, name=self.node.get_fully_qualified_name(),
-                                  message='running', hardware_id='lln_ros',
+        status = DiagnosticStatus(level=level, name=self.node.get_fully_qualified_name(),
+                                  message=message, hardware_id='lln_ros',
                                   values=[KeyValue(key=k, value=str(v)) for k, v in sorted(values.items())])
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.node.get_clock().now().to_msg()
@@ -65,7 +56,10 @@ def run_node(make_node, name: str, args=None) -> int:
     node = None
     try:
         node = make_node()
-        getattr(node.get_logger(), 'warning' if dds_level == 'warn' else 'info')(dds_note)
+        if dds_level == 'warn':
+            node.get_logger().warning(dds_note)
+        else:
+            node.get_logger().info(dds_note)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -79,9 +73,74 @@ def run_node(make_node, name: str, args=None) -> int:
     return 0
 
 
-def start_diagnostics(node: Node, health: Health, period: float, extra=lambda: {}) -> None:
-    """Publish health counters on /diagnostics every `period` seconds (0 = off)."""
-    if period <= 0:
-        return
-    pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
-    node.create_timer(period, lambda: pub.publish(health.diagnostics(extra())))
+class Diagnostics:
+    """Health counters on /diagnostics every `period` seconds (0 = off), with a level and message
+    from status(delta) -> (level, message), where delta = the counters' increases since the last
+    message (lln_ros.stream.Window): WARN for losses and refused input of the last period, ERROR
+    when the node refuses all input. The timer runs on the steady clock: with use_sim_time and a
+    paused (or not yet started) bag, /clock stands still, and diagnostics must not."""
+
+    def __init__(self, node: Node, health: Health, period: float, extra=lambda: {}, status=None):
+        from rclpy.clock import Clock, ClockType
+
+        from ..stream import Window
+        self.node, self.health, self.extra = node, health, extra
+        self.status = status or (lambda delta: (DiagnosticStatus.OK, 'running'))
+        self.window = Window(health.snapshot)
+        self.pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._clock = Clock(clock_type=ClockType.STEADY_TIME)
+        self.timer = None
+        self.last = None
+        self.set_period(period)
+
+    def set_period(self, period: float) -> None:
+        if self.timer is not None:
+            self.node.destroy_timer(self.timer)
+            self.timer = None
+        if period > 0:
+            self.timer = self.node.create_timer(period, self.publish, clock=self._clock)
+
+    def publish(self) -> None:
+        try:
+            level, message = self.status(self.window.delta())
+        except Exception as e:  # noqa: BLE001  diagnostics must never take the node down
+            self.health.problem('internal_error', f'diagnostics status: {type(e).__name__}: {e}')
+            level, message = DiagnosticStatus.WARN, f'diagnostics status failed: {e}'
+        kind = (level, problem_kind(message))  # numbers masked: a new line per new kind, not per count
+        if level != DiagnosticStatus.OK and kind != self.last:
+            # two call sites: rclpy refuses one call site logging at two severities
+            if level == DiagnosticStatus.ERROR:
+                self.node.get_logger().error(message)
+            else:
+                self.node.get_logger().warning(message)
+        self.last = kind
+        self.pub.publish(self.health.diagnostics(self.extra(), level, message))
+
+
+def start_diagnostics(node: Node, health: Health, period: float, extra=lambda: {}, status=None) -> Diagnostics:
+    """Publish health counters on /diagnostics every `period` seconds (0 = off); see Diagnostics."""
+    return Diagnostics(node, health, period, extra, status)
+
+
+def worst(problems: list[tuple[int, str]]) -> tuple[int, str]:
+    """(level, message) of a diagnostics status from [(level, text), ...]: the worst level, the
+    texts joined; OK 'running' when there are none."""
+    if not problems:
+        return DiagnosticStatus.OK, 'running'
+    rank = lambda level: level[0] if isinstance(level, bytes) else int(level)  # noqa: E731  (levels are bytes)
+    ordered = sorted(problems, key=lambda p: -rank(p[0]))
+    return ordered[0][0], '; '.join(text for _, text in ordered)
+
+
+def loss_events(health: Health, what: str):
+    """rclpy event callbacks for a subscription: an incompatible QoS offer (nothing will arrive
+    from that publisher) and DDS-reported lost samples are counted, so diagnostics can say so."""
+    from rclpy.event_handler import SubscriptionEventCallbacks
+
+    def incompatible(info) -> None:
+        health.problem('qos_incompatible', f'{what}: a publisher offers a QoS this subscription cannot match '
+                       f'(policy id {info.last_policy_kind}); nothing arrives from it')
+
+    def lost(info) -> None:
+        health.count('dds_lost', int(info.total_count_change))
+    return SubscriptionEventCallbacks(incompatible_qos=incompatible, message_lost=lost)
