@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 
@@ -38,6 +38,7 @@ def test_camera_sized_frames_reach_the_extractor(colcon_install, tmp_path):
     share = install / 'share' / 'lln_ros'
     env = installed_env(colcon_install, ros_env(tmp_path))
     diag: dict[str, str] = {}
+    statuses: list[tuple[bytes, str]] = []
     extractor = RosProcess(install / 'lib' / 'lln_ros' / 'extractor',
                            ['--params-file', str(share / 'config' / 'extractor.yaml'),
                             '-p', 'num_threads:=1', '-p', 'diagnostics_period:=0.2'],
@@ -49,6 +50,7 @@ def test_camera_sized_frames_reach_the_extractor(colcon_install, tmp_path):
                 if status.name == EXTRACTOR:
                     diag.clear()
                     diag.update({kv.key: kv.value for kv in status.values})
+                    statuses.append((status.level, status.message))
         probe.node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 50)
         counter = lambda key: int(diag.get(key, 0))  # noqa: E731
         probe.spin_until(lambda: diag or not extractor.alive(), 180, 'extractor diagnostics')
@@ -75,6 +77,26 @@ def test_camera_sized_frames_reach_the_extractor(colcon_install, tmp_path):
                                                f'extractor; {diag}\n{extractor.log()[-2000:]}')
         assert counter('bad_image') == 0, diag
         assert counter('received') == counter('published') + counter('dropped'), diag
+        if counter('dropped'):  # the newest-frame policy's skips are visible, with the reason
+            assert any(lvl == DiagnosticStatus.WARN and 'newest-frame' in msg for lvl, msg in statuses), statuses
+
+        # a camera without the profile (Fast DDS defaults): frames are lost in the middleware, and the
+        # extractor says so from the stamp gaps, at level WARN
+        before, missing = counter('received'), counter('frames_missing')
+        statuses.clear()
+        plain = {k: v for k, v in env.items() if k not in ('FASTRTPS_DEFAULT_PROFILES_FILE',
+                                                           'FASTDDS_DEFAULT_PROFILES_FILE')}
+        camera = subprocess.run([sys.executable, str(HERE / 'camera_publisher.py'), '1280', '720', str(FRAMES),
+                                 str(HZ), '--stamp-start', '1700001000'], env=plain, capture_output=True, text=True,
+                                timeout=180)
+        assert camera.returncode == 0, camera.stdout + camera.stderr
+        probe.spin_for(1.5)
+        lost = FRAMES - (counter('received') - before)
+        print(f'1280x720 without the profile: {FRAMES - lost} of {FRAMES} received, '
+              f'{counter("frames_missing") - missing} counted missing')
+        if lost >= 3:  # (on an idle machine loopback UDP may deliver most of them; then there is nothing to see)
+            assert counter('frames_missing') - missing >= lost // 2, diag
+            assert any(lvl == DiagnosticStatus.WARN and 'missing upstream' in msg for lvl, msg in statuses), statuses
     finally:
         probe.close()
         code = extractor.stop()

@@ -42,48 +42,70 @@ from .. import msgs
 from ..errors import LLNError
 from ..limits import default_conf as LIMITS
 from ..localizer import Localizer, open_map
-from .common import MODEL_QOS, Health, declare, run_node, start_diagnostics, subscription_qos
+from ..localizer import default_conf as LOC
+from ..sequence import KeyframeSequence
+from ..stream import StampGaps
+from .common import MODEL_QOS, Health, loss_events, run_node, start_diagnostics, subscription_qos, worst
+from .parameters import Param, declare_all
 
+# defaults come from the ROS-free confs (lln_ros.localizer / limits): one source each.
+# dynamic=True: settable at run time (ros2 param set), applied from the next message on
 PARAMETERS = {
-    'map_path': ('~/.ros/lln_ros/map.db', 'map URI: SQLite file path (created if missing), '
-                 'milvus-lite:///path.db or milvus://host:port[/db][?map=name]'),
-    'mode': ('localization', 'localization: answer queries only | mapping: answer, then store each query'),
-    'prefilter_k': (30, 'holistic candidates reranked by the landmark similarity; 0 = every keyframe '
-                        '(exhaustive: no holistic cap on recall, cost grows with the map)'),
-    'k': (5, 'candidates published per query'),
-    'min_score': (0.0, 'candidates scoring below this are not published'),
-    'exclude_recent': (10, 'mapping mode: the newest N keyframes are never answers'),
-    'method': ('lln', 'lln: rerank by landmark similarity S | holistic: global descriptor only'),
-    'offset_scale': (1.0, 'Gaussian width of the offset weights, in grid cells'),
-    'descriptor_space': ('', "expected model, e.g. efficientnet_lite0/stage6/192; '' = the map's or first seen"),
-    'reliability': ('reliable', 'keyframes/query subscriptions: reliable | best_effort'),
-    'queue_depth': (100, 'keyframes/query subscription queue depth'),
-    'verify': (False, "re-rank candidates by keypoint inliers (needs the extractor's publish_keypoints)"),
-    'verify_min_inliers': (15, 'verify: RANSAC inliers for a candidate to count as verified'),
-    'verify_margin': (1.0, 'verify: matched regions grown by this many grid cells'),
-    'max_query_age': (0.0, 'seconds; older queries (header stamp vs node clock) are dropped and counted '
-                           'as queries_stale, so a backlog cannot grow latency; 0 = off'),
-    'diagnostics_period': (1.0, 'seconds between /diagnostics messages; 0 = off'),
-    'sequence_length': (0, 'queries in the sequence search (0 = off, single-frame ranking)'),
-    'sequence_max_gap': (1.0, 'seconds between query stamps beyond which a new sequence starts'),
+    'map_path': Param('~/.ros/lln_ros/map.db', 'map URI: SQLite file path (created if missing), '
+                      'milvus-lite:///path.db or milvus://host:port[/db][?map=name]'),
+    'mode': Param(LOC['mode'], 'localization: answer queries only | mapping: answer, then store each query',
+                  choices=('localization', 'mapping')),
+    'prefilter_k': Param(LOC['prefilter_k'], 'holistic candidates reranked by the landmark similarity; 0 = every '
+                         'keyframe (exhaustive: no holistic cap on recall, cost grows with the map)',
+                         dynamic=True, range=(0, 1_000_000)),
+    'k': Param(LOC['k'], 'candidates published per query', dynamic=True, range=(1, 10_000)),
+    'min_score': Param(LOC['min_score'], 'candidates scoring below this are not published', dynamic=True,
+                       range=(-1.0, 1e6)),
+    'exclude_recent': Param(LOC['exclude_recent'], 'mapping mode: the newest N keyframes are never answers',
+                            dynamic=True, range=(0, 1_000_000)),
+    'method': Param(LOC['method'], 'lln: rerank by landmark similarity S | holistic: global descriptor only',
+                    dynamic=True, choices=('lln', 'holistic')),
+    'offset_scale': Param(LOC['offset_scale'], 'Gaussian width of the offset weights, in grid cells', dynamic=True,
+                          range=(1e-3, 1e3)),
+    'descriptor_space': Param('', "expected model, e.g. efficientnet_lite0/stage6/192; '' = the map's or first seen"),
+    'reliability': Param('reliable', 'keyframes/query subscriptions', choices=('reliable', 'best_effort')),
+    'queue_depth': Param(100, 'keyframes/query subscription queue depth', range=(1, 100_000)),
+    'verify': Param(LOC['verify'], "re-rank candidates by keypoint inliers (needs the extractor's publish_keypoints)"),
+    'verify_min_inliers': Param(LOC['verify_min_inliers'], 'verify: RANSAC inliers for a candidate to count as '
+                                'verified', dynamic=True, range=(1, 100_000)),
+    'verify_margin': Param(LOC['verify_margin'], 'verify: matched regions grown by this many grid cells',
+                           dynamic=True, range=(0.0, 100.0)),
+    'max_query_age': Param(LOC['max_query_age'], 'seconds; older queries (header stamp vs node clock: use_sim_time '
+                           'for bags) are dropped and counted as queries_stale, so a backlog cannot grow '
+                           'latency; 0 = off', dynamic=True, range=(0.0, 1e9)),
+    'diagnostics_period': Param(1.0, 'seconds between /diagnostics messages; 0 = off', dynamic=True,
+                                range=(0.0, 3600.0)),
+    'sequence_length': Param(LOC['sequence_length'], 'queries in the sequence search (0 = off, single-frame '
+                             'ranking); a change starts a new sequence', dynamic=True, range=(0, 10_000)),
+    'sequence_max_gap': Param(LOC['sequence_max_gap'], 'seconds between query stamps beyond which a new sequence '
+                              'starts', dynamic=True, range=(1e-3, 1e6)),
     # input limits (lln_ros.limits): a message declaring more is refused and counted, never sized from
-    'max_image_pixels': (LIMITS['max_image_pixels'], 'limit: image width x height a landmark cloud may declare'),
-    'max_landmarks': (LIMITS['max_landmarks'], 'limit: landmark rows per keyframe or query'),
-    'max_descriptor_dim': (LIMITS['max_descriptor_dim'], 'limit: descriptor size D (clouds and model_info)'),
-    'max_grid_side': (LIMITS['max_grid_side'], 'limit: grid cells a side a landmark cloud may declare '
-                                               '(image size / cell size)'),
-    'max_keypoints': (LIMITS['max_keypoints'], 'limit: rows per keypoints cloud (verify)'),
+    'max_image_pixels': Param(LIMITS['max_image_pixels'], 'limit: image width x height a landmark cloud may '
+                              'declare', range=(1, 2**40)),
+    'max_landmarks': Param(LIMITS['max_landmarks'], 'limit: landmark rows per keyframe or query', range=(1, 2**31 - 1)),
+    'max_descriptor_dim': Param(LIMITS['max_descriptor_dim'], 'limit: descriptor size D (clouds and model_info)',
+                                range=(1, 2**31 - 1)),
+    'max_grid_side': Param(LIMITS['max_grid_side'], 'limit: grid cells a side a landmark cloud may declare '
+                           '(image size / cell size)', range=(1, 2**31 - 1)),
+    'max_keypoints': Param(LIMITS['max_keypoints'], 'limit: rows per keypoints cloud (verify)', range=(1, 2**31 - 1)),
 }
+# the Localizer's own settings among them (updated in place at run time: it reads them per message)
+LOCALIZER_KEYS = ('mode', 'prefilter_k', 'k', 'min_score', 'exclude_recent', 'method', 'offset_scale',
+                  'max_query_age', 'verify', 'verify_min_inliers', 'verify_margin', 'sequence_length',
+                  'sequence_max_gap')
 
 
 class MatcherNode(Node):
     def __init__(self, **kwargs):
         super().__init__('lln_matcher', **kwargs)
-        p = self.params = declare(self, PARAMETERS)
+        p = self.params = declare_all(self, PARAMETERS, self.on_parameters)
         self.health = Health(self)
-        conf = {name: p[name] for name in ('mode', 'prefilter_k', 'k', 'min_score', 'exclude_recent', 'method',
-                                           'offset_scale', 'max_query_age', 'verify', 'verify_min_inliers',
-                                           'verify_margin', 'sequence_length', 'sequence_max_gap')}
+        conf = {name: p[name] for name in LOCALIZER_KEYS}
         conf['limits'] = {name: p[name] for name in LIMITS}
         Localizer.check_conf(conf)   # a bad parameter ends the node before the map is touched
         self.store, quarantined = open_map(p['map_path'], p['mode'], p['descriptor_space'])
@@ -91,15 +113,21 @@ class MatcherNode(Node):
         qos = subscription_qos(p['reliability'], p['queue_depth'])
         self.candidates_pub = self.create_publisher(PointCloud2, 'candidates', 10)
         self.matches_pub = self.create_publisher(PointCloud2, 'matches', 10)
-        self.create_subscription(PointCloud2, 'keyframes', self.on_keyframe, qos)
-        self.create_subscription(PointCloud2, 'query', self.on_query, qos)
+        self.query_topic = self.resolve_topic_name('query')
+        self.create_subscription(PointCloud2, 'keyframes', self.on_keyframe, qos,
+                                 event_callbacks=loss_events(self.health, 'keyframes subscription'))
+        self.create_subscription(PointCloud2, 'query', self.on_query, qos,
+                                 event_callbacks=loss_events(self.health, f'query subscription {self.query_topic}'))
+        self.gaps = StampGaps()
+        self.last_query_age = None  # seconds, header stamp vs node clock (sim time with use_sim_time)
         self.create_subscription(String, 'model_info', self.on_model_info, MODEL_QOS)
         if p['verify']:
             self.create_subscription(PointCloud2, 'keypoints', self.on_keypoints, qos)
         self.create_service(Trigger, '~/save', self.on_save)
         self.create_service(Trigger, '~/clear', self.on_clear)
         self.create_service(Trigger, '~/info', self.on_info)
-        start_diagnostics(self, self.health, p['diagnostics_period'], lambda: {'keyframes': len(self.store)})
+        self.diagnostics = start_diagnostics(self, self.health, p['diagnostics_period'], self.diagnostic_values,
+                                             self.status)
         if quarantined:
             self.get_logger().error(
                 f'map {self.store.path}: {len(quarantined)} damaged keyframe(s) quarantined: never answered, '
@@ -108,6 +136,56 @@ class MatcherNode(Node):
         self.get_logger().info(
             f"map {self.store.path}: {len(self.store)} keyframes, model "
             f"{model['descriptor_space'] if model else '(none yet)'}; mode {p['mode']}")
+
+    # ------------------------------------------------------------------ parameters and health
+
+    def on_parameters(self, changes: dict) -> None:
+        """Run-time changes (range-checked by rclpy, choices by parameters.declare_all); a ValueError
+        refuses the whole set with its reason."""
+        conf = {**self.loc.conf, **{k: v for k, v in changes.items() if k in LOCALIZER_KEYS}}
+        Localizer.check_conf(conf)
+        self.loc.conf.update({k: v for k, v in changes.items() if k in LOCALIZER_KEYS})
+        if self.loc.reloc is not None:
+            self.loc.reloc.conf.update({'min_inliers': conf['verify_min_inliers'], 'margin': conf['verify_margin']})
+        if {'sequence_length', 'sequence_max_gap'} & set(changes):  # a new search: a new sequence
+            self.loc.sequence = KeyframeSequence({'length': conf['sequence_length'],
+                                                  'max_gap_s': conf['sequence_max_gap']}) \
+                if conf['sequence_length'] > 0 else None
+        if 'diagnostics_period' in changes:
+            self.diagnostics.set_period(changes['diagnostics_period'])
+
+    def diagnostic_values(self) -> dict:
+        values = {'keyframes': len(self.store)}
+        if self.last_query_age is not None:
+            values['last_query_age_s'] = f'{self.last_query_age:.3f}'
+        return values
+
+    def status(self, delta: dict) -> tuple[int, str]:
+        """/diagnostics level and message: ERROR while every landmark input is refused (model
+        mismatch), WARN for losses and refused messages of the last period."""
+        from diagnostic_msgs.msg import DiagnosticStatus as S
+        problems = []
+        if self.loc.refusing:
+            problems.append((S.ERROR, f'refusing all landmark input: {self.loc.refusing}'))
+        if delta.get('queries_stale'):
+            age = self.last_query_age or 0.0
+            hint = (' (stamps are days old: a replayed bag? play it with --clock and start the nodes with '
+                    'use_sim_time:=true)' if age > 86400 and not self.get_parameter('use_sim_time').value else '')
+            problems.append((S.WARN, f"dropped {delta['queries_stale']} queries older than max_query_age "
+                                     f"{self.params['max_query_age']:g} s (last {age:.3f} s old){hint}"))
+        if delta.get('queries_missing'):
+            problems.append((S.WARN, f"{delta['queries_missing']} queries missing (gaps in the query stamps: frames "
+                                     f"lost before the matcher, see the extractor's diagnostics)"))
+        if delta.get('dds_lost'):
+            problems.append((S.WARN, f"DDS reports {delta['dds_lost']} landmark samples lost"))
+        for key in ('bad_query', 'bad_keyframe', 'bad_keypoints', 'bad_model_info', 'queries_failed',
+                    'keyframes_failed'):
+            if delta.get(key) and not (self.loc.refusing and key in ('bad_query', 'bad_keyframe')):
+                problems.append((S.WARN, f'{delta[key]} messages refused ({key})'))
+        if delta.get('qos_incompatible'):
+            problems.append((S.WARN, 'a landmark publisher has an incompatible QoS (reliability: the extractor '
+                                     'publishes reliable)'))
+        return worst(problems)
 
     # ------------------------------------------------------------------ inputs
 
@@ -135,7 +213,12 @@ class MatcherNode(Node):
 
     def on_query(self, msg: PointCloud2) -> None:
         stamp = msgs.stamp_to_ns(msg.header)
-        if not self.loc.query_fresh(stamp, self.get_clock().now().nanoseconds):
+        now = self.get_clock().now().nanoseconds
+        self.last_query_age = (now - stamp) * 1e-9
+        missing = self.gaps.add(stamp)
+        if missing:
+            self.health.count('queries_missing', missing)
+        if not self.loc.query_fresh(stamp, now):
             return
         lset = self.decode(msg, 'bad_query')
         answer = self.loc.query(lset, stamp) if lset is not None else None
