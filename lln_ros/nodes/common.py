@@ -2,6 +2,8 @@
 (levels: WARN for losses and refused input, ERROR when all input is refused)."""
 from __future__ import annotations
 
+import time
+
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
@@ -73,9 +75,12 @@ def run_node(make_node, name: str, args=None) -> int:
     return 0
 
 
+LOG_PERIOD_S = 60.0  # a diagnostics problem of one kind is logged at most once a minute (as Counters does)
+
+
 class Diagnostics:
     """Health counters on /diagnostics every `period` seconds (0 = off), with a level and message
-    from status(delta) -> (level, message), where delta = the counters' increases since the last
+    from status(delta) -> (level, message, log text) (see worst), where delta = the counters' increases since the last
     message (lln_ros.stream.Window): WARN for losses and refused input of the last period, ERROR
     when the node refuses all input. The timer runs on the steady clock: with use_sim_time and a
     paused (or not yet started) bag, /clock stands still, and diagnostics must not."""
@@ -85,12 +90,12 @@ class Diagnostics:
 
         from ..stream import Window
         self.node, self.health, self.extra = node, health, extra
-        self.status = status or (lambda delta: (DiagnosticStatus.OK, 'running'))
+        self.status = status or (lambda delta: worst([]))
         self.window = Window(health.snapshot)
         self.pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self._clock = Clock(clock_type=ClockType.STEADY_TIME)
         self.timer = None
-        self.last = None
+        self.logged: dict = {}
         self.set_period(period)
 
     def set_period(self, period: float) -> None:
@@ -102,18 +107,20 @@ class Diagnostics:
 
     def publish(self) -> None:
         try:
-            level, message = self.status(self.window.delta())
+            level, message, log_text = self.status(self.window.delta())
         except Exception as e:  # noqa: BLE001  diagnostics must never take the node down
             self.health.problem('internal_error', f'diagnostics status: {type(e).__name__}: {e}')
-            level, message = DiagnosticStatus.WARN, f'diagnostics status failed: {e}'
-        kind = (level, problem_kind(message))  # numbers masked: a new line per new kind, not per count
-        if level != DiagnosticStatus.OK and kind != self.last:
+            level, message, log_text = DiagnosticStatus.WARN, f'diagnostics status failed: {e}', ''
+        # numbers masked: one line per kind of problem and minute, not one per period or count
+        kind = (level, problem_kind(log_text))
+        now = time.monotonic()
+        if log_text and now - self.logged.get(kind, -1e9) >= LOG_PERIOD_S:
+            self.logged[kind] = now
             # two call sites: rclpy refuses one call site logging at two severities
             if level == DiagnosticStatus.ERROR:
-                self.node.get_logger().error(message)
+                self.node.get_logger().error(log_text)
             else:
-                self.node.get_logger().warning(message)
-        self.last = kind
+                self.node.get_logger().warning(log_text)
         self.pub.publish(self.health.diagnostics(self.extra(), level, message))
 
 
@@ -122,14 +129,16 @@ def start_diagnostics(node: Node, health: Health, period: float, extra=lambda: {
     return Diagnostics(node, health, period, extra, status)
 
 
-def worst(problems: list[tuple[int, str]]) -> tuple[int, str]:
-    """(level, message) of a diagnostics status from [(level, text), ...]: the worst level, the
-    texts joined; OK 'running' when there are none."""
+def worst(problems: list[tuple]) -> tuple[int, str, str]:
+    """(level, message, log text) of a diagnostics status from [(level, text[, quiet]), ...]: the
+    worst level and every text joined; the log text leaves out the quiet ones (problems the node's
+    counters log already, e.g. refused messages). OK 'running' when there are none."""
     if not problems:
-        return DiagnosticStatus.OK, 'running'
+        return DiagnosticStatus.OK, 'running', ''
     rank = lambda level: level[0] if isinstance(level, bytes) else int(level)  # noqa: E731  (levels are bytes)
     ordered = sorted(problems, key=lambda p: -rank(p[0]))
-    return ordered[0][0], '; '.join(text for _, text in ordered)
+    return (ordered[0][0], '; '.join(p[1] for p in ordered),
+            '; '.join(p[1] for p in ordered if not (len(p) > 2 and p[2])))
 
 
 def loss_events(health: Health, what: str):

@@ -139,7 +139,7 @@ class ExtractorNode(Node):
         if 'diagnostics_period' in changes:
             self.diagnostics.set_period(changes['diagnostics_period'])
 
-    def status(self, delta: dict) -> tuple[int, str]:
+    def status(self, delta: dict) -> tuple:
         """/diagnostics level and message from the last period's counter increases."""
         from diagnostic_msgs.msg import DiagnosticStatus as S
         problems = []
@@ -152,12 +152,13 @@ class ExtractorNode(Node):
                                      f"lost by DDS or the driver; README 'Camera-sized images')"))
         if delta.get('dds_lost'):
             problems.append((S.WARN, f"DDS reports {delta['dds_lost']} image samples lost"))
-        for key in ('bad_image', 'internal_error'):
+        for key in ('bad_image', 'internal_error'):  # quiet: logged by kind as they happen
             if delta.get(key):
-                problems.append((S.WARN, f'{delta[key]} frames refused ({key})'))
+                problems.append((S.WARN, f'{delta[key]} frames refused ({key})', True))
         if delta.get('qos_incompatible'):
             problems.append((S.WARN, f'a publisher of {self.image_topic} has an incompatible QoS (try '
-                                     f'reliability {"reliable" if self.params["reliability"] == "best_effort" else "best_effort"})'))
+                                     f'reliability {"reliable" if self.params["reliability"] == "best_effort" else "best_effort"})',
+                             True))
         if not delta.get('received') and self.count_publishers(self.image_topic) > 0:
             problems.append((S.WARN, f'{self.count_publishers(self.image_topic)} publisher(s) on {self.image_topic} '
                                      f'but no image arrived in the last period (QoS mismatch, or frames too '

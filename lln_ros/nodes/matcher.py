@@ -160,13 +160,13 @@ class MatcherNode(Node):
             values['last_query_age_s'] = f'{self.last_query_age:.3f}'
         return values
 
-    def status(self, delta: dict) -> tuple[int, str]:
+    def status(self, delta: dict) -> tuple:
         """/diagnostics level and message: ERROR while every landmark input is refused (model
         mismatch), WARN for losses and refused messages of the last period."""
         from diagnostic_msgs.msg import DiagnosticStatus as S
         problems = []
-        if self.loc.refusing:
-            problems.append((S.ERROR, f'refusing all landmark input: {self.loc.refusing}'))
+        if self.loc.refusing:  # quiet: the Localizer logged the refusal as an ERROR line
+            problems.append((S.ERROR, f'refusing all landmark input: {self.loc.refusing}', True))
         if delta.get('queries_stale'):
             age = self.last_query_age or 0.0
             hint = (' (stamps are days old: a replayed bag? play it with --clock and start the nodes with '
@@ -181,10 +181,10 @@ class MatcherNode(Node):
         for key in ('bad_query', 'bad_keyframe', 'bad_keypoints', 'bad_model_info', 'queries_failed',
                     'keyframes_failed'):
             if delta.get(key) and not (self.loc.refusing and key in ('bad_query', 'bad_keyframe')):
-                problems.append((S.WARN, f'{delta[key]} messages refused ({key})'))
+                problems.append((S.WARN, f'{delta[key]} messages refused ({key})', True))  # logged by kind already
         if delta.get('qos_incompatible'):
             problems.append((S.WARN, 'a landmark publisher has an incompatible QoS (reliability: the extractor '
-                                     'publishes reliable)'))
+                                     'publishes reliable)', True))
         return worst(problems)
 
     # ------------------------------------------------------------------ inputs
