@@ -50,11 +50,13 @@ class Param:
         return self.check(value) if self.check else ''
 
 
-def declare_all(node, spec: dict[str, Param], on_change: Callable[[dict], None] | None = None) -> dict:
+def declare_all(node, spec: dict[str, Param | tuple], on_change: Callable[[dict], None] | None = None) -> dict:
     """Declare every parameter of `spec`; return {name: value} (kept current on run-time changes).
     A start value outside its range or choices raises ValueError naming the parameter."""
     from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 
+    # a plain (default, description) pair is a read-only Param (the format before descriptors)
+    spec = {name: p if isinstance(p, Param) else Param(*p) for name, p in spec.items()}
     values = {}
     for name, param in spec.items():
         try:
