@@ -12,7 +12,8 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', [f'resource/{package_name}']),
         (f'share/{package_name}', ['package.xml']),
-        (f'share/{package_name}/config', glob('config/*.yaml')),
+        (f'share/{package_name}/config', glob('config/*.yaml') + glob('config/*.xml')),
+        (f'share/{package_name}/rviz', glob('rviz/*.rviz')),
         (f'share/{package_name}/launch', glob('launch/*.py')),
     ],
     install_requires=['setuptools'],
@@ -26,6 +27,7 @@ setup(
         'console_scripts': [
             'extractor = lln_ros.nodes.extractor:main',
             'matcher = lln_ros.nodes.matcher:main',
+            'visualizer = lln_ros.nodes.visualizer:main',
             'lln-match = lln_ros.cli.match:main',
             'lln-bag = lln_ros.cli.bag:main',
             'lln-eval = lln_ros.cli.eval:main',

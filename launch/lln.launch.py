@@ -4,22 +4,33 @@
     ros2 launch lln_ros lln.launch.py image:=/camera/image_raw image_transport:=compressed \
         map_path:=~/maps/campus.db mode:=localization
     ros2 launch lln_ros lln.launch.py feed:=keyframes map_path:=/tmp/reference.db   # build a map only
+    ros2 launch lln_ros lln.launch.py use_sim_time:=true reliability:=reliable       # with lln-bag play --clock
+    ros2 launch lln_ros lln.launch.py namespace:=robot1 verify:=true visualize:=true rviz:=true \
+        map_path:=milvus://127.0.0.1:19530?map=campus log_level:=debug
 
 The extractor subscribes `image` (or `image/compressed`), both remapped from the `image` argument;
 its `landmarks` go to the matcher's `query` (answered; in mapping mode also stored) or, with
 feed:=keyframes, to `keyframes` (stored, not answered). Parameters come from the YAML files in
-share/lln_ros/config, then the launch arguments below override theirs. See docs/interfaces.md.
+share/lln_ros/config, then the launch arguments below override theirs. Every process started here
+(and any camera driver included after it in the same launch) gets the Fast DDS profile for
+camera-sized images, unless FASTRTPS_DEFAULT_PROFILES_FILE is already set. See docs/interfaces.md.
 """
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
-from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
+from launch.actions import DeclareLaunchArgument, SetEnvironmentVariable
+from launch.conditions import IfCondition
+from launch.substitutions import EnvironmentVariable, LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
 
 
 def generate_launch_description() -> LaunchDescription:
-    config = PathJoinSubstitution([FindPackageShare('lln_ros'), 'config'])
+    share = FindPackageShare('lln_ros')
+    config = PathJoinSubstitution([share, 'config'])
     image = LaunchConfiguration('image')
+    namespace = LaunchConfiguration('namespace')
+    use_sim_time = LaunchConfiguration('use_sim_time')
+    verify = LaunchConfiguration('verify')
+    ros_arguments = ['--log-level', LaunchConfiguration('log_level')]
     arguments = [
         DeclareLaunchArgument('image', default_value='/camera/image_raw',
                               description='camera image topic (sensor_msgs/Image); with image_transport '
@@ -35,23 +46,66 @@ def generate_launch_description() -> LaunchDescription:
         DeclareLaunchArgument('feed', default_value='query', choices=['query', 'keyframes'],
                               description="matcher input fed by the extractor's landmarks"),
         DeclareLaunchArgument('map_path', default_value='~/.ros/lln_ros/map.db',
-                              description='SQLite map file (created if missing)'),
+                              description='map URI: SQLite file path (created if missing) | '
+                                          'milvus-lite:///path.db | milvus://host:port[/db][?map=name]'),
+        DeclareLaunchArgument('verify', default_value='false', choices=['true', 'false'],
+                              description='re-rank candidates by keypoint inliers: the extractor publishes '
+                                          'ORB keypoints, the matcher verifies and adds `inliers`'),
+        DeclareLaunchArgument('use_sim_time', default_value='false', choices=['true', 'false'],
+                              description='run on /clock (bag replay: lln-bag play --clock, ros2 bag play '
+                                          '--clock), so max_query_age and stamps work on recorded data'),
+        DeclareLaunchArgument('namespace', default_value='',
+                              description='namespace of the nodes and their relative topics and services'),
+        DeclareLaunchArgument('log_level', default_value='info',
+                              choices=['debug', 'info', 'warn', 'error', 'fatal'],
+                              description='log level of the nodes'),
+        DeclareLaunchArgument('visualize', default_value='false', choices=['true', 'false'],
+                              description='also start lln_visualizer: `overlay` image (query beside its '
+                                          'best keyframe, matched regions linked) and `markers`'),
+        DeclareLaunchArgument('rviz', default_value='false', choices=['true', 'false'],
+                              description='also start rviz2 with share/lln_ros/rviz/lln.rviz'),
+        DeclareLaunchArgument('dds_profile', default_value=EnvironmentVariable(
+                                  'FASTRTPS_DEFAULT_PROFILES_FILE',
+                                  default_value=PathJoinSubstitution([config, 'fastdds_large_data.xml'])),
+                              description='Fast DDS XML profile for the started processes (default: '
+                                          '$FASTRTPS_DEFAULT_PROFILES_FILE, else the shipped large-data '
+                                          'profile with a 16 MiB shared-memory segment)'),
         DeclareLaunchArgument('extractor_params', default_value=PathJoinSubstitution([config, 'extractor.yaml']),
                               description='parameter file of the extractor'),
         DeclareLaunchArgument('matcher_params', default_value=PathJoinSubstitution([config, 'matcher.yaml']),
                               description='parameter file of the matcher'),
     ]
+    # Fast DDS 2.x (Jazzy) reads FASTRTPS_*, 3.x (Kilted and later) FASTDDS_*
+    environment = [SetEnvironmentVariable(name, LaunchConfiguration('dds_profile'))
+                   for name in ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')]
     extractor = Node(
         package='lln_ros', executable='extractor', name='lln_extractor', output='screen', emulate_tty=True,
+        namespace=namespace, ros_arguments=ros_arguments,
         parameters=[LaunchConfiguration('extractor_params'),
                     {'image_transport': LaunchConfiguration('image_transport'),
-                     'reliability': LaunchConfiguration('reliability')}],
+                     'reliability': LaunchConfiguration('reliability'),
+                     'publish_keypoints': verify, 'use_sim_time': use_sim_time}],
         remappings=[('image', image), ('image/compressed', [image, '/compressed'])],
     )
     matcher = Node(
         package='lln_ros', executable='matcher', name='lln_matcher', output='screen', emulate_tty=True,
+        namespace=namespace, ros_arguments=ros_arguments,
         parameters=[LaunchConfiguration('matcher_params'),
-                    {'mode': LaunchConfiguration('mode'), 'map_path': LaunchConfiguration('map_path')}],
+                    {'mode': LaunchConfiguration('mode'), 'map_path': LaunchConfiguration('map_path'),
+                     'verify': verify, 'use_sim_time': use_sim_time}],
         remappings=[(LaunchConfiguration('feed'), 'landmarks')],
     )
-    return LaunchDescription(arguments + [extractor, matcher])
+    visualizer = Node(
+        package='lln_ros', executable='visualizer', name='lln_visualizer', output='screen', emulate_tty=True,
+        namespace=namespace, ros_arguments=ros_arguments, condition=IfCondition(LaunchConfiguration('visualize')),
+        parameters=[{'image_transport': LaunchConfiguration('image_transport'),
+                     'reliability': LaunchConfiguration('reliability'), 'use_sim_time': use_sim_time}],
+        remappings=[('image', image), ('image/compressed', [image, '/compressed'])],
+    )
+    rviz = Node(
+        package='rviz2', executable='rviz2', name='rviz2', output='screen', namespace=namespace,
+        condition=IfCondition(LaunchConfiguration('rviz')),
+        arguments=['-d', PathJoinSubstitution([share, 'rviz', 'lln.rviz'])],
+        parameters=[{'use_sim_time': use_sim_time}],
+    )
+    return LaunchDescription(arguments + environment + [extractor, matcher, visualizer, rviz])

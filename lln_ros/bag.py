@@ -5,6 +5,7 @@
     for topic, msg, t in read_messages(bag): ...         # deserialised rclpy messages
     bag_info(bag)                                         # topics, types, counts, duration
     play_bag(bag, rate=1.0, wait_subscribers=1)           # publish at the recorded timing
+    play_bag(bag, rate=4.0, clock_hz=40.0)                # ... and the bag time on /clock (sim time)
 
 Bags are rosbag2 directories (metadata.yaml + one .mcap file, storage version 9) written with
 `rosbags`; messages are serialised by rclpy itself (CDR), with the message definitions of the ROS 2
@@ -274,11 +275,55 @@ class SubscriberTimeout(BagError):
     """Not enough subscribers appeared before the wait timeout."""
 
 
+CLOCK_TOPIC = '/clock'
+
+
+class BagClock:
+    """Bag time as a function of wall time during playback: bag_ns(now) = t0_bag + (now - t0_wall) * rate.
+    Published on /clock (rosgraph_msgs/Clock), so nodes with use_sim_time=true run on the bag's time,
+    at any playback rate. QoS as rosbag2's --clock (rclcpp::ClockQoS): best effort, keep last 1."""
+
+    def __init__(self, node, rate: float, hz: float):
+        from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+        from rosgraph_msgs.msg import Clock
+        if not hz > 0:
+            raise BagError(f'clock rate must be positive, got {hz}')
+        self._msg = Clock()
+        self.pub = node.create_publisher(Clock, CLOCK_TOPIC, QoSProfile(
+            depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT))
+        self.rate, self.period = rate, 1.0 / hz
+        self.t0_wall = self.t0_bag = None
+        self.last_ns = None
+
+    def start(self, t0_wall: float, t0_bag: int) -> None:
+        self.t0_wall, self.t0_bag = t0_wall, t0_bag
+        self.publish(t0_bag)
+
+    def now_ns(self, wall: float) -> int:
+        return self.t0_bag + int(round((wall - self.t0_wall) * 1e9 * self.rate))
+
+    def publish(self, bag_ns: int) -> None:
+        if self.last_ns is not None and bag_ns < self.last_ns:
+            return  # /clock never runs backwards (messages of one instant on several topics)
+        self.last_ns = bag_ns
+        self._msg.clock.sec, self._msg.clock.nanosec = divmod(int(bag_ns), 1_000_000_000)
+        self.pub.publish(self._msg)
+
+    def sleep_until(self, wall: float) -> None:
+        """Sleep until `wall` (time.monotonic), publishing the bag time every period meanwhile."""
+        while True:
+            now = time.monotonic()
+            if now >= wall:
+                return
+            time.sleep(min(self.period, wall - now))
+            self.publish(self.now_ns(min(time.monotonic(), wall)))
+
+
 def play_bag(path: str | os.PathLike, rate: float = 1.0, remaps: dict[str, str] | None = None,
              qos: str = 'reliable', qos_depth: int = 100, wait_subscribers: int = 0,
              wait_timeout: float = 10.0, topics: Iterable[str] | None = None,
              start_delay: float = 0.0, linger: float = 0.5, log: Callable[[str], None] | None = None,
-             context=None) -> int:
+             context=None, clock_hz: float = 0.0) -> int:
     """Publish a bag's messages into the ROS graph at the recorded timing divided by `rate`.
 
     The recorded CDR bytes are published as they are (rclpy's publish of `bytes`), on publishers
@@ -288,6 +333,9 @@ def play_bag(path: str | os.PathLike, rate: float = 1.0, remaps: dict[str, str] 
     acknowledged before returning; best-effort ones linger `linger` seconds (without it the last
     sample is often lost when the writer is destroyed). Returns the number of messages published.
     Uses its own rclpy Context unless one is given, so it can run beside other nodes.
+    clock_hz > 0: also publish the bag time on /clock (rosgraph_msgs/Clock) at clock_hz and with
+    every message, as `ros2 bag play --clock` does; nodes run with use_sim_time:=true then see the
+    bag's stamps as "now" (so max_query_age works on a replay, at any --rate).
     """
     import rclpy
     from rclpy.duration import Duration
@@ -318,6 +366,7 @@ def play_bag(path: str | os.PathLike, rate: float = 1.0, remaps: dict[str, str] 
     try:
         node = rclpy.create_node('lln_bag_play', context=context, start_parameter_services=False)
         publishers = {t: node.create_publisher(cls, remaps.get(t, t), profile) for t, cls in classes.items()}
+        clock = BagClock(node, rate, clock_hz) if clock_hz > 0 else None
         if wait_subscribers > 0:
             deadline = time.monotonic() + wait_timeout
             while True:
@@ -331,14 +380,20 @@ def play_bag(path: str | os.PathLike, rate: float = 1.0, remaps: dict[str, str] 
             log(f'subscribers ready: {counts}')
         if start_delay > 0:
             time.sleep(start_delay)
-        log(f'playing {info["message_count"]} messages on {len(publishers)} topic(s) at rate {rate:g}')
+        log(f'playing {info["message_count"]} messages on {len(publishers)} topic(s) at rate {rate:g}'
+            + (f', bag time on {CLOCK_TOPIC} at {clock_hz:g} Hz' if clock is not None else ''))
         t0_wall, t0_bag = None, None
         for topic, _msgtype, stamp, raw in read_raw(path, wanted):
             if t0_wall is None:
                 t0_wall, t0_bag = time.monotonic(), stamp
-            delay = t0_wall + (stamp - t0_bag) / 1e9 / rate - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
+                if clock is not None:
+                    clock.start(t0_wall, t0_bag)
+            due = t0_wall + (stamp - t0_bag) / 1e9 / rate
+            if clock is not None:
+                clock.sleep_until(due)
+                clock.publish(stamp)  # the clock reaches a message's stamp before the message goes out
+            elif due > time.monotonic():
+                time.sleep(due - time.monotonic())
             publishers[topic].publish(bytes(raw))
             count += 1
         if profile.reliability == rclpy.qos.ReliabilityPolicy.RELIABLE:

@@ -82,8 +82,9 @@ from dataclasses import dataclass, field
 import faiss
 import numpy as np
 
-from .errors import DescriptorError, MapError
+from .errors import DescriptorError, MapError, ModelError
 from .landmarks import LandmarkSet, stack_landmarks
+from .limits import validate_model
 from .retrieval import Candidate, pair_regions, rerank
 
 log = logging.getLogger(__name__)
@@ -316,12 +317,27 @@ class MapStore:
 
     @staticmethod
     def _check_model_dict(model: dict) -> dict:
-        if not isinstance(model, dict) or not model.get('descriptor_space') or not model.get('descriptor_dim'):
-            raise MapError(f'model for map must be a dict with descriptor_space and descriptor_dim '
-                           f'(Extractor.model_info), got {model!r}')
-        model = dict(model)
-        model['descriptor_dim'] = int(model['descriptor_dim'])
-        return model
+        """The model validated by lln_ros.limits.validate_model (the one check the node, both
+        backends and lln-map share): nothing unvalidated is ever written as a model record."""
+        try:
+            return validate_model(model)
+        except ModelError as e:
+            raise MapError(f'model for map must be Extractor.model_info (descriptor_space, descriptor_dim): '
+                           f'{e}') from None
+
+    def _read_model_record(self, text: str) -> dict:
+        """The model record of the map file, validated; MapError explains a bad one."""
+        try:
+            return validate_model(json.loads(text))
+        except (ValueError, RecursionError) as e:  # ModelError and JSONDecodeError are ValueErrors
+            raise MapError(f'map {self.path} has a bad model record ({e}): {text[:200]!r}; '
+                           f'the map cannot be used until the record is repaired') from None
+
+    @property
+    def quarantined(self) -> dict:
+        """{keyframe id: what is wrong} of damaged keyframes found at open: left in the file, never
+        answered or returned by ids() (the SQLite backend; lln-map check lists them too)."""
+        return dict(getattr(self, '_quarantined', {}))
 
     def _mismatch(self, other: dict, what: str) -> MapError:
         return MapError(f'map {self.path} was built with model {_describe(self._model)}; refusing {what} '
@@ -480,6 +496,7 @@ class SQLiteMapStore(MapStore):
         self._model: dict | None = None
         self._index = None
         self._ids: list[int] = []
+        self._quarantined: dict = {}
         self._data_version = None
         if model is not None:
             model = self._check_model_dict(model)
@@ -525,7 +542,10 @@ class SQLiteMapStore(MapStore):
     def _create_file(self) -> None:
         """Build an empty map under a temporary name, then link it into place (no half-made maps)."""
         parent = os.path.dirname(self.path)
-        os.makedirs(parent, exist_ok=True)
+        try:
+            os.makedirs(parent, exist_ok=True)
+        except OSError as e:  # e.g. a parent that is a regular file: [Errno 17] alone names nothing
+            raise MapError(f'cannot create map {self.path}: its folder {parent} cannot be made ({e})') from e
         for suffix in ('-wal', '-shm', '-journal'):  # left over from a deleted file: never replay them
             try:
                 os.remove(self.path + suffix)
@@ -654,37 +674,64 @@ class SQLiteMapStore(MapStore):
         c = self._conn
         self._data_version = c.execute('PRAGMA data_version').fetchone()[0]
         meta = self._meta()
-        self._model = json.loads(meta['model']) if 'model' in meta else None
+        self._model = self._read_model_record(meta['model']) if 'model' in meta else None
         count = c.execute('SELECT count(*) FROM keyframes').fetchone()[0]
         self._ids = []
         self._index = None
+        self._quarantined = {}
         if self._model is None:
             if count:
                 raise MapError(f'map {self.path} is damaged: {count} keyframes but no model record')
             return
         dim = int(self._model['descriptor_dim'])
+        self._quarantined = self._damaged(dim)
+        if self._quarantined:
+            log.warning('map %s: %d damaged keyframe(s) quarantined (kept in the file, never answered): %s',
+                        self.path, len(self._quarantined), '; '.join(list(self._quarantined.values())[:10]))
         # streamed into one preallocated array: a 100k map's rows as Python objects would double the peak
         x = np.empty((count, dim), np.float32)
         cursor = c.execute('SELECT id, global_descriptor FROM keyframes ORDER BY id')
-        bad = []
         while rows := cursor.fetchmany(4096):
             for kid, blob in rows:
-                if len(blob) != 4 * dim:
-                    bad.append(kid)
-                elif len(self._ids) < count:
+                if kid not in self._quarantined and len(self._ids) < count:
                     x[len(self._ids)] = np.frombuffer(blob, '<f4')
                     self._ids.append(int(kid))
-        if bad:
-            raise MapError(f'map {self.path} is corrupt: global descriptors of keyframes {bad[:10]} are '
-                           f'not {dim} float32 values')
         self._index = GlobalIndex(dim, self.conf)
         self._index.build(x[:len(self._ids)], np.asarray(self._ids, np.int64))
         problems = self._faiss_problems()
         if problems:
             raise MapError(f'map {self.path}: in-memory index disagrees with the file: {"; ".join(problems)}')
 
+    def _damaged(self, dim: int) -> dict:
+        """{id: problem} of keyframes whose stored sizes do not fit their n and D (a missing landmarks
+        row, a blob of the wrong length, a bad grid or stamp). One SQL scan using length(), which
+        reads a blob's size from its record header without reading the blob: ~0.1 s per 100k
+        keyframes (bench/bench_map.py --integrity measures it)."""
+        rows = self._conn.execute(
+            'SELECT k.id, k.n, k.grid_rows, k.grid_cols, k.stamp_nanosec, length(k.global_descriptor), '
+            'length(l.cells), length(l.centers), length(l.scores), length(l.descriptors), l.keyframe_id IS NULL '
+            'FROM keyframes k LEFT JOIN landmarks l ON l.keyframe_id = k.id WHERE l.keyframe_id IS NULL '
+            'OR k.n < 1 OR k.grid_rows < 1 OR k.grid_cols < 1 OR k.stamp_nanosec < 0 '
+            'OR k.stamp_nanosec >= 1000000000 OR length(k.global_descriptor) IS NOT 4 * :d '
+            'OR length(l.cells) IS NOT 4 * k.n OR length(l.centers) IS NOT 8 * k.n '
+            'OR length(l.scores) IS NOT 4 * k.n OR length(l.descriptors) IS NOT 2 * k.n * :d ORDER BY k.id',
+            {'d': int(dim)})
+        out = {}
+        for kid, n, rows_, cols_, nsec, lg, lc, lce, ls, ld, orphan in rows:
+            if orphan:
+                out[kid] = f'keyframe {kid} has no landmarks row'
+                continue
+            want = (4 * dim, 4 * n, 8 * n, 4 * n, 2 * n * dim)
+            if (lg, lc, lce, ls, ld) != want or n < 1:
+                out[kid] = (f'keyframe {kid}: blob sizes (global, cells, centers, scores, descriptors) '
+                            f'{(lg, lc, lce, ls, ld)} do not fit n={n}, D={dim} (expected {want})')
+            else:
+                out[kid] = f'keyframe {kid}: bad grid {rows_}x{cols_} or stamp nanosec {nsec}'
+        return out
+
     def _faiss_problems(self) -> list[str]:
-        ids = [r[0] for r in self._conn.execute('SELECT id FROM keyframes ORDER BY id')]
+        ids = [r[0] for r in self._conn.execute('SELECT id FROM keyframes ORDER BY id')
+               if r[0] not in self._quarantined]
         if self._index is None:
             return [f'no FAISS index but {len(ids)} keyframes'] if ids else []
         problems = []
@@ -988,6 +1035,7 @@ class SQLiteMapStore(MapStore):
                     'descriptor_dim': self._model and int(self._model['descriptor_dim']),
                     'schema_version': int(meta['schema_version']), 'backend': 'sqlite',
                     'index': self._index.kind if self._index is not None else None,
+                    'quarantined': sorted(self._quarantined),
                     'first_id': self._ids[0] if self._ids else None,
                     'last_id': self._ids[-1] if self._ids else None,
                     'file_bytes': db_bytes + wal_bytes, 'db_bytes': db_bytes, 'wal_bytes': wal_bytes,
@@ -1038,22 +1086,8 @@ class SQLiteMapStore(MapStore):
                 if meta.get('descriptor_dim') != str(dim) or \
                         meta.get('descriptor_space') != self._model['descriptor_space']:
                     problems.append('meta descriptor_space/descriptor_dim disagree with the model record')
-                sizes = c.execute(
-                    'SELECT k.id, k.n, k.grid_rows, k.grid_cols, k.stamp_nanosec, length(k.global_descriptor), '
-                    'length(l.cells), length(l.centers), length(l.scores), length(l.descriptors), '
-                    'l.keyframe_id IS NULL FROM keyframes k LEFT JOIN landmarks l ON l.keyframe_id = k.id')
-                bad = []
-                for kid, n, rows_, cols_, nsec, lg, lc, lce, ls, ld, orphan in sizes:
-                    if orphan:
-                        bad.append(f'keyframe {kid} has no landmarks row')
-                        continue
-                    want = (4 * dim, 4 * n, 8 * n, 4 * n, 2 * n * dim)
-                    if (lg, lc, lce, ls, ld) != want or n < 1:
-                        bad.append(f'keyframe {kid}: blob sizes (global, cells, centers, scores, descriptors) '
-                                   f'{(lg, lc, lce, ls, ld)} do not fit n={n}, D={dim} (expected {want})')
-                    if rows_ < 1 or cols_ < 1 or not 0 <= nsec < 1_000_000_000:
-                        bad.append(f'keyframe {kid}: bad grid {rows_}x{cols_} or stamp nanosec {nsec}')
-                add(bad, str)
+                # the same scan the open runs (the node quarantines exactly these keyframes)
+                add(self._damaged(dim).values(), lambda p: f'{p} (quarantined: never answered)')
                 orphans = [r[0] for r in c.execute(
                     'SELECT keyframe_id FROM landmarks WHERE keyframe_id NOT IN (SELECT id FROM keyframes)')]
                 add(orphans, lambda i: f'landmarks row {i} has no keyframe')

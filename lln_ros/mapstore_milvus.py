@@ -205,7 +205,7 @@ class MilvusMapStore(MapStore):
         if version > SCHEMA_VERSION:
             raise MapError(f'map {self.path} has schema version {version}; this lln_ros reads up to '
                            f'{SCHEMA_VERSION}: upgrade lln_ros')
-        self._model = json.loads(meta['model']) if 'model' in meta else None
+        self._model = self._read_model_record(meta['model']) if 'model' in meta else None
         self._next_id = int(meta.get('next_id', 1))
         self._ids = []
         if self._model is None:

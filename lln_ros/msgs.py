@@ -25,10 +25,13 @@ Images: image_to_array / compressed_to_array (message -> uint8 array + channel o
 array_to_image / array_to_compressed (array -> message).
 
 Every malformed message ends in lln_ros.errors.MessageError with a message naming the problem.
+Decoders that take limits (max_rows, limits, max_pixels; see lln_ros.limits) check the sizes a
+message declares before allocating anything from them, and raise LimitError (a MessageError).
 """
 from __future__ import annotations
 
 import array as _array
+import struct
 from collections.abc import Mapping, Sequence
 
 import cv2
@@ -38,6 +41,7 @@ from std_msgs.msg import Header
 
 from .errors import DescriptorError, MessageError
 from .landmarks import LandmarkSet
+from .limits import LimitError, check_pixels
 
 # PointField datatype <-> little-endian numpy scalar type
 _DATATYPES = {
@@ -186,19 +190,23 @@ def check_fields(msg: PointCloud2, required: Sequence[tuple], what: str = 'cloud
             raise MessageError(f'{what}: field {name!r} has count {f.count}, expected {count}')
 
 
-def cloud_to_array(msg: PointCloud2, required: Sequence[tuple] = (), what: str = 'cloud') -> np.ndarray:
+def cloud_to_array(msg: PointCloud2, required: Sequence[tuple] = (), what: str = 'cloud',
+                   max_rows: int | None = None) -> np.ndarray:
     """Structured array (width * height records, every field of the cloud) from a PointCloud2.
 
     Checks the required fields (see check_fields), refuses big-endian clouds, and checks that
-    point_step, row_step, width * height and len(data) agree. The result owns its memory.
+    point_step, row_step, width * height and len(data) agree. max_rows: LimitError for a cloud of
+    more rows, before anything is copied. The result owns its memory.
     """
     if not isinstance(msg, PointCloud2):
         raise MessageError(f'{what}: expected a sensor_msgs/PointCloud2, got {type(msg).__name__}')
     if msg.is_bigendian:
         raise MessageError(f'{what}: big-endian clouds are not supported')
-    check_fields(msg, required, what)
     width, height, point_step, row_step = int(msg.width), int(msg.height), int(msg.point_step), int(msg.row_step)
     n = width * height
+    if max_rows is not None and n > max_rows:
+        raise LimitError(f'{what}: {width} x {height} = {n} rows is more than the limit of {max_rows}')
+    check_fields(msg, required, what)
     data = msg.data
     nbytes = len(data)
     if n and point_step < 1:
@@ -286,7 +294,7 @@ def landmarks_to_cloud(lset: LandmarkSet, header: Header | None = None) -> Point
 
 
 def cloud_to_landmarks(msg: PointCloud2, expected_dim: int | None = None,
-                       descriptor_space: str = '') -> LandmarkSet:
+                       descriptor_space: str = '', limits: Mapping | None = None) -> LandmarkSet:
     """LandmarkSet from a landmarks cloud (see landmarks_to_cloud).
 
     Cells are rebuilt as col = floor(u / w), row = floor(v / h), the grid as
@@ -295,10 +303,20 @@ def cloud_to_landmarks(msg: PointCloud2, expected_dim: int | None = None,
     does not travel either: pass it (e.g. from a parameter) to keep maps from mixing models.
     Raises MessageError for missing/mistyped fields, a descriptor size other than expected_dim,
     zero rows, no landmark rows, NaN/inf values, inconsistent cell sizes or cells off the grid.
+    limits (lln_ros.limits.default_conf keys): LimitError for more than max_landmarks landmark rows
+    or a D above max_descriptor_dim, checked before the data is copied; the declared image and
+    cell sizes are the caller's to check (limits.check_landmark_set) once the set is decoded.
     """
     what = 'landmarks cloud'
+    if limits is not None and isinstance(msg, PointCloud2):
+        rows = int(msg.width) * int(msg.height)
+        if rows > limits['max_landmarks'] + 1:
+            raise LimitError(f'{what}: {rows - 1} landmark rows is more than max_landmarks {limits["max_landmarks"]}')
     check_fields(msg, LANDMARK_FIELDS + (('descriptor', PointField.FLOAT32, None),), what)
     dim = next(f.count for f in msg.fields if f.name == 'descriptor')
+    if limits is not None and dim > limits['max_descriptor_dim']:
+        raise LimitError(f'{what}: descriptors have D={dim}, more than max_descriptor_dim '
+                         f'{limits["max_descriptor_dim"]}')
     if expected_dim is not None and dim != int(expected_dim):
         raise MessageError(f'{what}: descriptors have D={dim}, expected D={int(expected_dim)} '
                            '(extractor and matcher use different models?)')
@@ -369,13 +387,14 @@ def keypoints_to_cloud(kps, header: Header | None = None) -> PointCloud2:
     return array_to_cloud(table, header)
 
 
-def cloud_to_keypoints(msg: PointCloud2, image_size=(0, 0), scale: float = 1.0):
+def cloud_to_keypoints(msg: PointCloud2, image_size=(0, 0), scale: float = 1.0, max_rows: int | None = None):
     """reloc.Keypoints from a keypoints cloud. The image size and the detection scale do not travel:
     pass them (the landmarks of the same header carry the image size). Raises MessageError for
-    missing or mistyped fields and non-finite values; zero rows is a valid (textureless) image."""
+    missing or mistyped fields and non-finite values, LimitError for more than max_rows keypoints;
+    zero rows is a valid (textureless) image."""
     from .reloc import Keypoints
     what = 'keypoints cloud'
-    table = cloud_to_array(msg, KEYPOINT_FIELDS, what)
+    table = cloud_to_array(msg, KEYPOINT_FIELDS, what, max_rows=max_rows)
     for name in ('u', 'v', 'size', 'angle', 'response'):
         if not np.isfinite(table[name]).all():
             raise MessageError(f'{what}: field {name!r} contains NaN or inf')
@@ -440,11 +459,12 @@ def match_rows(keyframe_id: int, regions: Mapping) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # images
 
-def image_to_array(msg: Image) -> tuple[np.ndarray, str]:
+def image_to_array(msg: Image, max_pixels: int | None = None) -> tuple[np.ndarray, str]:
     """uint8 array and its channel order ('rgb' or 'bgr') from a sensor_msgs/Image.
 
     rgb8/bgr8 -> (H, W, 3), rgba8/bgra8 -> (H, W, 4), mono8 -> (H, W) ('rgb' by convention).
     Row padding (step > width * channels) is dropped. The result owns its memory.
+    max_pixels: LimitError for a larger width x height, before anything is copied.
     """
     what = 'image'
     if not isinstance(msg, Image):
@@ -456,6 +476,8 @@ def image_to_array(msg: Image) -> tuple[np.ndarray, str]:
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     if h == 0 or w == 0:
         raise MessageError(f'{what}: empty image ({w}x{h})')
+    if max_pixels is not None:
+        check_pixels(w, h, {'max_image_pixels': max_pixels}, what)
     row_bytes = w * channels
     if step < row_bytes:
         raise MessageError(f'{what}: step {step} is smaller than width x channels = {w} x {channels} = '
@@ -469,8 +491,54 @@ def image_to_array(msg: Image) -> tuple[np.ndarray, str]:
     return np.ascontiguousarray(raw).reshape(shape), order
 
 
-def compressed_to_array(msg: CompressedImage) -> tuple[np.ndarray, str]:
-    """BGR uint8 (H, W, 3) and 'bgr' from a sensor_msgs/CompressedImage (jpeg or png)."""
+def compressed_size(data) -> tuple[str, int, int]:
+    """('png' | 'jpeg', width, height) read from the header of PNG or JPEG bytes, without decoding.
+
+    PNG: the IHDR chunk, which must come first. JPEG: the first start-of-frame marker (SOF0-15),
+    reached by walking the marker segments. Raises MessageError for other data and for headers
+    that do not give a size (a JPEG whose height comes later in a DNL marker, truncated headers).
+    Hand-written (40 lines) rather than PIL.Image.open: PIL applies its own process-wide
+    decompression-bomb limits and warnings, and OpenCV has no header-only reader."""
+    head = bytes(data[:33])
+    if head[:8] == b'\x89PNG\r\n\x1a\n':
+        if len(head) < 24 or head[12:16] != b'IHDR':
+            raise MessageError('PNG without an IHDR header chunk')
+        w, h = struct.unpack('>II', head[16:24])
+        return 'png', int(w), int(h)
+    if head[:2] != b'\xff\xd8':
+        raise MessageError(f'neither PNG nor JPEG data (starts with {head[:8].hex()})')
+    view, i, n = memoryview(data), 2, len(data)
+    while i + 4 <= n:
+        if view[i] != 0xFF:
+            raise MessageError(f'JPEG marker expected at byte {i}')
+        marker = view[i + 1]
+        if marker == 0xFF:                      # fill byte
+            i += 1
+            continue
+        if marker == 0x01 or 0xD0 <= marker <= 0xD8:   # standalone markers
+            i += 2
+            continue
+        if marker in (0xD9, 0xDA):
+            break                               # end of image / start of scan before any frame header
+        length = (view[i + 2] << 8) | view[i + 3]
+        if length < 2:
+            raise MessageError(f'JPEG segment of length {length} at byte {i}')
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            if i + 9 > n:
+                break
+            h, w = (view[i + 5] << 8) | view[i + 6], (view[i + 7] << 8) | view[i + 8]
+            if h == 0 or w == 0:
+                raise MessageError(f'JPEG frame header says {w}x{h}')
+            return 'jpeg', int(w), int(h)
+        i += 2 + length
+    raise MessageError('JPEG without a frame header (SOF) giving its size')
+
+
+def compressed_to_array(msg: CompressedImage, max_pixels: int | None = None) -> tuple[np.ndarray, str]:
+    """BGR uint8 (H, W, 3) and 'bgr' from a sensor_msgs/CompressedImage (jpeg or png).
+
+    max_pixels: the size in the PNG/JPEG header is checked first (compressed_size): a small file
+    that would decode to more pixels is refused with LimitError before it is decoded."""
     what = 'compressed image'
     if not isinstance(msg, CompressedImage):
         raise MessageError(f'{what}: expected a sensor_msgs/CompressedImage, got {type(msg).__name__}')
@@ -479,10 +547,23 @@ def compressed_to_array(msg: CompressedImage) -> tuple[np.ndarray, str]:
         raise MessageError(f'{what}: format {msg.format!r} (depth) is not supported; use jpeg or png')
     if len(msg.data) == 0:
         raise MessageError(f'{what}: no data')
-    image = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_COLOR)
+    if max_pixels is not None:
+        try:
+            kind, w, h = compressed_size(msg.data)
+        except MessageError as e:
+            raise MessageError(f'{what}: cannot decode {len(msg.data)} bytes of format {msg.format!r}: {e} '
+                               '(jpeg and png are supported)') from None
+        check_pixels(w, h, {'max_image_pixels': max_pixels}, f'{what} ({kind} header)')
+    try:
+        image = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_COLOR)
+    except cv2.error as e:  # e.g. above OpenCV's own OPENCV_IO_MAX_IMAGE_PIXELS
+        raise MessageError(f'{what}: cannot decode {len(msg.data)} bytes of format {msg.format!r}: '
+                           f'{str(e).strip().splitlines()[-1]}') from None
     if image is None or image.size == 0:
         raise MessageError(f'{what}: cannot decode {len(msg.data)} bytes of format {msg.format!r} '
                            '(jpeg and png are supported)')
+    if max_pixels is not None:
+        check_pixels(image.shape[1], image.shape[0], {'max_image_pixels': max_pixels}, what)
     return image, 'bgr'
 
 
@@ -531,8 +612,8 @@ def array_to_compressed(image: np.ndarray, header: Header | None = None, fmt: st
     return msg
 
 
-def message_to_array(msg) -> tuple[np.ndarray, str]:
+def message_to_array(msg, max_pixels: int | None = None) -> tuple[np.ndarray, str]:
     """image_to_array or compressed_to_array, whichever fits the message."""
     if isinstance(msg, CompressedImage):
-        return compressed_to_array(msg)
-    return image_to_array(msg)
+        return compressed_to_array(msg, max_pixels)
+    return image_to_array(msg, max_pixels)

@@ -321,3 +321,65 @@ def test_play_times_out_without_subscribers(tmp_path):
                           timeout=60)
     assert play.returncode == 2
     assert 'timed out after 0.5 s waiting for 1 subscriber' in play.stderr
+
+
+SIM_TIME_SUBSCRIBER = r'''
+import json, sys, time
+import rclpy
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Image
+expected, timeout = int(sys.argv[1]), float(sys.argv[2])
+rclpy.init()
+node = rclpy.create_node('test_sim_time', parameter_overrides=[Parameter('use_sim_time', value=True)])
+got, clocks = [], []
+def on_image(msg):
+    now = node.get_clock().now().nanoseconds
+    got.append({'stamp': msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec, 'now': now,
+                'wall': time.monotonic()})
+node.create_subscription(Image, '/camera/image_raw', on_image, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+node.create_subscription(Clock, '/clock', lambda m: clocks.append(m.clock.sec * 10**9 + m.clock.nanosec),
+                         QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+print('READY', flush=True)
+deadline = time.monotonic() + timeout
+while len(got) < expected and time.monotonic() < deadline:
+    rclpy.spin_once(node, timeout_sec=0.02)
+print(json.dumps({'got': got, 'clocks': clocks}), flush=True)
+node.destroy_node()
+rclpy.shutdown()
+'''
+
+
+def test_play_clock_drives_sim_time_faster_than_real_time(tmp_path):
+    """--clock publishes the bag time on /clock; a node with use_sim_time=true then reads every
+    message's stamp as (just) the present, though the 4.5 s bag plays at 5x in under a second."""
+    make_images(tmp_path / 'imgs', 10, size=(160, 120))
+    out = tmp_path / 'bag'
+    stamps = bag.folder_to_bag(tmp_path / 'imgs', out, rate=2.0)
+    env = ros_env(tmp_path)
+    sub = subprocess.Popen([PY, '-c', SIM_TIME_SUBSCRIBER, '10', '40'], env=env, stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True)
+    try:
+        assert sub.stdout.readline().strip() == 'READY', sub.stderr.read()
+        play = subprocess.run([PY, '-m', 'lln_ros.cli.bag', 'play', str(out), '--wait-subscribers', '1',
+                               '--wait-timeout', '20', '--rate', '5', '--clock', '50'],
+                              env=env, capture_output=True, text=True, timeout=90)
+        assert play.returncode == 0, play.stderr
+        assert 'bag time on /clock at 50 Hz' in play.stdout, play.stdout
+        result, err = sub.communicate(timeout=60)
+    finally:
+        if sub.poll() is None:
+            sub.kill()
+            sub.communicate()
+    assert sub.returncode == 0, err
+    result = json.loads(result.strip().splitlines()[-1])
+    got, clocks = result['got'], result['clocks']
+    assert [g['stamp'] for g in got] == stamps  # reliable: every frame, in order, stamps unchanged
+    assert clocks == sorted(clocks), 'the clock ran backwards'
+    assert clocks[0] >= stamps[0] and clocks[-1] == stamps[-1]
+    ages = [(g['now'] - g['stamp']) / 1e9 for g in got]
+    # the clock reaches a stamp before its message goes out; at 50 Hz x rate 5 it advances 0.1 s a tick
+    assert all(0 <= a < 0.5 for a in ages), ages
+    wall = got[-1]['wall'] - got[0]['wall']
+    assert wall < (stamps[-1] - stamps[0]) / 1e9 / 2, f'{wall:.2f} s of wall time for 4.5 s of bag'

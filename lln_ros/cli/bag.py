@@ -4,7 +4,7 @@
                                 [--compressed] [--frame-id camera] [--start SEC]
     lln-bag info BAG [--json]
     lln-bag play BAG [--rate R] [--topic-remap A:=B ...] [--qos reliable|best_effort]
-                     [--wait-subscribers N --wait-timeout S]
+                     [--wait-subscribers N --wait-timeout S] [--clock [HZ]]
 """
 from __future__ import annotations
 
@@ -64,6 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help='give up waiting for subscribers after S seconds (default 10)')
     pl.add_argument('--start-delay', type=float, default=0.0, metavar='S',
                     help='sleep S seconds after the subscribers are there (default 0)')
+    pl.add_argument('--clock', type=_positive, nargs='?', const=40.0, default=0.0, metavar='HZ',
+                    help='publish the bag time on /clock (rosgraph_msgs/Clock) at HZ (default 40 when '
+                         'given), for nodes started with -p use_sim_time:=true (as ros2 bag play --clock)')
     pl.add_argument('--quiet', action='store_true', help='print nothing but errors')
     return p
 
@@ -86,11 +89,17 @@ def run(args) -> int:
         info = bag.bag_info(args.bag)
         print(json.dumps(info) if args.json else bag.format_info(info))
     elif args.command == 'play':
+        from ..dds import apply_large_data_profile
         log = (lambda _m: None) if args.quiet else (lambda m: print(f'lln-bag: {m}', flush=True))
+        level, note = apply_large_data_profile()  # a player publishes camera-sized frames: before rclpy.init
+        if level == 'warn':
+            print(f'lln-bag: warning: {note}', file=sys.stderr)
+        else:
+            log(note)
         bag.play_bag(args.bag, rate=args.rate, remaps=bag.parse_remaps(args.topic_remap), qos=args.qos,
                      qos_depth=args.qos_depth, wait_subscribers=args.wait_subscribers,
                      wait_timeout=args.wait_timeout, topics=args.topics, start_delay=args.start_delay,
-                     log=log)
+                     log=log, clock_hz=args.clock)
     return 0
 
 

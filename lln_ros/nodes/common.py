@@ -1,30 +1,21 @@
-"""ROS glue shared by the lln_ros nodes: parameter declaration, QoS, counters and diagnostics."""
+"""ROS glue shared by the lln_ros nodes (parameters: nodes/parameters.py): QoS, counters and diagnostics
+(levels: WARN for losses and refused input, ERROR when all input is refused)."""
 from __future__ import annotations
 
-import threading
-from collections import Counter
+import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
+
+from ..counters import Counters, problem_kind
 
 RELIABILITY = {'reliable': ReliabilityPolicy.RELIABLE, 'best_effort': ReliabilityPolicy.BEST_EFFORT}
 
 # the extractor's model_info: latched so a matcher started later still learns the model
 MODEL_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-
-def declare(node: Node, spec: dict) -> dict:
-    """Declare every parameter of `spec` {name: (default, description)} and return their values.
-    Read-only: the nodes read them once at start, so `ros2 param set` says so instead of pretending."""
-    values = {}
-    for name, (default, description) in spec.items():
-        node.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=True))
-        values[name] = node.get_parameter(name).value
-    return values
 
 
 def subscription_qos(reliability: str, depth: int) -> QoSProfile:
@@ -36,38 +27,18 @@ def subscription_qos(reliability: str, depth: int) -> QoSProfile:
     return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 
 
-class Health:
-    """Counters of a node plus 'log each distinct problem once, count all of them'."""
+class Health(Counters):
+    """A node's counters (lln_ros.counters: problems logged by kind, rate-limited) plus /diagnostics."""
 
     def __init__(self, node: Node):
+        super().__init__(log=node.get_logger().warning)
         self.node = node
-        self.counts: Counter = Counter()
-        self._seen: set = set()
-        self._lock = threading.Lock()
 
-    def count(self, key: str, n: int = 1) -> None:
-        with self._lock:
-            self.counts[key] += n
-
-    def problem(self, kind: str, message: str) -> None:
-        """Count a rejected input; the first time a given message is seen, log it as a warning."""
-        with self._lock:
-            self.counts[kind] += 1
-            first = (kind, message) not in self._seen
-            self._seen.add((kind, message))
-            total = self.counts[kind]
-        if first:
-            self.node.get_logger().warning(f'{kind}: {message} (skipped; further identical problems are '
-                                           f'counted, not logged; {total} so far)')
-
-    def snapshot(self) -> dict:
-        with self._lock:
-            return dict(self.counts)
-
-    def diagnostics(self, extra: dict | None = None) -> DiagnosticArray:
+    def diagnostics(self, extra: dict | None = None, level: int = DiagnosticStatus.OK,
+                    message: str = 'running') -> DiagnosticArray:
         values = {**self.snapshot(), **(extra or {})}
-        status = DiagnosticStatus(level=DiagnosticStatus.OK, name=self.node.get_fully_qualified_name(),
-                                  message='running', hardware_id='lln_ros',
+        status = DiagnosticStatus(level=level, name=self.node.get_fully_qualified_name(),
+                                  message=message, hardware_id='lln_ros',
                                   values=[KeyValue(key=k, value=str(v)) for k, v in sorted(values.items())])
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.node.get_clock().now().to_msg()
@@ -80,11 +51,17 @@ def run_node(make_node, name: str, args=None) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
+    from ..dds import apply_large_data_profile
     from ..errors import LLNError
+    dds_level, dds_note = apply_large_data_profile()  # before rclpy.init: Fast DDS reads it then
     rclpy.init(args=args)
     node = None
     try:
         node = make_node()
+        if dds_level == 'warn':
+            node.get_logger().warning(dds_note)
+        else:
+            node.get_logger().info(dds_note)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -98,9 +75,81 @@ def run_node(make_node, name: str, args=None) -> int:
     return 0
 
 
-def start_diagnostics(node: Node, health: Health, period: float, extra=lambda: {}) -> None:
-    """Publish health counters on /diagnostics every `period` seconds (0 = off)."""
-    if period <= 0:
-        return
-    pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
-    node.create_timer(period, lambda: pub.publish(health.diagnostics(extra())))
+LOG_PERIOD_S = 60.0  # a diagnostics problem of one kind is logged at most once a minute (as Counters does)
+
+
+class Diagnostics:
+    """Health counters on /diagnostics every `period` seconds (0 = off), with a level and message
+    from status(delta) -> (level, message, log text) (see worst), where delta = the counters' increases since the last
+    message (lln_ros.stream.Window): WARN for losses and refused input of the last period, ERROR
+    when the node refuses all input. The timer runs on the steady clock: with use_sim_time and a
+    paused (or not yet started) bag, /clock stands still, and diagnostics must not."""
+
+    def __init__(self, node: Node, health: Health, period: float, extra=lambda: {}, status=None):
+        from rclpy.clock import Clock, ClockType
+
+        from ..stream import Window
+        self.node, self.health, self.extra = node, health, extra
+        self.status = status or (lambda delta: worst([]))
+        self.window = Window(health.snapshot)
+        self.pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._clock = Clock(clock_type=ClockType.STEADY_TIME)
+        self.timer = None
+        self.logged: dict = {}
+        self.set_period(period)
+
+    def set_period(self, period: float) -> None:
+        if self.timer is not None:
+            self.node.destroy_timer(self.timer)
+            self.timer = None
+        if period > 0:
+            self.timer = self.node.create_timer(period, self.publish, clock=self._clock)
+
+    def publish(self) -> None:
+        try:
+            level, message, log_text = self.status(self.window.delta())
+        except Exception as e:  # noqa: BLE001  diagnostics must never take the node down
+            self.health.problem('internal_error', f'diagnostics status: {type(e).__name__}: {e}')
+            level, message, log_text = DiagnosticStatus.WARN, f'diagnostics status failed: {e}', ''
+        # numbers masked: one line per kind of problem and minute, not one per period or count
+        kind = (level, problem_kind(log_text))
+        now = time.monotonic()
+        if log_text and now - self.logged.get(kind, -1e9) >= LOG_PERIOD_S:
+            self.logged[kind] = now
+            # two call sites: rclpy refuses one call site logging at two severities
+            if level == DiagnosticStatus.ERROR:
+                self.node.get_logger().error(log_text)
+            else:
+                self.node.get_logger().warning(log_text)
+        self.pub.publish(self.health.diagnostics(self.extra(), level, message))
+
+
+def start_diagnostics(node: Node, health: Health, period: float, extra=lambda: {}, status=None) -> Diagnostics:
+    """Publish health counters on /diagnostics every `period` seconds (0 = off); see Diagnostics."""
+    return Diagnostics(node, health, period, extra, status)
+
+
+def worst(problems: list[tuple]) -> tuple[int, str, str]:
+    """(level, message, log text) of a diagnostics status from [(level, text[, quiet]), ...]: the
+    worst level and every text joined; the log text leaves out the quiet ones (problems the node's
+    counters log already, e.g. refused messages). OK 'running' when there are none."""
+    if not problems:
+        return DiagnosticStatus.OK, 'running', ''
+    rank = lambda level: level[0] if isinstance(level, bytes) else int(level)  # noqa: E731  (levels are bytes)
+    ordered = sorted(problems, key=lambda p: -rank(p[0]))
+    return (ordered[0][0], '; '.join(p[1] for p in ordered),
+            '; '.join(p[1] for p in ordered if not (len(p) > 2 and p[2])))
+
+
+def loss_events(health: Health, what: str):
+    """rclpy event callbacks for a subscription: an incompatible QoS offer (nothing will arrive
+    from that publisher) and DDS-reported lost samples are counted, so diagnostics can say so."""
+    from rclpy.event_handler import SubscriptionEventCallbacks
+
+    def incompatible(info) -> None:
+        health.problem('qos_incompatible', f'{what}: a publisher offers a QoS this subscription cannot match '
+                       f'(policy id {info.last_policy_kind}); nothing arrives from it')
+
+    def lost(info) -> None:
+        health.count('dds_lost', int(info.total_count_change))
+    return SubscriptionEventCallbacks(incompatible_qos=incompatible, message_lost=lost)

@@ -7,6 +7,10 @@ Publishes   landmarks (sensor_msgs/PointCloud2, see lln_ros.msgs), activation (s
 
 Only the newest frame waits for the network: when extraction falls behind, an older waiting frame
 is replaced and counted as dropped, so latency stays bounded by one extraction.
+
+Counters: received = published + dropped + bad_image + internal_error (+ at most one frame in
+flight). Every property of an input (encoding, size, a PNG/JPEG header above max_image_pixels,
+undecodable data) is bad_image; internal_error counts only faults of this code.
 """
 from __future__ import annotations
 
@@ -21,26 +25,42 @@ from std_msgs.msg import String
 
 from .. import msgs
 from ..errors import LLNError
+from ..backbones import BACKBONES
+from ..backbones import default_conf as BACKBONE
 from ..extractor import Extractor
+from ..extractor import default_conf as EXTRACTOR
 from ..image import check_image
+from ..landmarks import METHODS
+from ..limits import default_conf as LIMITS
 from ..plotting import heatmap_bgr
-from .common import MODEL_QOS, Health, declare, run_node, start_diagnostics, subscription_qos
+from ..stream import StampGaps
+from .common import MODEL_QOS, Health, loss_events, run_node, start_diagnostics, subscription_qos, worst
+from .parameters import Param, declare_all
 
+# defaults come from the ROS-free confs (lln_ros.extractor / backbones / limits): one source each
 PARAMETERS = {
-    'backbone': ('efficientnet_lite0', 'backbone: efficientnet_lite0 | efficientnet_lite2 | resnet101'),
-    'layer': ('', "backbone feature layer; '' = the backbone's default"),
-    'backbone_weights': ('', "local backbone state dict; '' = shipped weights (resnet101 needs one)"),
-    'weights': ('', "LLN head checkpoint; '' = the head shipped for the backbone"),
-    'top_n': (50, 'landmarks per image'),
-    'input_height': (288, 'network input height in pixels (aspect kept)'),
-    'method': ('lln', 'landmark selection: lln | act | rand | all'),
-    'image_transport': ('raw', "raw: sensor_msgs/Image on 'image'; compressed: 'image/compressed'"),
-    'reliability': ('best_effort', 'image subscription reliability: best_effort | reliable (for bags)'),
-    'publish_activation': (False, "also publish the LLN activation heatmap on 'activation'"),
-    'publish_keypoints': (False, "also publish ORB keypoints on 'keypoints' (matcher verify mode)"),
-    'keypoints_max': (500, 'ORB keypoints per image with publish_keypoints'),
-    'num_threads': (0, 'torch intra-op threads; 0 = torch default'),
-    'diagnostics_period': (1.0, 'seconds between /diagnostics messages; 0 = off'),
+    'backbone': Param(BACKBONE['name'], 'backbone', choices=tuple(BACKBONES)),
+    'layer': Param(BACKBONE['layer'], "backbone feature layer; '' = the backbone's default"),
+    'backbone_weights': Param(BACKBONE['weights_path'], "local backbone state dict; '' = shipped weights "
+                                                        '(resnet101 needs one)'),
+    'weights': Param(EXTRACTOR['weights'], "LLN head checkpoint; '' = the head shipped for the backbone"),
+    'top_n': Param(EXTRACTOR['top_n'], 'landmarks per image', range=(1, 100_000)),
+    'input_height': Param(EXTRACTOR['input_height'], 'network input height in pixels (aspect kept)',
+                          range=(32, 4096)),
+    'method': Param(EXTRACTOR['method'], 'landmark selection', choices=METHODS),
+    'image_transport': Param('raw', "raw: sensor_msgs/Image on 'image'; compressed: 'image/compressed'",
+                             choices=('raw', 'compressed')),
+    'reliability': Param('best_effort', 'image subscription reliability (reliable: for bags)',
+                         choices=('best_effort', 'reliable')),
+    'publish_activation': Param(False, "also publish the LLN activation heatmap on 'activation'", dynamic=True),
+    'publish_keypoints': Param(False, "also publish ORB keypoints on 'keypoints' (matcher verify mode)"),
+    'keypoints_max': Param(500, 'ORB keypoints per image with publish_keypoints', range=(1, LIMITS['max_keypoints'])),
+    'num_threads': Param(EXTRACTOR['num_threads'], 'torch intra-op threads; 0 = torch default', range=(0, 1024)),
+    'diagnostics_period': Param(1.0, 'seconds between /diagnostics messages; 0 = off', dynamic=True,
+                                range=(0.0, 3600.0)),
+    'max_image_pixels': Param(LIMITS['max_image_pixels'], 'limit: width x height of an image, raw or decoded '
+                              '(checked from the PNG/JPEG header before decoding); more is bad_image',
+                              range=(1, 2**40)),
 }
 
 
@@ -69,14 +89,15 @@ class NewestFrame:
 class ExtractorNode(Node):
     def __init__(self, **kwargs):
         super().__init__('lln_extractor', **kwargs)
-        p = self.params = declare(self, PARAMETERS)
+        p = self.params = declare_all(self, PARAMETERS, self.on_parameters)
         self.extractor = Extractor({
             'backbone': {'name': p['backbone'], 'layer': p['layer'], 'weights_path': p['backbone_weights']},
             'weights': p['weights'], 'top_n': p['top_n'], 'input_height': p['input_height'],
             'method': p['method'], 'num_threads': p['num_threads']})
         self.health = Health(self)
         self.landmarks_pub = self.create_publisher(PointCloud2, 'landmarks', 10)
-        self.activation_pub = self.create_publisher(Image, 'activation', 2) if p['publish_activation'] else None
+        self.activation_pub = None
+        self.set_activation(p['publish_activation'])
         self.keypoints_pub, self.orb = None, None
         if p['publish_keypoints']:
             from ..reloc import Relocalizer
@@ -85,26 +106,70 @@ class ExtractorNode(Node):
         model_pub = self.create_publisher(String, 'model_info', MODEL_QOS)
         model_pub.publish(String(data=json.dumps(self.extractor.model_info)))
         compressed = p['image_transport'] == 'compressed'
-        if p['image_transport'] not in ('raw', 'compressed'):
-            raise ValueError(f"image_transport must be 'raw' or 'compressed', got {p['image_transport']!r}")
+        self.image_topic = self.resolve_topic_name('image/compressed' if compressed else 'image')
         self.create_subscription(CompressedImage if compressed else Image,
                                  'image/compressed' if compressed else 'image', self.on_image,
-                                 subscription_qos(p['reliability'], 5))
+                                 subscription_qos(p['reliability'], 5),
+                                 event_callbacks=loss_events(self.health, f'image subscription {self.image_topic}'))
+        self.gaps = StampGaps()
         self.mailbox = NewestFrame()
         self.latency_ms = 0.0
         self._running = True
         self.worker = threading.Thread(target=self._work, name='lln_extractor_worker', daemon=True)
         self.worker.start()
-        start_diagnostics(self, self.health, p['diagnostics_period'],
-                          lambda: {'last_latency_ms': f'{self.latency_ms:.1f}'})
+        self.diagnostics = start_diagnostics(self, self.health, p['diagnostics_period'],
+                                             lambda: {'last_latency_ms': f'{self.latency_ms:.1f}'}, self.status)
         info = self.extractor.model_info
         self.get_logger().info(
             f"extracting {p['method']} top-{p['top_n']} landmarks with {info['descriptor_space']} "
             f"(head {info['head']}{'' if info['head_trained'] else ', UNTRAINED'}) from "
-            f"'{self.resolve_topic_name('image/compressed' if compressed else 'image')}'")
+            f"'{self.image_topic}'")
+
+    def set_activation(self, on: bool) -> None:
+        if on and self.activation_pub is None:
+            self.activation_pub = self.create_publisher(Image, 'activation', 2)
+        elif not on and self.activation_pub is not None:
+            pub, self.activation_pub = self.activation_pub, None
+            self.destroy_publisher(pub)
+
+    def on_parameters(self, changes: dict) -> None:
+        """Run-time changes (already range-checked): only the dynamic parameters get here."""
+        if 'publish_activation' in changes:
+            self.set_activation(changes['publish_activation'])
+        if 'diagnostics_period' in changes:
+            self.diagnostics.set_period(changes['diagnostics_period'])
+
+    def status(self, delta: dict) -> tuple:
+        """/diagnostics level and message from the last period's counter increases."""
+        from diagnostic_msgs.msg import DiagnosticStatus as S
+        problems = []
+        if delta.get('dropped'):
+            problems.append((S.WARN, f"skipped {delta['dropped']} of {delta.get('received', 0)} frames (newest-frame "
+                                     f"policy: extraction takes {self.latency_ms:.0f} ms; lower the input rate or "
+                                     f"replay slower to keep every frame)"))
+        if delta.get('frames_missing'):
+            problems.append((S.WARN, f"{delta['frames_missing']} frames missing upstream (gaps in the image stamps: "
+                                     f"lost by DDS or the driver; README 'Camera-sized images')"))
+        if delta.get('dds_lost'):
+            problems.append((S.WARN, f"DDS reports {delta['dds_lost']} image samples lost"))
+        for key in ('bad_image', 'internal_error'):  # quiet: logged by kind as they happen
+            if delta.get(key):
+                problems.append((S.WARN, f'{delta[key]} frames refused ({key})', True))
+        if delta.get('qos_incompatible'):
+            problems.append((S.WARN, f'a publisher of {self.image_topic} has an incompatible QoS (try '
+                                     f'reliability {"reliable" if self.params["reliability"] == "best_effort" else "best_effort"})',
+                             True))
+        if not delta.get('received') and self.count_publishers(self.image_topic) > 0:
+            problems.append((S.WARN, f'{self.count_publishers(self.image_topic)} publisher(s) on {self.image_topic} '
+                                     f'but no image arrived in the last period (QoS mismatch, or frames too '
+                                     f'large for the middleware: README \'Camera-sized images\')'))
+        return worst(problems)
 
     def on_image(self, msg) -> None:
         self.health.count('received')
+        missing = self.gaps.add(msgs.stamp_to_ns(msg.header.stamp))
+        if missing:
+            self.health.count('frames_missing', missing)
         if self.mailbox.put(msg):
             self.health.count('dropped')
 
@@ -116,13 +181,13 @@ class ExtractorNode(Node):
             try:
                 self.process(msg)
             except Exception as e:  # noqa: BLE001  the worker must outlive any one frame
-                self.get_logger().error(f'unexpected error on a frame (skipped): {type(e).__name__}: {e}')
-                self.health.count('internal_error')
+                self.health.problem('internal_error', f'unexpected error on a frame: {type(e).__name__}: {e}',
+                                    kind=type(e).__name__)
 
     def process(self, msg) -> None:
         start = time.perf_counter()
         try:
-            image, order = msgs.message_to_array(msg)
+            image, order = msgs.message_to_array(msg, self.params['max_image_pixels'])
             lset = self.extractor(image, channel_order=order)
             kps = self.orb.detect(image, order) if self.orb is not None else None
         except LLNError as e:
@@ -131,9 +196,10 @@ class ExtractorNode(Node):
         if kps is not None:  # first, so a matcher has them when the landmarks of this header arrive
             self.keypoints_pub.publish(msgs.keypoints_to_cloud(kps, msg.header))
         self.landmarks_pub.publish(msgs.landmarks_to_cloud(lset, msg.header))
-        if self.activation_pub is not None:
+        activation_pub = self.activation_pub  # publish_activation may change meanwhile (executor thread)
+        if activation_pub is not None:
             heat = heatmap_bgr(check_image(image, order), lset.activation)
-            self.activation_pub.publish(msgs.array_to_image(heat, 'bgr8', msg.header))
+            activation_pub.publish(msgs.array_to_image(heat, 'bgr8', msg.header))
         self.latency_ms = (time.perf_counter() - start) * 1e3
         self.health.count('published')
 

@@ -22,6 +22,11 @@ the search lln-eval --sequence runs offline): candidates come best sequence_scor
 applies to sequence_score, and `score` / `holistic_score` are this query's own (0 = the keyframe was
 not among this query's prefilter_k). Out-of-order stamps and gaps longer than sequence_max_gap start a
 new sequence (counted as sequence_reset_out_of_order / sequence_reset_gap).
+
+What happens to each message is decided by lln_ros.localizer.Localizer (ROS-free, unit-tested
+without rclpy); this node decodes (lln_ros.msgs), calls it and publishes. Input limits
+(max_image_pixels, max_landmarks, max_descriptor_dim, max_grid_side, max_keypoints) default to
+lln_ros.limits.default_conf.
 """
 from __future__ import annotations
 
@@ -35,250 +40,195 @@ from std_srvs.srv import Trigger
 
 from .. import msgs
 from ..errors import LLNError
-from ..mapstore import MapStore
+from ..limits import default_conf as LIMITS
+from ..localizer import Localizer, open_map
+from ..localizer import default_conf as LOC
 from ..sequence import KeyframeSequence
-from .common import MODEL_QOS, Health, declare, run_node, start_diagnostics, subscription_qos
+from ..stream import StampGaps
+from .common import MODEL_QOS, Health, loss_events, run_node, start_diagnostics, subscription_qos, worst
+from .parameters import Param, declare_all
 
+# defaults come from the ROS-free confs (lln_ros.localizer / limits): one source each.
+# dynamic=True: settable at run time (ros2 param set), applied from the next message on
 PARAMETERS = {
-    'map_path': ('~/.ros/lln_ros/map.db', 'map URI: SQLite file path (created if missing), '
-                 'milvus-lite:///path.db or milvus://host:port[/db][?map=name]'),
-    'mode': ('localization', 'localization: answer queries only | mapping: answer, then store each query'),
-    'prefilter_k': (30, 'holistic candidates reranked by the landmark similarity; 0 = every keyframe '
-                        '(exhaustive: no holistic cap on recall, cost grows with the map)'),
-    'k': (5, 'candidates published per query'),
-    'min_score': (0.0, 'candidates scoring below this are not published'),
-    'exclude_recent': (10, 'mapping mode: the newest N keyframes are never answers'),
-    'method': ('lln', 'lln: rerank by landmark similarity S | holistic: global descriptor only'),
-    'offset_scale': (1.0, 'Gaussian width of the offset weights, in grid cells'),
-    'descriptor_space': ('', "expected model, e.g. efficientnet_lite0/stage6/192; '' = the map's or first seen"),
-    'reliability': ('reliable', 'keyframes/query subscriptions: reliable | best_effort'),
-    'queue_depth': (100, 'keyframes/query subscription queue depth'),
-    'verify': (False, "re-rank candidates by keypoint inliers (needs the extractor's publish_keypoints)"),
-    'verify_min_inliers': (15, 'verify: RANSAC inliers for a candidate to count as verified'),
-    'verify_margin': (1.0, 'verify: matched regions grown by this many grid cells'),
-    'max_query_age': (0.0, 'seconds; older queries (header stamp vs node clock) are dropped and counted '
-                           'as queries_stale, so a backlog cannot grow latency; 0 = off'),
-    'diagnostics_period': (1.0, 'seconds between /diagnostics messages; 0 = off'),
-    'sequence_length': (0, 'queries in the sequence search (0 = off, single-frame ranking)'),
-    'sequence_max_gap': (1.0, 'seconds between query stamps beyond which a new sequence starts'),
+    'map_path': Param('~/.ros/lln_ros/map.db', 'map URI: SQLite file path (created if missing), '
+                      'milvus-lite:///path.db or milvus://host:port[/db][?map=name]'),
+    'mode': Param(LOC['mode'], 'localization: answer queries only | mapping: answer, then store each query',
+                  choices=('localization', 'mapping')),
+    'prefilter_k': Param(LOC['prefilter_k'], 'holistic candidates reranked by the landmark similarity; 0 = every '
+                         'keyframe (exhaustive: no holistic cap on recall, cost grows with the map)',
+                         dynamic=True, range=(0, 1_000_000)),
+    'k': Param(LOC['k'], 'candidates published per query', dynamic=True, range=(1, 10_000)),
+    'min_score': Param(LOC['min_score'], 'candidates scoring below this are not published', dynamic=True,
+                       range=(-1.0, 1e6)),
+    'exclude_recent': Param(LOC['exclude_recent'], 'mapping mode: the newest N keyframes are never answers',
+                            dynamic=True, range=(0, 1_000_000)),
+    'method': Param(LOC['method'], 'lln: rerank by landmark similarity S | holistic: global descriptor only',
+                    dynamic=True, choices=('lln', 'holistic')),
+    'offset_scale': Param(LOC['offset_scale'], 'Gaussian width of the offset weights, in grid cells', dynamic=True,
+                          range=(1e-3, 1e3)),
+    'descriptor_space': Param('', "expected model, e.g. efficientnet_lite0/stage6/192; '' = the map's or first seen"),
+    'reliability': Param('reliable', 'keyframes/query subscriptions', choices=('reliable', 'best_effort')),
+    'queue_depth': Param(100, 'keyframes/query subscription queue depth', range=(1, 100_000)),
+    'verify': Param(LOC['verify'], "re-rank candidates by keypoint inliers (needs the extractor's publish_keypoints)"),
+    'verify_min_inliers': Param(LOC['verify_min_inliers'], 'verify: RANSAC inliers for a candidate to count as '
+                                'verified', dynamic=True, range=(1, 100_000)),
+    'verify_margin': Param(LOC['verify_margin'], 'verify: matched regions grown by this many grid cells',
+                           dynamic=True, range=(0.0, 100.0)),
+    'max_query_age': Param(LOC['max_query_age'], 'seconds; older queries (header stamp vs node clock: use_sim_time '
+                           'for bags) are dropped and counted as queries_stale, so a backlog cannot grow '
+                           'latency; 0 = off', dynamic=True, range=(0.0, 1e9)),
+    'diagnostics_period': Param(1.0, 'seconds between /diagnostics messages; 0 = off', dynamic=True,
+                                range=(0.0, 3600.0)),
+    'sequence_length': Param(LOC['sequence_length'], 'queries in the sequence search (0 = off, single-frame '
+                             'ranking); a change starts a new sequence', dynamic=True, range=(0, 10_000)),
+    'sequence_max_gap': Param(LOC['sequence_max_gap'], 'seconds between query stamps beyond which a new sequence '
+                              'starts', dynamic=True, range=(1e-3, 1e6)),
+    # input limits (lln_ros.limits): a message declaring more is refused and counted, never sized from
+    'max_image_pixels': Param(LIMITS['max_image_pixels'], 'limit: image width x height a landmark cloud may '
+                              'declare', range=(1, 2**40)),
+    'max_landmarks': Param(LIMITS['max_landmarks'], 'limit: landmark rows per keyframe or query', range=(1, 2**31 - 1)),
+    'max_descriptor_dim': Param(LIMITS['max_descriptor_dim'], 'limit: descriptor size D (clouds and model_info)',
+                                range=(1, 2**31 - 1)),
+    'max_grid_side': Param(LIMITS['max_grid_side'], 'limit: grid cells a side a landmark cloud may declare '
+                           '(image size / cell size)', range=(1, 2**31 - 1)),
+    'max_keypoints': Param(LIMITS['max_keypoints'], 'limit: rows per keypoints cloud (verify)', range=(1, 2**31 - 1)),
 }
-
-
-def space_model(space: str) -> dict:
-    """{'descriptor_space', 'descriptor_dim'} from a 'backbone/layer/D' string."""
-    try:
-        dim = int(space.rsplit('/', 1)[1])
-    except (IndexError, ValueError):
-        raise ValueError(f"descriptor_space must look like 'backbone/layer/D', got {space!r}") from None
-    return {'descriptor_space': space, 'descriptor_dim': dim}
+# the Localizer's own settings among them (updated in place at run time: it reads them per message)
+LOCALIZER_KEYS = ('mode', 'prefilter_k', 'k', 'min_score', 'exclude_recent', 'method', 'offset_scale',
+                  'max_query_age', 'verify', 'verify_min_inliers', 'verify_margin', 'sequence_length',
+                  'sequence_max_gap')
 
 
 class MatcherNode(Node):
     def __init__(self, **kwargs):
         super().__init__('lln_matcher', **kwargs)
-        p = self.params = declare(self, PARAMETERS)
-        if p['mode'] not in ('localization', 'mapping'):
-            raise ValueError(f"mode must be 'localization' or 'mapping', got {p['mode']!r}")
-        if p['method'] not in ('lln', 'holistic'):
-            raise ValueError(f"method must be 'lln' or 'holistic', got {p['method']!r}")
-        if p['prefilter_k'] < 0:
-            raise ValueError(f"prefilter_k must be 0 (every keyframe) or positive, got {p['prefilter_k']}")
-        if p['sequence_length'] < 0:
-            raise ValueError(f"sequence_length must be 0 (off) or positive, got {p['sequence_length']}")
-        self.sequence = KeyframeSequence({'length': p['sequence_length'], 'max_gap_s': p['sequence_max_gap']}) \
-            if p['sequence_length'] > 0 else None
-        self.store = MapStore.open(p['map_path'], model=space_model(p['descriptor_space'])
-                                   if p['descriptor_space'] else None)
+        p = self.params = declare_all(self, PARAMETERS, self.on_parameters)
         self.health = Health(self)
-        self.refusing = ''  # set when the extractor's model differs from the map's
+        conf = {name: p[name] for name in LOCALIZER_KEYS}
+        conf['limits'] = {name: p[name] for name in LIMITS}
+        Localizer.check_conf(conf)   # a bad parameter ends the node before the map is touched
+        self.store, quarantined = open_map(p['map_path'], p['mode'], p['descriptor_space'])
+        self.loc = Localizer(self.store, conf, self.health, self.get_logger(), msgs.cloud_to_keypoints)
         qos = subscription_qos(p['reliability'], p['queue_depth'])
         self.candidates_pub = self.create_publisher(PointCloud2, 'candidates', 10)
         self.matches_pub = self.create_publisher(PointCloud2, 'matches', 10)
-        self.create_subscription(PointCloud2, 'keyframes', self.on_keyframe, qos)
-        self.create_subscription(PointCloud2, 'query', self.on_query, qos)
+        self.query_topic = self.resolve_topic_name('query')
+        self.create_subscription(PointCloud2, 'keyframes', self.on_keyframe, qos,
+                                 event_callbacks=loss_events(self.health, 'keyframes subscription'))
+        self.create_subscription(PointCloud2, 'query', self.on_query, qos,
+                                 event_callbacks=loss_events(self.health, f'query subscription {self.query_topic}'))
+        self.gaps = StampGaps()
+        self.last_query_age = None  # seconds, header stamp vs node clock (sim time with use_sim_time)
         self.create_subscription(String, 'model_info', self.on_model_info, MODEL_QOS)
-        self.reloc, self.pending_keypoints, self.unmatched_keyframes = None, {}, {}
         if p['verify']:
-            from ..reloc import Relocalizer
-            self.reloc = Relocalizer({'min_inliers': p['verify_min_inliers'], 'margin': p['verify_margin']})
             self.create_subscription(PointCloud2, 'keypoints', self.on_keypoints, qos)
         self.create_service(Trigger, '~/save', self.on_save)
         self.create_service(Trigger, '~/clear', self.on_clear)
         self.create_service(Trigger, '~/info', self.on_info)
-        start_diagnostics(self, self.health, p['diagnostics_period'], lambda: {'keyframes': len(self.store)})
+        self.diagnostics = start_diagnostics(self, self.health, p['diagnostics_period'], self.diagnostic_values,
+                                             self.status)
+        if quarantined:
+            self.get_logger().error(
+                f'map {self.store.path}: {len(quarantined)} damaged keyframe(s) quarantined: never answered, '
+                f'left in the file (lln-map check lists them): {"; ".join(list(quarantined.values())[:10])}')
         model = self.store.model
         self.get_logger().info(
             f"map {self.store.path}: {len(self.store)} keyframes, model "
             f"{model['descriptor_space'] if model else '(none yet)'}; mode {p['mode']}")
 
+    # ------------------------------------------------------------------ parameters and health
+
+    def on_parameters(self, changes: dict) -> None:
+        """Run-time changes (range-checked by rclpy, choices by parameters.declare_all); a ValueError
+        refuses the whole set with its reason."""
+        conf = {**self.loc.conf, **{k: v for k, v in changes.items() if k in LOCALIZER_KEYS}}
+        Localizer.check_conf(conf)
+        self.loc.conf.update({k: v for k, v in changes.items() if k in LOCALIZER_KEYS})
+        if self.loc.reloc is not None:
+            self.loc.reloc.conf.update({'min_inliers': conf['verify_min_inliers'], 'margin': conf['verify_margin']})
+        if {'sequence_length', 'sequence_max_gap'} & set(changes):  # a new search: a new sequence
+            self.loc.sequence = KeyframeSequence({'length': conf['sequence_length'],
+                                                  'max_gap_s': conf['sequence_max_gap']}) \
+                if conf['sequence_length'] > 0 else None
+        if 'diagnostics_period' in changes:
+            self.diagnostics.set_period(changes['diagnostics_period'])
+
+    def diagnostic_values(self) -> dict:
+        values = {'keyframes': len(self.store)}
+        if self.last_query_age is not None:
+            values['last_query_age_s'] = f'{self.last_query_age:.3f}'
+        return values
+
+    def status(self, delta: dict) -> tuple:
+        """/diagnostics level and message: ERROR while every landmark input is refused (model
+        mismatch), WARN for losses and refused messages of the last period."""
+        from diagnostic_msgs.msg import DiagnosticStatus as S
+        problems = []
+        if self.loc.refusing:  # quiet: the Localizer logged the refusal as an ERROR line
+            problems.append((S.ERROR, f'refusing all landmark input: {self.loc.refusing}', True))
+        if delta.get('queries_stale'):
+            age = self.last_query_age or 0.0
+            hint = (' (stamps are days old: a replayed bag? play it with --clock and start the nodes with '
+                    'use_sim_time:=true)' if age > 86400 and not self.get_parameter('use_sim_time').value else '')
+            problems.append((S.WARN, f"dropped {delta['queries_stale']} queries older than max_query_age "
+                                     f"{self.params['max_query_age']:g} s (last {age:.3f} s old){hint}"))
+        if delta.get('queries_missing'):
+            problems.append((S.WARN, f"{delta['queries_missing']} queries missing (gaps in the query stamps: frames "
+                                     f"lost before the matcher, see the extractor's diagnostics)"))
+        if delta.get('dds_lost'):
+            problems.append((S.WARN, f"DDS reports {delta['dds_lost']} landmark samples lost"))
+        for key in ('bad_query', 'bad_keyframe', 'bad_keypoints', 'bad_model_info', 'queries_failed',
+                    'keyframes_failed'):
+            if delta.get(key) and not (self.loc.refusing and key in ('bad_query', 'bad_keyframe')):
+                problems.append((S.WARN, f'{delta[key]} messages refused ({key})', True))  # logged by kind already
+        if delta.get('qos_incompatible'):
+            problems.append((S.WARN, 'a landmark publisher has an incompatible QoS (reliability: the extractor '
+                                     'publishes reliable)', True))
+        return worst(problems)
+
     # ------------------------------------------------------------------ inputs
 
     def on_model_info(self, msg: String) -> None:
-        try:
-            model = json.loads(msg.data)
-            self.store.use_model(model)
-            self.refusing = ''
-        except LLNError as e:  # before ValueError: LLNError (MapError) subclasses it
-            self.refusing = str(e)
-            self.get_logger().error(f'{e}; landmark input is refused until the models agree')
-        except (ValueError, KeyError, TypeError) as e:
-            self.health.problem('bad_model_info', f'cannot read model_info: {e}')
+        self.loc.model_info(msg.data)
 
-    def decode(self, msg: PointCloud2, kind: str):
-        if self.refusing:
-            self.health.problem(kind, self.refusing)
+    def decode(self, msg: PointCloud2, counter: str):
+        args = self.loc.landmark_decoding(counter)
+        if args is None:
             return None
-        model = self.store.model
         try:
-            return msgs.cloud_to_landmarks(msg, expected_dim=model['descriptor_dim'] if model else None,
-                                           descriptor_space=model['descriptor_space'] if model else '')
+            return msgs.cloud_to_landmarks(msg, **args)
         except LLNError as e:
-            self.health.problem(kind, str(e))
+            self.loc.refuse(counter, e)
             return None
 
     def on_keypoints(self, msg: PointCloud2) -> None:
-        """Held until the landmark set with the same stamp arrives (the newest 100 are kept); two
-        topics are not ordered, so keypoints of a keyframe already stored are attached to it."""
-        stamp = msgs.stamp_to_ns(msg.header.stamp)
-        kid = self.unmatched_keyframes.pop(stamp, None)
-        if kid is None:
-            self.pending_keypoints[stamp] = msg
-            _bound(self.pending_keypoints)
-            return
-        try:
-            kps = self.decode_keypoints(msg, self.store.get(kid))
-            if kps is not None:
-                self.store.add_keypoints(kid, kps.uv, kps.descriptors)
-        except (LLNError, KeyError) as e:
-            self.health.problem('bad_keypoints', str(e))
-
-    def take_keypoints(self, stamp, lset):
-        """The keypoints sent with this landmark set (by stamp), decoded, or None."""
-        msg = self.pending_keypoints.pop(msgs.stamp_to_ns(stamp), None) if self.reloc else None
-        if msg is None:
-            if self.reloc:
-                self.health.count('verify_missing_keypoints')
-            return None
-        return self.decode_keypoints(msg, lset)
-
-    def decode_keypoints(self, msg, lset):
-        from ..reloc import detection_scale
-        w, h = (float(v) for v in lset.image_size)
-        try:
-            return msgs.cloud_to_keypoints(msg, (w, h), detection_scale(h, self.reloc.conf['min_height']))
-        except LLNError as e:
-            self.health.problem('bad_keypoints', str(e))
-            return None
-
-    def store_keyframe(self, lset, stamp, kps) -> None:
-        kid = self.store.add(lset, stamp)
-        if kps is not None:
-            self.store.add_keypoints(kid, kps.uv, kps.descriptors)
-        elif self.reloc is not None:   # its keypoints may still come
-            self.unmatched_keyframes[msgs.stamp_to_ns(stamp)] = kid
-            _bound(self.unmatched_keyframes)
-        self.health.count('keyframes_stored')
-
-    def stored_keypoints(self, keyframe_id: int, image_size):
-        from ..reloc import Keypoints, detection_scale
-        found = self.store.keypoints(keyframe_id)
-        if found is None:
-            return None
-        uv, desc = found
-        kps = Keypoints.empty(image_size)
-        kps.uv, kps.descriptors = uv, desc
-        kps.scale = detection_scale(image_size[1], self.reloc.conf['min_height'])
-        return kps
+        self.loc.keypoints(msg, msgs.stamp_to_ns(msg.header.stamp))
 
     def on_keyframe(self, msg: PointCloud2) -> None:
+        self.loc.count('keyframes_received')
         lset = self.decode(msg, 'bad_keyframe')
-        if lset is None:
-            return
-        try:
-            self.store_keyframe(lset, msg.header.stamp, self.take_keypoints(msg.header.stamp, lset))
-        except (LLNError, ValueError) as e:
-            self.health.problem('bad_keyframe', str(e))
-            return
+        if lset is not None:
+            self.loc.keyframe(lset, msgs.stamp_to_ns(msg.header.stamp))
 
     def on_query(self, msg: PointCloud2) -> None:
-        self.health.count('queries_received')
-        max_age = self.params['max_query_age']
-        if max_age > 0:
-            age = (self.get_clock().now().nanoseconds - msgs.stamp_to_ns(msg.header)) * 1e-9
-            if age > max_age:
-                self.health.count('queries_stale')
-                return
+        stamp = msgs.stamp_to_ns(msg.header)
+        now = self.get_clock().now().nanoseconds
+        self.last_query_age = (now - stamp) * 1e-9
+        missing = self.gaps.add(stamp)
+        if missing:
+            self.health.count('queries_missing', missing)
+        if not self.loc.query_fresh(stamp, now):
+            return
         lset = self.decode(msg, 'bad_query')
-        if lset is None:
+        answer = self.loc.query(lset, stamp) if lset is not None else None
+        if answer is None:
             return
-        p = self.params
-        mapping = p['mode'] == 'mapping'
-        kps = self.take_keypoints(msg.header.stamp, lset)
-        sequence = self.sequence is not None  # the sequence search needs every reranked candidate
-        try:
-            found = self.store.query(lset, prefilter_k=p['prefilter_k'],
-                                     k=(p['prefilter_k'] or max(len(self.store), 1)) if sequence else p['k'],
-                                     min_score=None if sequence else p['min_score'],
-                                     exclude_recent=p['exclude_recent'] if mapping else 0,
-                                     method_rerank=p['method'] == 'lln', scale=p['offset_scale'])
-            inliers = {}
-            if self.reloc is not None:
-                found, inliers = self.verify(lset, kps, found)
-            if mapping:  # committed before the answer goes out: an answered keyframe is never lost
-                self.store_keyframe(lset, msg.header.stamp, kps)
-        except (LLNError, ValueError) as e:
-            self.health.problem('bad_query', str(e))
-            return
-        rows = [{'keyframe_id': c.keyframe_id, 'score': c.score, 'holistic_score': c.holistic_score,
-                 'stamp_sec': c.stamp[0], 'stamp_nanosec': c.stamp[1],
-                 **({'inliers': inliers.get(c.keyframe_id, float('nan'))} if self.reloc else {})} for c in found]
-        if sequence:
-            rows, found = self.sequence_rows(found, msg, mapping, inliers if self.reloc else None)
-        # a zero-row answer carries the same optional fields as the others
-        extra = ('inliers',) * (self.reloc is not None) + ('sequence_score',) * sequence
-        self.candidates_pub.publish(msgs.candidates_to_cloud(rows, msg.header, extra))
-        best = found[0] if found else None
+        self.candidates_pub.publish(msgs.candidates_to_cloud(answer.rows, msg.header, answer.extra_fields))
+        best = answer.best
         self.matches_pub.publish(msgs.matches_to_cloud(
             msgs.match_rows(best.keyframe_id, best.pairs) if best else [], msg.header))
         self.health.count('queries_answered')
-
-    def verify(self, lset, kps, found):
-        """Candidates re-ranked by region-constrained inliers, and {keyframe_id: inliers}."""
-        from ..reloc import verify_candidates
-        if kps is None or not found:
-            return found, {}
-        ranked = verify_candidates(self.reloc, kps, lset.cell_size, found,
-                                   lambda c: self.stored_keypoints(c.keyframe_id, c.image_size))
-        self.health.count('queries_verified')
-        return [c for c, _ in ranked], {c.keyframe_id: float(r.inliers) for c, r in ranked if r is not None}
-
-    def sequence_rows(self, found: list, msg: PointCloud2, mapping: bool,
-                      inliers: dict | None = None) -> tuple[list, list]:
-        """Candidate rows ranked by sequence_score, and the MapCandidates among them (same order)
-        for the matches topic. Called before a mapping-mode query's own keyframe joins the ids.
-        inliers: verify mode's {keyframe_id: inliers} (rows get an `inliers` field, NaN if unknown)."""
-        p = self.params
-        size = len(self.store) - int(mapping)  # mapping: the query was just stored, never its own answer
-        if size != len(self.sequence.ids):  # keyframes only append (or ~/clear): re-read the ids then
-            self.sequence.set_map(self.store.ids()[:size])
-        allowed = size - p['exclude_recent'] if mapping else None
-        reason, ranked = self.sequence.update(msgs.stamp_to_ns(msg.header), {c.keyframe_id: c.score for c in found},
-                                              allowed, p['k'])
-        if reason:
-            self.health.count(f'sequence_reset_{reason}')
-        by_id = {c.keyframe_id: c for c in found}
-        rows = []
-        for kf, seq_score in ranked:
-            if seq_score < p['min_score']:
-                continue
-            c = by_id.get(kf)
-            stamp = c.stamp if c else self.store.get(kf).meta['stamp']
-            rows.append({'keyframe_id': kf, 'score': c.score if c else 0.0,
-                         'holistic_score': c.holistic_score if c else 0.0,
-                         'stamp_sec': stamp[0], 'stamp_nanosec': stamp[1], 'sequence_score': seq_score,
-                         **({'inliers': inliers.get(kf, float('nan'))} if inliers is not None else {})})
-        first = by_id.get(rows[0]['keyframe_id']) if rows else None
-        return rows, [first] if first else []
 
     # ------------------------------------------------------------------ services
 
@@ -289,12 +239,7 @@ class MatcherNode(Node):
         return self._service(response, save)
 
     def on_clear(self, request, response):
-        def clear():
-            removed = self.store.clear()
-            if self.sequence is not None:
-                self.sequence.set_map([])
-            return f'cleared {removed} keyframes from {self.store.path}'
-        return self._service(response, clear)
+        return self._service(response, lambda: f'cleared {self.loc.clear()} keyframes from {self.store.path}')
 
     def on_info(self, request, response):
         return self._service(response, lambda: json.dumps(
@@ -310,14 +255,9 @@ class MatcherNode(Node):
         return response
 
     def destroy_node(self):
-        self.store.close()
+        if getattr(self, 'store', None) is not None:
+            self.store.close()
         return super().destroy_node()
-
-
-def _bound(pending: dict, size: int = 100) -> None:
-    """Keep the newest `size` entries of an insertion-ordered dict."""
-    while len(pending) > size:
-        pending.pop(next(iter(pending)))
 
 
 def main(args=None):

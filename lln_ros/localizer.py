@@ -1,0 +1,381 @@
+"""The matcher's decisions, without rclpy: what happens to each model_info, keyframe, query and
+keypoints message once the node has decoded it.
+
+    store, quarantined = open_map(uri, mode='mapping', descriptor_space='')   # FATAL-worthy errors raise
+    loc = Localizer(store, conf, counters)          # counters: lln_ros.counters.Counters (node: Health)
+    loc.model_info(text)                            # the extractor's latched JSON
+    args = loc.landmark_decoding('bad_query')       # kwargs for msgs.cloud_to_landmarks, None = refusing
+    loc.keyframe(lset, stamp_ns)                    # -> keyframe id or None (refused / failed, counted)
+    if loc.query_fresh(stamp_ns, now_ns):
+        answer = loc.query(lset, stamp_ns)          # -> Answer(rows, extra_fields, best) or None
+    loc.keypoints(payload, stamp_ns)                # verify: paired with its landmark set by stamp
+
+Every refusal is counted under one counter and logged by kind (Counters.problem); nothing a message
+declares is used to size an allocation before lln_ros.limits has checked it. Counters (documented in
+docs/interfaces.md §3.6) keep these sums for every input:
+
+    queries_received                  = queries_answered + queries_stale + bad_query + queries_failed
+    keyframes_received + queries_stored = keyframes_stored + bad_keyframe + keyframes_failed
+
+(queries_stored: mapping mode's queries stored as keyframes.)
+
+*_failed: the map, not the message, was at fault (a keyframe damaged after start, a write that
+failed, or an internal error): the message is not blamed as bad_*.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+from dataclasses import dataclass, field
+
+from . import limits as limits_mod
+from .errors import DescriptorError, LLNError, MapError
+from .limits import LimitError, check_landmark_set, validate_model
+from .sequence import KeyframeSequence
+
+default_conf = {
+    'mode': 'localization',    # localization: answer queries only | mapping: answer, then store each query
+    'prefilter_k': 30,         # holistic candidates reranked by S; 0 = every keyframe
+    'k': 5,                    # candidates answered per query
+    'min_score': 0.0,          # candidates below this are not answered
+    'exclude_recent': 10,      # mapping mode: the newest N keyframes are never answers
+    'method': 'lln',           # lln: rerank by landmark similarity S | holistic: global descriptor only
+    'offset_scale': 1.0,       # Gaussian width of the offset weights, grid cells
+    'max_query_age': 0.0,      # seconds; older queries are dropped (queries_stale); 0 = off
+    'verify': False,           # re-rank candidates by keypoint inliers
+    'verify_min_inliers': 15,
+    'verify_margin': 1.0,
+    'sequence_length': 0,      # 0 = single-frame ranking
+    'sequence_max_gap': 1.0,
+    'limits': limits_mod.default_conf,
+}
+PENDING = 100  # keypoints messages / keyframes waiting for their partner (by stamp), newest kept
+
+
+@dataclass
+class Answer:
+    """One query's answer. rows: candidate rows for msgs.candidates_to_cloud (best first);
+    extra_fields: the optional FLOAT32 fields every answer of this node carries; best: the
+    MapCandidate whose matched regions go on the matches topic (None: no candidate)."""
+    rows: list
+    extra_fields: tuple
+    best: object = None
+    inliers: dict = field(default_factory=dict)
+
+
+def space_model(space: str) -> dict:
+    """{'descriptor_space', 'descriptor_dim'} from a 'backbone/layer/D' string (validated)."""
+    try:
+        dim = int(space.rsplit('/', 1)[1])
+    except (IndexError, ValueError):
+        raise ValueError(f"descriptor_space must look like 'backbone/layer/D', got {space!r}") from None
+    return validate_model({'descriptor_space': space, 'descriptor_dim': dim})
+
+
+def writable_problem(uri) -> str:
+    """Why the map at uri cannot be written ('' = it can, or it is not an SQLite file we can judge).
+    Asked before the file is opened, so a refused map leaves no -wal/-shm behind."""
+    from .mapstore import backend_for
+    kind, location = backend_for(uri)
+    if kind != 'sqlite':
+        return ''
+    path = os.path.abspath(os.path.expanduser(os.fspath(location)))
+    folder = os.path.dirname(path)
+    if os.path.exists(path):
+        if not os.access(path, os.W_OK):
+            return f'map {path} is not writable (read-only file or file system)'
+        if not os.access(folder, os.W_OK | os.X_OK):
+            return (f'map {path}: its folder {folder} is not writable, and SQLite keeps the -wal and -shm '
+                    f'files of a map being written beside it')
+        return ''
+    while folder and not os.path.exists(folder):
+        folder = os.path.dirname(folder) if os.path.dirname(folder) != folder else ''
+    if folder and os.path.isdir(folder) and not os.access(folder, os.W_OK | os.X_OK):
+        return f'map {path} cannot be created: folder {folder} is not writable'
+    return ''
+
+
+def open_map(uri, mode: str = 'localization', descriptor_space: str = '', conf: dict | None = None):
+    """(store, {quarantined keyframe id: problem}) for the matcher: the model from descriptor_space
+    validated, a map that mapping mode cannot write refused (MapError naming the file and why),
+    and the map's damaged keyframes found by the open's integrity scan."""
+    from .mapstore import MapStore
+    model = space_model(descriptor_space) if descriptor_space else None
+    if mode == 'mapping':
+        problem = writable_problem(uri)
+        if problem:
+            raise MapError(f'{problem}; mode mapping needs to store keyframes (use mode localization, '
+                           f'or fix the permissions)')
+    store = MapStore.open(uri, model=model, conf=conf)
+    return store, store.quarantined
+
+
+class Localizer:
+    """Per-message logic of the matcher (see the module docstring). Thread-compatible with one
+    caller at a time (the node's single-threaded executor); the store is thread-safe itself."""
+
+    def __init__(self, store, conf: dict | None = None, counters=None, log=None, decode_keypoints=None):
+        from .counters import Counters
+        self.conf = conf = self.check_conf(conf)
+        self.store, self.limits = store, conf['limits']
+        self.log = log or logging.getLogger('lln_ros.localizer')
+        self.counters = counters if counters is not None else Counters(log=self.log.warning)
+        self.mapping = conf['mode'] == 'mapping'
+        self.sequence = KeyframeSequence({'length': conf['sequence_length'], 'max_gap_s': conf['sequence_max_gap']}) \
+            if conf['sequence_length'] > 0 else None
+        self.refusing = ''  # set when the extractor's model differs from the map's
+        self.extractor_model = None  # the last valid model_info: its input_height fixes the grid rows
+        self.reloc, self.pending_keypoints, self.unmatched_keyframes = None, {}, {}
+        # decode_keypoints(payload, image_size (w, h), scale, max_rows) -> reloc.Keypoints
+        self.decode_keypoints = decode_keypoints or (lambda kps, *_: kps)
+        if conf['verify']:
+            if not hasattr(store, 'add_keypoints'):
+                raise MapError(f'verify needs keypoint storage, which the {type(store).__name__} backend of '
+                               f'map {store.path} does not have (use an SQLite map)')
+            from .reloc import Relocalizer
+            self.reloc = Relocalizer({'min_inliers': conf['verify_min_inliers'], 'margin': conf['verify_margin']})
+
+    @staticmethod
+    def check_conf(conf: dict | None) -> dict:
+        """default_conf updated by conf, checked (ValueError naming the bad value)."""
+        conf = dict(conf or {})
+        conf = {**default_conf, **conf, 'limits': limits_mod.limits(conf.get('limits'))}
+        if conf['mode'] not in ('localization', 'mapping'):
+            raise ValueError(f"mode must be 'localization' or 'mapping', got {conf['mode']!r}")
+        if conf['method'] not in ('lln', 'holistic'):
+            raise ValueError(f"method must be 'lln' or 'holistic', got {conf['method']!r}")
+        if conf['prefilter_k'] < 0:
+            raise ValueError(f"prefilter_k must be 0 (every keyframe) or positive, got {conf['prefilter_k']}")
+        if conf['sequence_length'] < 0:
+            raise ValueError(f"sequence_length must be 0 (off) or positive, got {conf['sequence_length']}")
+        return conf
+
+    def count(self, key: str, n: int = 1) -> None:
+        self.counters.count(key, n)
+
+    # ------------------------------------------------------------------ model
+
+    def model_info(self, text: str) -> None:
+        """The extractor's model (JSON). Validated completely first (limits.validate_model): a bad
+        one is counted as bad_model_info and changes nothing, neither the map nor the refusal state.
+        A valid one is declared to the map: recorded on a new map, or the refusal is set/lifted."""
+        try:
+            model = validate_model(json.loads(text), self.limits)
+        except (ValueError, RecursionError) as e:  # JSONDecodeError and ModelError are ValueErrors
+            self.counters.problem('bad_model_info', f'cannot use model_info: {e}')
+            return
+        self.extractor_model = model
+        try:
+            self.store.use_model(model)
+            self.refusing = ''
+        except MapError as e:
+            if str(e) != self.refusing:
+                self.log.error(f'{e}; landmark input is refused until the models agree')
+            self.refusing = str(e)
+
+    def landmark_decoding(self, counter: str) -> dict | None:
+        """kwargs for msgs.cloud_to_landmarks (expected_dim, descriptor_space, limits), or None when
+        landmark input is refused (model conflict; counted under `counter`)."""
+        if self.refusing:
+            self.counters.problem(counter, self.refusing)
+            return None
+        model = self.store.model
+        return {'expected_dim': model['descriptor_dim'] if model else None,
+                'descriptor_space': model['descriptor_space'] if model else '', 'limits': self.limits}
+
+    def refuse(self, counter: str, error: Exception) -> None:
+        """Count and log (by kind) a message the node could not decode."""
+        self.counters.problem(counter, str(error))
+
+    def check(self, lset) -> None:
+        """Everything about a decoded landmark set that the store and the similarity rely on, so a
+        later failure is the map's, not the message's (LLNError naming the problem)."""
+        lset.validate()
+        if len(lset) == 0:
+            raise DescriptorError('landmark set has no landmarks')
+        check_landmark_set(lset, self.extractor_model, self.limits)
+
+    # ------------------------------------------------------------------ keyframes and keypoints
+
+    def keyframe(self, lset, stamp_ns: int) -> int | None:
+        """Store a decoded keyframe (with its keypoints when they came first); its id, or None.
+        The caller counts keyframes_received for every keyframes message, decodable or not."""
+        try:
+            self.check(lset)
+            if self.store.model is None and not lset.descriptor_space:
+                raise MapError(f'landmark set has no descriptor_space; refusing to store it in map {self.store.path} '
+                               f'(a persistent map must know which model made its descriptors: set the '
+                               f'descriptor_space parameter or run the extractor, which publishes model_info)')
+        except LLNError as e:
+            self.counters.problem('bad_keyframe', str(e))
+            return None
+        try:
+            return self._store_keyframe(lset, stamp_ns, self._take_keypoints(stamp_ns, lset))
+        except MapError as e:
+            self._failed('keyframes_failed', e)
+        except (LLNError, ValueError) as e:   # the store's own checks (e.g. no model recorded yet)
+            self.counters.problem('bad_keyframe', str(e))
+        except Exception as e:  # noqa: BLE001  one message never ends the node
+            self._failed('keyframes_failed', e)
+        return None
+
+    def keypoints(self, payload, stamp_ns: int) -> None:
+        """Keypoints are held until the landmark set with the same stamp arrives (the newest 100 are
+        kept); two topics are not ordered, so keypoints of a keyframe already stored are attached."""
+        kid = self.unmatched_keyframes.pop(stamp_ns, None)
+        if kid is None:
+            self.pending_keypoints[stamp_ns] = payload
+            _bound(self.pending_keypoints)
+            return
+        try:
+            kps = self._decode_keypoints(payload, self.store.get(kid))
+            if kps is not None:
+                self.store.add_keypoints(kid, kps.uv, kps.descriptors)
+        except (LLNError, KeyError) as e:
+            self.counters.problem('bad_keypoints', str(e))
+
+    def _take_keypoints(self, stamp_ns: int, lset):
+        """The keypoints sent with this landmark set (by stamp), decoded, or None."""
+        payload = self.pending_keypoints.pop(stamp_ns, None) if self.reloc else None
+        if payload is None:
+            if self.reloc:
+                self.count('verify_missing_keypoints')
+            return None
+        return self._decode_keypoints(payload, lset)
+
+    def _decode_keypoints(self, payload, lset):
+        from .reloc import detection_scale
+        w, h = (float(v) for v in lset.image_size)
+        try:
+            return self.decode_keypoints(payload, (w, h), detection_scale(h, self.reloc.conf['min_height']),
+                                         self.limits['max_keypoints'])
+        except LLNError as e:
+            self.counters.problem('bad_keypoints', str(e))
+            return None
+
+    def _store_keyframe(self, lset, stamp_ns: int, kps) -> int:
+        kid = self.store.add(lset, divmod(int(stamp_ns), 1_000_000_000))
+        if kps is not None:
+            self.store.add_keypoints(kid, kps.uv, kps.descriptors)
+        elif self.reloc is not None:   # its keypoints may still come
+            self.unmatched_keyframes[stamp_ns] = kid
+            _bound(self.unmatched_keyframes)
+        self.count('keyframes_stored')
+        return kid
+
+    def _stored_keypoints(self, keyframe_id: int, image_size):
+        from .reloc import Keypoints, detection_scale
+        found = self.store.keypoints(keyframe_id)
+        if found is None:
+            return None
+        uv, desc = found
+        kps = Keypoints.empty(image_size)
+        kps.uv, kps.descriptors = uv, desc
+        kps.scale = detection_scale(image_size[1], self.reloc.conf['min_height'])
+        return kps
+
+    def _failed(self, counter: str, error: Exception) -> None:
+        what = str(error) if isinstance(error, LLNError) else f'internal error {type(error).__name__}: {error}'
+        self.counters.problem(counter, what, kind=None if isinstance(error, LLNError) else type(error).__name__)
+
+    # ------------------------------------------------------------------ queries
+
+    def query_fresh(self, stamp_ns: int, now_ns: int) -> bool:
+        """Count a received query; False (counted as queries_stale) when older than max_query_age."""
+        self.count('queries_received')
+        max_age = self.conf['max_query_age']
+        if max_age > 0 and (now_ns - stamp_ns) * 1e-9 > max_age:
+            self.count('queries_stale')
+            return False
+        return True
+
+    def query(self, lset, stamp_ns: int) -> Answer | None:
+        """Answer a decoded query (after query_fresh); in mapping mode it is stored before the answer
+        is returned (an answered keyframe is never lost). None: refused or failed (counted)."""
+        try:
+            self.check(lset)
+        except LLNError as e:
+            self.counters.problem('bad_query', str(e))
+            return None
+        try:
+            return self._answer(lset, stamp_ns)
+        except Exception as e:  # noqa: BLE001  MapError: the map's fault; anything else: ours
+            self._failed('queries_failed', e)
+            return None
+
+    def _answer(self, lset, stamp_ns: int) -> Answer:
+        c = self.conf
+        kps = self._take_keypoints(stamp_ns, lset)
+        sequence = self.sequence is not None  # the sequence search needs every reranked candidate
+        found = self.store.query(lset, prefilter_k=c['prefilter_k'],
+                                 k=(c['prefilter_k'] or max(len(self.store), 1)) if sequence else c['k'],
+                                 min_score=None if sequence else c['min_score'],
+                                 exclude_recent=c['exclude_recent'] if self.mapping else 0,
+                                 method_rerank=c['method'] == 'lln', scale=c['offset_scale'])
+        inliers = {}
+        if self.reloc is not None:
+            found, inliers = self.verify(lset, kps, found)
+        if self.mapping:  # committed before the answer goes out: an answered keyframe is never lost
+            self._store_keyframe(lset, stamp_ns, kps)
+            self.count('queries_stored')
+        rows = [{'keyframe_id': m.keyframe_id, 'score': m.score, 'holistic_score': m.holistic_score,
+                 'stamp_sec': m.stamp[0], 'stamp_nanosec': m.stamp[1],
+                 **({'inliers': inliers.get(m.keyframe_id, float('nan'))} if self.reloc else {})} for m in found]
+        if sequence:
+            rows, found = self.sequence_rows(found, stamp_ns, inliers if self.reloc else None)
+        # a zero-row answer carries the same optional fields as the others
+        extra = ('inliers',) * (self.reloc is not None) + ('sequence_score',) * sequence
+        return Answer(rows, extra, found[0] if found else None, inliers)
+
+    def verify(self, lset, kps, found):
+        """Candidates re-ranked by region-constrained inliers, and {keyframe_id: inliers}."""
+        from .reloc import verify_candidates
+        if kps is None or not found:
+            return found, {}
+        ranked = verify_candidates(self.reloc, kps, lset.cell_size, found,
+                                   lambda m: self._stored_keypoints(m.keyframe_id, m.image_size))
+        self.count('queries_verified')
+        return [m for m, _ in ranked], {m.keyframe_id: float(r.inliers) for m, r in ranked if r is not None}
+
+    def sequence_rows(self, found: list, stamp_ns: int, inliers: dict | None = None) -> tuple[list, list]:
+        """Candidate rows ranked by sequence_score, and the MapCandidates among them (same order)
+        for the matches topic. Called before a mapping-mode query's own keyframe joins the ids.
+        inliers: verify mode's {keyframe_id: inliers} (rows get an `inliers` field, NaN if unknown)."""
+        c = self.conf
+        size = len(self.store) - int(self.mapping)  # mapping: the query was just stored, never its own answer
+        if size != len(self.sequence.ids):  # keyframes only append (or ~/clear): re-read the ids then
+            self.sequence.set_map(self.store.ids()[:size])
+        allowed = size - c['exclude_recent'] if self.mapping else None
+        reason, ranked = self.sequence.update(stamp_ns, {m.keyframe_id: m.score for m in found}, allowed, c['k'])
+        if reason:
+            self.count(f'sequence_reset_{reason}')
+        by_id = {m.keyframe_id: m for m in found}
+        rows = []
+        for kf, seq_score in ranked:
+            if seq_score < c['min_score']:
+                continue
+            m = by_id.get(kf)
+            stamp = m.stamp if m else self.store.get(kf).meta['stamp']
+            rows.append({'keyframe_id': kf, 'score': m.score if m else 0.0,
+                         'holistic_score': m.holistic_score if m else 0.0,
+                         'stamp_sec': stamp[0], 'stamp_nanosec': stamp[1], 'sequence_score': seq_score,
+                         **({'inliers': inliers.get(kf, float('nan'))} if inliers is not None else {})})
+        first = by_id.get(rows[0]['keyframe_id']) if rows else None
+        return rows, [first] if first else []
+
+    def clear(self) -> int:
+        """Remove every keyframe (~/clear); the sequence search forgets the map too."""
+        removed = self.store.clear()
+        if self.sequence is not None:
+            self.sequence.set_map([])
+        return removed
+
+
+def _bound(pending: dict, size: int = PENDING) -> None:
+    """Keep the newest `size` entries of an insertion-ordered dict."""
+    while len(pending) > size:
+        pending.pop(next(iter(pending)))
+
+
+__all__ = ['Answer', 'LimitError', 'Localizer', 'default_conf', 'open_map', 'space_model', 'writable_problem']

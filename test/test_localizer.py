@@ -1,0 +1,367 @@
+"""The matcher's decisions without rclpy (lln_ros.localizer.Localizer) on real SQLite maps, the
+input limits (lln_ros.limits) and problem logging by kind (lln_ros.counters)."""
+import json
+import os
+import sqlite3
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from lln_ros.counters import Counters, problem_kind
+from lln_ros.errors import MapError, ModelError
+from lln_ros.landmarks import LandmarkSet
+from lln_ros.limits import LimitError, check_landmark_set, default_conf, validate_model
+from lln_ros.localizer import Localizer, open_map, writable_problem
+from lln_ros.mapstore import MapStore
+from test_mapstore import MODEL, SPACE, make_set
+
+T0 = 1_700_000_000 * 10**9
+
+
+def stamp(i: int) -> int:
+    return T0 + i * 50_000_000
+
+
+class Log:
+    """A logger that keeps its lines (what the node's rclpy logger would print)."""
+
+    def __init__(self):
+        self.lines = []
+
+    def warning(self, text):
+        self.lines.append(('WARN', text))
+
+    def error(self, text):
+        self.lines.append(('ERROR', text))
+
+    def info(self, text):
+        self.lines.append(('INFO', text))
+
+
+def invariants(counts: dict) -> None:
+    got = {k: counts.get(k, 0) for k in ('queries_received', 'queries_answered', 'queries_stale', 'bad_query',
+                                         'queries_failed', 'keyframes_received', 'keyframes_stored',
+                                         'bad_keyframe', 'keyframes_failed', 'queries_stored')}
+    assert got['queries_received'] == got['queries_answered'] + got['queries_stale'] + got['bad_query'] + \
+        got['queries_failed'], got
+    assert got['keyframes_received'] + got['queries_stored'] == got['keyframes_stored'] + got['bad_keyframe'] + got['keyframes_failed'], got
+
+
+def ask(loc: Localizer, lset, i: int):
+    """What the node does with one decoded query: received, answered (or not)."""
+    if not loc.query_fresh(stamp(i), stamp(i)):
+        return None
+    answer = loc.query(lset, stamp(i))
+    if answer is not None:
+        loc.count('queries_answered')
+    return answer
+
+
+def keyframe(loc: Localizer, lset, i: int):
+    loc.count('keyframes_received')
+    return loc.keyframe(lset, stamp(i))
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(3)
+
+
+@pytest.fixture
+def map_path(tmp_path):
+    return tmp_path / 'map.db'
+
+
+def test_localizer_is_ros_free():
+    """The Localizer, limits and counters import without rclpy (nodes decode; this decides)."""
+    code = ('import sys, lln_ros.localizer, lln_ros.limits, lln_ros.counters; '
+            'bad = [m for m in sys.modules if m.split(".")[0] in ("rclpy", "sensor_msgs", "std_msgs")]; '
+            'print(bad); sys.exit(1 if bad else 0)')
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_localization_and_mapping(map_path, rng):
+    sets = [make_set(rng) for _ in range(6)]
+    store, quarantined = open_map(map_path, 'localization', SPACE)
+    with store:
+        assert quarantined == {}
+        loc = Localizer(store, {'k': 3})
+        for i, s in enumerate(sets):
+            assert keyframe(loc, s, i) == i + 1
+        answer = ask(loc, sets[4], 100)
+        assert answer.rows[0]['keyframe_id'] == 5 and answer.best.keyframe_id == 5
+        assert (answer.rows[0]['stamp_sec'], answer.rows[0]['stamp_nanosec']) == divmod(stamp(4), 10**9)
+        assert len(answer.rows) == 3 and answer.extra_fields == () and len(store) == 6
+        invariants(loc.counters.snapshot())
+    store, _ = open_map(map_path, 'mapping', SPACE)
+    with store:
+        loc = Localizer(store, {'mode': 'mapping', 'exclude_recent': 2, 'k': 3})
+        answer = ask(loc, sets[2], 200)      # answered from the map, then stored
+        assert answer.rows[0]['keyframe_id'] == 3 and len(store) == 7
+        again = ask(loc, sets[2], 201)       # its own copy (keyframe 7) is too recent to answer
+        assert 7 not in [r['keyframe_id'] for r in again.rows]
+        invariants(loc.counters.snapshot())
+
+
+@pytest.mark.parametrize('text, problem', [
+    ('{"descriptor_space": "a/b/192", "descriptor_dim": 1e999}', 'must be an integer'),   # OverflowError before
+    ('{"descriptor_space": "a/b/192", "descriptor_dim": -5}', 'must be in'),
+    ('{"descriptor_space": "a/b/192", "descriptor_dim": 10000000000000000000000}', 'must be in'),
+    ('{"descriptor_space": "a/b/192", "descriptor_dim": "192"}', 'must be an integer'),
+    ('{"descriptor_space": "a/b/192", "descriptor_dim": 64}', 'ends in D=192'),
+    ('{"descriptor_space": "a/b/192", "descriptor_dim": 192, "input_height": 100}', 'multiple of 32'),
+    ('{"descriptor_dim": 192}', 'descriptor_space'),
+    ('[1, 2]', 'JSON object'),
+    ('not json', 'cannot use model_info'),
+    ('[' * 100000 + ']' * 100000, 'cannot use model_info'),
+])
+def test_bad_model_info_changes_nothing(map_path, text, problem):
+    """A model_info that fails validation is counted and logged, and neither the map (no model record
+    written) nor the refusal state changes; a valid one afterwards is recorded."""
+    log = Log()
+    store, _ = open_map(map_path)
+    with store:
+        loc = Localizer(store, log=log)
+        loc.model_info(text)
+        assert loc.counters.snapshot() == {'bad_model_info': 1}
+        assert problem in log.lines[0][1], log.lines
+        assert store.model is None and loc.refusing == ''
+        loc.model_info(json.dumps(MODEL))
+        assert store.model == MODEL
+    with MapStore(map_path, create=False) as again:
+        assert again.model == MODEL and again.check() == []
+
+
+def test_model_conflict_refuses_until_models_agree(map_path, rng):
+    log = Log()
+    store, _ = open_map(map_path, descriptor_space=SPACE)
+    with store:
+        loc = Localizer(store, log=log)
+        loc.model_info(json.dumps({**MODEL, 'descriptor_space': 'x/y/320'}))
+        assert loc.refusing and [kind for kind, _ in log.lines] == ['ERROR']
+        assert loc.landmark_decoding('bad_query') is None and loc.counters.snapshot()['bad_query'] == 1
+        loc.model_info(json.dumps(MODEL))
+        assert loc.refusing == '' and loc.landmark_decoding('bad_query')['expected_dim'] == 320
+
+
+def hostile_sets(rng) -> dict:
+    """Landmark sets whose declared sizes a sender controls, by the problem each one must be refused for."""
+    good = make_set(rng)
+
+    def variant(**fields):
+        s = make_set(rng)
+        for k, v in fields.items():
+            setattr(s, k, v)
+        return s
+    many = make_set(rng, n=5000, rows=50, cols=128)
+    many.cell_size, many.image_size = np.array([3, 5.76], np.float32), np.array([384, 288], np.float32)
+    return {
+        'tiny cell': variant(cell_size=np.array([1e-3, 1e-3], np.float32), grid=(288000, 384000)),
+        'huge image': variant(image_size=np.array([1e9, 1e9], np.float32), grid=(9, 12)),
+        '32768 px wide': variant(image_size=np.array([32768, 288], np.float32),
+                                 cell_size=np.array([32, 32], np.float32), grid=(9, 1024)),
+        'rows vs input_height': variant(image_size=np.array([384, 576], np.float32), grid=(18, 12)),
+        'not whole cells': variant(cell_size=np.array([33.3, 32], np.float32)),
+        '5000 landmarks': many,
+        'no landmarks': variant(descriptors=np.zeros((0, 320), np.float32), cells=np.zeros((0, 2), np.int32),
+                                centers=np.zeros((0, 2), np.float32), scores=np.zeros(0, np.float32)),
+        'good': good,
+    }
+
+
+def test_limits_refuse_declared_sizes_before_any_work(map_path, rng):
+    """Every hostile class is a counted refusal (bad_query / bad_keyframe), none is stored, and the
+    next good message is answered; the counter sums hold throughout."""
+    sets = hostile_sets(rng)
+    log = Log()
+    store, _ = open_map(map_path, descriptor_space=SPACE)
+    with store:
+        loc = Localizer(store, log=log)
+        loc.model_info(json.dumps(MODEL))   # the extractor's: input_height 288 makes a grid of 9 rows
+        assert keyframe(loc, sets['good'], 0) == 1
+        for i, (name, s) in enumerate(sets.items()):
+            if name == 'good':
+                continue
+            assert keyframe(loc, s, 10 + i) is None, name
+            assert ask(loc, s, 10 + i) is None, name
+        counts = loc.counters.snapshot()
+        assert counts['bad_keyframe'] == counts['bad_query'] == len(sets) - 1, counts
+        assert len(store) == 1
+        answer = ask(loc, sets['good'], 99)
+        assert answer.rows[0]['keyframe_id'] == 1
+        invariants(loc.counters.snapshot())
+    texts = ' '.join(text for _, text in log.lines)
+    for needle in ('max_grid_side', 'max_image_pixels', 'max_landmarks', 'input_height 288', 'whole number'):
+        assert needle in texts, (needle, texts)
+
+
+def test_check_landmark_set_accepts_the_extractors_output(extractor, photo):
+    """What the real extractor publishes passes every limit at the model's input height."""
+    for image in (photo, photo[:100, :600], np.ascontiguousarray(photo[::4, ::4])):
+        lset = extractor(image)
+        check_landmark_set(lset, extractor.model_info, default_conf)
+
+
+def test_validate_model_accepts_model_info(extractor):
+    assert validate_model(extractor.model_info) == extractor.model_info
+    with pytest.raises(ModelError, match='max_descriptor_dim'.replace('max_descriptor_dim', 'must be in')):
+        validate_model({**extractor.model_info, 'descriptor_dim': 5000,
+                        'descriptor_space': 'x/y/5000'})
+
+
+def damage(map_path, keyframe_id: int) -> None:
+    con = sqlite3.connect(map_path)
+    con.execute('UPDATE landmarks SET descriptors = x\'00\' WHERE keyframe_id = ?', (keyframe_id,))
+    con.commit()
+    con.close()
+
+
+def test_damaged_keyframe_quarantined_not_blamed_on_the_query(map_path, rng):
+    """A landmark blob of 1 byte: found at open, named, quarantined (never answered, left in the
+    file); a query of that very place is answered from the others, not counted as bad_query; the
+    store's check() names the same keyframe."""
+    sets = [make_set(rng) for _ in range(5)]
+    with MapStore(map_path, model=MODEL) as store:
+        for i, s in enumerate(sets):
+            store.add(s, divmod(stamp(i), 10**9))
+    damage(map_path, 3)
+    store, quarantined = open_map(map_path, 'localization', SPACE)
+    with store:
+        assert list(quarantined) == [3] and 'blob sizes' in quarantined[3]
+        assert store.ids() == [1, 2, 4, 5] and store.info()['quarantined'] == [3]
+        problems = store.check()
+        assert len(problems) == 1 and problems[0].startswith('keyframe 3:'), problems
+        loc = Localizer(store, {'prefilter_k': 0})
+        answer = ask(loc, sets[2], 50)
+        assert answer is not None and 3 not in [r['keyframe_id'] for r in answer.rows]
+        assert 'bad_query' not in loc.counters.snapshot()
+    with sqlite3.connect(map_path) as con:   # left in the file
+        assert con.execute('SELECT count(*) FROM keyframes').fetchone()[0] == 5
+
+
+def test_damage_after_open_is_the_maps_fault(map_path, rng):
+    """Damage written by another connection while the map is open: the reload quarantines it too;
+    no query is counted as bad_query."""
+    sets = [make_set(rng) for _ in range(4)]
+    store, _ = open_map(map_path, 'localization', SPACE)
+    with store:
+        loc = Localizer(store, {'prefilter_k': 0})
+        for i, s in enumerate(sets):
+            keyframe(loc, s, i)
+        damage(map_path, 2)
+        answer = ask(loc, sets[1], 40)
+        assert answer is not None and 2 not in [r['keyframe_id'] for r in answer.rows]
+        assert store.quarantined.keys() == {2}
+        counts = loc.counters.snapshot()
+        assert 'bad_query' not in counts and counts['queries_answered'] == 1
+        invariants(counts)
+
+
+def test_store_failure_is_counted_as_failed(map_path, rng):
+    """A map that fails under a query (closed here) is queries_failed / keyframes_failed: the message
+    is not blamed, and nothing escapes to the caller."""
+    sets = [make_set(rng) for _ in range(2)]
+    store, _ = open_map(map_path, 'localization', SPACE)
+    loc = Localizer(store)
+    keyframe(loc, sets[0], 0)
+    store.close()
+    assert ask(loc, sets[1], 1) is None and keyframe(loc, sets[1], 2) is None
+    counts = loc.counters.snapshot()
+    assert counts['queries_failed'] == 1 and counts['keyframes_failed'] == 1 and 'bad_query' not in counts
+    invariants(counts)
+
+
+def chattr(path, flag: str) -> bool:
+    out = subprocess.run(['chattr', flag, str(path)], capture_output=True)
+    return out.returncode == 0
+
+
+def test_mapping_mode_refuses_a_read_only_map(map_path, rng):
+    """A map mapping mode cannot write: MapError naming the file and why, before SQLite opens it,
+    so no -wal/-shm appear; localization mode still serves it."""
+    with MapStore(map_path, model=MODEL) as store:
+        store.add(make_set(rng), (1, 2))
+    if not chattr(map_path, '+i'):
+        if os.geteuid() == 0:
+            pytest.skip('chattr +i is not permitted here, and root can write a chmod 444 file')
+        map_path.chmod(0o444)
+    try:
+        problem = writable_problem(map_path)
+        assert str(map_path) in problem and 'not writable' in problem
+        with pytest.raises(MapError, match='mode mapping') as err:
+            open_map(map_path, 'mapping', SPACE)
+        assert str(map_path) in str(err.value)
+        assert sorted(p.name for p in map_path.parent.iterdir()) == ['map.db']
+    finally:
+        chattr(map_path, '-i')
+        map_path.chmod(0o644)
+
+
+def test_map_path_under_a_regular_file_names_the_map(tmp_path):
+    (tmp_path / 'afile').write_text('x')
+    path = tmp_path / 'afile' / 'map.db'
+    with pytest.raises(MapError) as err:
+        open_map(path, 'mapping')
+    assert str(path) in str(err.value) and 'afile' in str(err.value)
+
+
+def test_bad_model_record_is_explained(map_path, rng):
+    """A model record that is not a valid model (written by an old version or by hand): opening names
+    the record and the problem, as does lln-map info/check (exit 1, no traceback)."""
+    with MapStore(map_path, model=MODEL) as store:
+        store.add(make_set(rng), (1, 2))
+    with sqlite3.connect(map_path) as con:
+        con.execute("UPDATE meta SET value = ? WHERE key = 'model'",
+                    (json.dumps({**MODEL, 'descriptor_dim': -7}),))
+    with pytest.raises(MapError, match='bad model record') as err:
+        MapStore(map_path, create=False)
+    assert 'descriptor_dim' in str(err.value) and str(map_path) in str(err.value)
+    for command in ('info', 'check'):
+        out = subprocess.run([sys.executable, '-m', 'lln_ros.cli.map', command, str(map_path)],
+                             capture_output=True, text=True)
+        assert out.returncode == 1 and 'Traceback' not in out.stderr + out.stdout, out
+        assert 'bad model record' in out.stderr + out.stdout and 'descriptor_dim' in out.stderr + out.stdout
+
+
+def test_keypoints_paired_by_stamp_either_order(map_path, rng):
+    """verify: keypoints that come before their landmark set wait for it; ones that come after are
+    attached to the stored keyframe."""
+    from lln_ros.reloc import Keypoints
+    sets = [make_set(rng) for _ in range(2)]
+
+    def kps(n):
+        k = Keypoints.empty((384, 288))
+        k.uv = rng.random((n, 2)).astype(np.float32) * 200
+        k.descriptors = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+        return k
+    store, _ = open_map(map_path, 'localization', SPACE)
+    with store:
+        loc = Localizer(store, {'verify': True})
+        loc.keypoints(kps(30), stamp(0))              # before
+        keyframe(loc, sets[0], 0)
+        keyframe(loc, sets[1], 1)
+        loc.keypoints(kps(40), stamp(1))              # after
+        assert store.keypoints(1)[0].shape == (30, 2) and store.keypoints(2)[0].shape == (40, 2)
+        assert loc.counters.snapshot()['verify_missing_keypoints'] == 1
+
+
+def test_problems_are_logged_by_kind_rate_limited():
+    """300 messages differing only in byte counts are one kind: one line, then one summary line per
+    period with the number of repeats; a different kind gets its own first line."""
+    lines, now = [], [0.0]
+    c = Counters(log=lines.append, period_s=60, clock=lambda: now[0])
+    for i in range(300):
+        c.problem('bad_query', f'landmarks cloud: data is truncated: {1000 + i} bytes, expected {2000 + i}')
+    assert len(lines) == 1 and c.snapshot() == {'bad_query': 300}
+    c.problem('bad_query', "landmarks cloud: required field 'score' is missing")
+    assert len(lines) == 2
+    now[0] = 61.0
+    c.problem('bad_query', 'landmarks cloud: data is truncated: 5 bytes, expected 9')
+    assert len(lines) == 3 and '299 more of this kind' in lines[-1]
+    assert problem_kind('D=64, expected D=192') == problem_kind('D=8, expected D=1e+30')
+    for i in range(500):   # endless distinct texts share one '<other>' kind after max_kinds
+        c.problem('bad_keyframe', f'kind{chr(65 + i % 26)}{chr(65 + i // 26)}')
+    assert len(lines) == 3 + 64 + 1
