@@ -22,8 +22,7 @@ from std_msgs.msg import String
 from .. import msgs
 from ..errors import LLNError
 from ..extractor import Extractor
-from ..image import check_image
-from ..plotting import heatmap_bgr
+from ..image import check_image, heatmap_bgr
 from .common import MODEL_QOS, Health, declare, run_node, start_diagnostics, subscription_qos
 
 PARAMETERS = {
