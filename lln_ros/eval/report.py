@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import metrics
+from ..retrieval import default_conf as retrieval_defaults
 
 # (results key, label) of every metric a report shows, in the order shown
 METRICS = (('p_at_100r', 'P@100%R'), ('r_at_100p', 'R@100%P'), ('auc_pr', 'AUC-PR'),
@@ -75,12 +76,13 @@ def markdown(results: dict) -> str:
     """The results as markdown: one table per dataset, every method, the parameters, the figures."""
     p = results.get('parameters', {})
     lines = ['# lln-eval results', '']
+    prefiltered = p.get('prefilter_k', retrieval_defaults['prefilter_k'])  # an older results.json lacks it
     if p.get('command'):
         lines += ['Regenerate with:', '', '```bash', p['command'], '```', '']
     lines += ['Percentages of the queries that have a true match; P@100%R = precision when every query is '
               'answered (= top-1 accuracy, the paper\'s headline), R@100%P = largest recall at precision 1, '
               'AUC-PR = area under the precision-recall curve of a threshold on the top-1 score. ' +
-              ('Every local method reranks the same holistic top-K.' if p.get('prefilter_k', 30) else
+              ('Every local method reranks the same holistic top-K.' if prefiltered else
                'Every local method scores every reference (prefilter_k 0: exhaustive, no holistic prefilter).'), '']
     for name, d in results['datasets'].items():
         lines += [f'## {name}', '']

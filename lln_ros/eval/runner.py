@@ -14,7 +14,7 @@ only in which cells become landmarks). Rows:
     act            top-n cells by feature norm (Chen et al.); no head involved
     rand           the same n random cells in every image; no head involved
     all            every cell of the grid; no head involved
-    sad, seqslam   classic peers (lln_ros.peers): patch-normalised thumbnails, single frame / sequence
+    sad, seqslam   classic peers (eval/peers.py): patch-normalised thumbnails, single frame / sequence
     X+seq          with conf['sequence'] = L > 0: row X's ranking made sequence-consistent
                    (lln_ros.sequence, the search the matcher node runs online)
 
