@@ -2,6 +2,8 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 DATA ?= ../shared/data
+# the shared data folder for lln-demo's default dataset and the tests (installed code never guesses it)
+export LLN_DATA ?= $(abspath $(DATA))
 NORDLAND := aligned:$(DATA)/nordland_trimmed/summer,$(DATA)/nordland_trimmed/winter,1
 
 .PHONY: setup test main results train bench bench-map colcon clean

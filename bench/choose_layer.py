@@ -5,8 +5,8 @@
 For every (backbone, layer) it reports the descriptor size D, the bytes a keyframe costs in the map
 (n = 50 landmarks in float16 plus the float32 global descriptor), the median extraction time of a
 384x288 image, and retrieval figures of the head-independent methods (the LLN head is trained per
-layer, so it cannot decide the layer): holistic ACT (top 50 by feature norm) and ALL (every cell, spatially weighted mutual
-matching, reranking the holistic top 30) on
+layer, so it cannot decide the layer): holistic ACT (top 50 by feature norm) and ALL (every cell,
+spatially weighted mutual matching, reranking the holistic top 30) on
   - rtabmap_loop (loop protocol: rows 40-83 against frames at least 10 older): top-1 correct and
     recall at precision >= 0.95 over all answered rows;
   - a Nordland development slice from the TRAINING part of the route (0.60-0.70; the test split,
@@ -20,7 +20,6 @@ import statistics
 import sys
 import time
 from pathlib import Path
-
 
 from lln_ros import datasets, metrics
 from lln_ros.extractor import Extractor

@@ -69,3 +69,21 @@ def load_image(path: str) -> np.ndarray:
     if bgr is None:
         raise ImageError(f'cannot decode image file {path!r} (not an image, or truncated)')
     return check_image(bgr, 'bgr')
+
+
+# ---------------------------------------------------------------------------------------- heatmaps
+# OpenCV only (no matplotlib): the extractor node draws its `activation` image with these
+
+def heatmap(activation: np.ndarray, size: tuple) -> np.ndarray:
+    """Activation (rows, cols) -> float (H, W) in [0, 1], bilinearly upsampled to size=(W, H)."""
+    a = np.asarray(activation, np.float32)
+    span = float(a.max() - a.min())
+    a = (a - a.min()) / span if span > 0 else np.zeros_like(a)
+    return cv2.resize(a, tuple(int(v) for v in size), interpolation=cv2.INTER_LINEAR)
+
+
+def heatmap_bgr(image_rgb: np.ndarray, activation: np.ndarray, alpha: float = 0.5) -> np.ndarray:
+    """The image blended with a JET heatmap of its activation, as BGR uint8 (for ROS `activation`)."""
+    h, w = image_rgb.shape[:2]
+    heat = cv2.applyColorMap((heatmap(activation, (w, h)) * 255).astype(np.uint8), cv2.COLORMAP_JET)
+    return cv2.addWeighted(cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR), 1 - alpha, heat, alpha, 0)

@@ -1,7 +1,6 @@
 """Pictures of landmark matches: two images side by side, activation heatmaps, linked regions."""
 from __future__ import annotations
 
-import cv2
 import matplotlib
 
 matplotlib.use('Agg')  # files only; nodes and CI have no display
@@ -9,22 +8,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import ConnectionPatch, Rectangle  # noqa: E402
 
+from .image import heatmap  # noqa: E402
 from .landmarks import LandmarkSet  # noqa: E402
-
-
-def heatmap(activation: np.ndarray, size: tuple) -> np.ndarray:
-    """Activation (rows, cols) -> float (H, W) in [0, 1], bilinearly upsampled to size=(W, H)."""
-    a = np.asarray(activation, np.float32)
-    span = float(a.max() - a.min())
-    a = (a - a.min()) / span if span > 0 else np.zeros_like(a)
-    return cv2.resize(a, tuple(int(v) for v in size), interpolation=cv2.INTER_LINEAR)
-
-
-def heatmap_bgr(image_rgb: np.ndarray, activation: np.ndarray, alpha: float = 0.5) -> np.ndarray:
-    """The image blended with a JET heatmap of its activation, as BGR uint8 (for ROS `activation`)."""
-    h, w = image_rgb.shape[:2]
-    heat = cv2.applyColorMap((heatmap(activation, (w, h)) * 255).astype(np.uint8), cv2.COLORMAP_JET)
-    return cv2.addWeighted(cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR), 1 - alpha, heat, alpha, 0)
 
 
 def plot_matches(image_a: np.ndarray, image_b: np.ndarray, a: LandmarkSet, b: LandmarkSet,

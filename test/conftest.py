@@ -1,5 +1,6 @@
 """Shared fixtures. Real data lives in ../shared/data next to the repo; tests that need it skip
 with a reason when it is absent (a user's fresh machine)."""
+import os
 import signal
 from pathlib import Path
 
@@ -19,7 +20,8 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / 'shared' / 'data'
+# $LLN_DATA as the Makefile and scripts/ set it; else ../shared/data beside the checkout
+SHARED_DATA = Path(os.environ.get('LLN_DATA') or REPO.parent / 'shared' / 'data')
 
 
 def shared_data(*parts) -> Path:
@@ -40,6 +42,7 @@ def extractor():
 def photo() -> np.ndarray:
     """A real photograph shipped inside matplotlib (RGB uint8), so self-contained tests use real pixels."""
     import matplotlib.cbook as cbook
+
     from lln_ros.image import load_image
     with cbook.get_sample_data('grace_hopper.jpg') as f:
         path = f.name

@@ -1,35 +1,33 @@
-"""Real ROS 2 processes for the tests: the colcon-installed executables, a DDS domain per test,
-and an in-process probe node (its own rclpy Context) that publishes, collects and calls services."""
+"""Real ROS 2 processes for the tests, through the same supervisor and probe lln-demo uses
+(lln_ros.ros.supervisor, lln_ros.ros.probe): the installed executables, a DDS domain per test, and an
+in-process probe node (its own rclpy Context) that publishes, collects and calls services.
+
+What is test-only stays here: a colcon build of the working tree, and the environment a sourced
+install gives. Children start without preexec_fn (vfork, see lln_ros/ros/supervisor.py, conftest.py)."""
 from __future__ import annotations
 
 import itertools
 import os
 import shutil
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
-import rclpy
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from lln_ros.ros import supervisor
+from lln_ros.ros.probe import Probe as _Probe
+from lln_ros.ros.supervisor import NodeProcess
 
 REPO = Path(__file__).resolve().parents[1]
 VENV_BIN = Path(sys.executable).parent
 _domains = itertools.count()
 
+__all__ = ['Probe', 'RosProcess', 'colcon_build', 'installed_env', 'ros_env']
+
 
 def ros_env(tmp_path: Path, extra: dict | None = None) -> dict:
     """Environment for child ROS processes: a domain of our own, discovery on this host only."""
-    env = dict(os.environ)
-    env['ROS_DOMAIN_ID'] = str(1 + (os.getpid() * 7 + next(_domains)) % 100)
-    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    env['ROS_LOG_DIR'] = str(tmp_path / 'ros_log')
-    env['PYTHONUNBUFFERED'] = '1'
-    env.update(extra or {})
-    return env
+    domain = 1 + (os.getpid() * 7 + next(_domains)) % 100
+    return supervisor.ros_env(domain, log_dir=tmp_path / 'ros_log', extra=extra)
 
 
 def colcon_build(ws: Path) -> Path:
@@ -62,95 +60,16 @@ def installed_env(install: Path, env: dict) -> dict:
     return env
 
 
-class RosProcess:
-    """An executable started as `ros2 run lln_ros <exe> --ros-args ...` would start it."""
+class RosProcess(NodeProcess):
+    """An executable started as `ros2 run lln_ros <exe> --ros-args ...` would start it; its output in
+    `log`, its working folder log's folder, in the test's session (Ctrl-C reaches it)."""
 
     def __init__(self, exe: Path, ros_args: list[str], env: dict, log: Path):
-        self.log_path = log
-        self._log = open(log, 'w')
-        # No preexec_fn: it forces fork() instead of vfork(), and fork() in a process where gRPC
-        # (pymilvus) has live threads can leave the child dead before exec (conftest.py says more).
-        self.proc = subprocess.Popen([str(exe), '--ros-args', *ros_args], env=env, stdout=self._log,
-                                     stderr=subprocess.STDOUT, cwd=log.parent)
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def log(self) -> str:
-        if not self._log.closed:
-            self._log.flush()
-        return self.log_path.read_text()
-
-    def stop(self, timeout: float = 10.0) -> int:
-        """Ctrl-C, as a user would; SIGKILL if it does not exit."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._log.close()
-        return self.proc.returncode
-
-    def kill9(self) -> None:
-        self.proc.kill()
-        self.proc.wait()
-        self._log.close()
+        super().__init__([exe], ros_args, env, log)
 
 
-class Probe:
-    """A test-side node in its own Context on the test's domain."""
+class Probe(_Probe):
+    """The probe on the domain of a ros_env() environment."""
 
     def __init__(self, env: dict, name: str = 'test_probe'):
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=int(env['ROS_DOMAIN_ID']))
-        self.node = rclpy.create_node(name, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-
-    def publisher(self, msg_type, topic: str, depth: int = 100):
-        return self.node.create_publisher(msg_type, topic, QoSProfile(depth=depth,
-                                                                      reliability=ReliabilityPolicy.RELIABLE))
-
-    def collect(self, msg_type, topic: str, decode=lambda m: m, depth: int = 1000) -> list:
-        """Everything that arrives on `topic`, decoded, in arrival order."""
-        got: list = []
-        self.node.create_subscription(msg_type, topic, lambda m: got.append(decode(m)),
-                                      QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE))
-        return got
-
-    def spin_until(self, done, timeout: float, what: str = 'condition') -> None:
-        deadline = time.monotonic() + timeout
-        while not done():
-            if time.monotonic() > deadline:
-                raise TimeoutError(f'timed out after {timeout} s waiting for {what}')
-            self.executor.spin_once(timeout_sec=0.05)
-
-    def spin_for(self, seconds: float) -> None:
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=0.05)
-
-    def wait_for_peers(self, publisher, topics: list[str] = (), timeout: float = 60.0) -> None:
-        """Until `publisher` has a subscriber and every topic in `topics` has a publisher."""
-        self.spin_until(lambda: (publisher is None or publisher.get_subscription_count() > 0)
-                        and all(self.node.count_publishers(t) > 0 for t in topics), timeout, 'peers')
-
-    def call(self, srv_type, name: str, timeout: float = 30.0):
-        client = self.node.create_client(srv_type, name)
-        self.spin_until(client.service_is_ready, timeout, f'service {name}')
-        future = client.call_async(srv_type.Request())
-        self.spin_until(future.done, timeout, f'answer from {name}')
-        return future.result()
+        super().__init__(env, name)

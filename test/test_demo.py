@@ -2,6 +2,7 @@
 the real nodes (two extractors and the matcher as separate processes over DDS), online figures equal
 to the offline evaluator's; outputs; bad input; clean-up on Ctrl-C; the default dataset."""
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -12,8 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-
-from conftest import shared_data
+from conftest import SHARED_DATA, shared_data
 from lln_ros.cli import demo
 
 REPO = Path(__file__).resolve().parents[1]
@@ -23,7 +23,9 @@ RUN_TIMEOUT = 600  # a loaded 2-core CI machine starts three torch/rclpy process
 
 
 def run_demo(*args, timeout=RUN_TIMEOUT, cwd=REPO):
-    return subprocess.run([*DEMO, *args], capture_output=True, text=True, timeout=timeout, cwd=cwd)
+    # the shared data folder as scripts/main_job.sh names it (installed code never guesses a path)
+    env = {**os.environ, 'LLN_DATA': os.environ.get('LLN_DATA', str(SHARED_DATA))}
+    return subprocess.run([*DEMO, *args], capture_output=True, text=True, timeout=timeout, cwd=cwd, env=env)
 
 
 @pytest.fixture(scope='module')
@@ -166,14 +168,14 @@ def test_out_must_be_a_folder(tiny_dataset, tmp_path, capsys):
 
 
 def test_no_dataset_anywhere_says_give_dataset(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(demo, 'shared_data_dir', lambda: None)
+    monkeypatch.delenv('LLN_DATA', raising=False)
     assert demo.main(['--out', str(tmp_path / 'o'), '--download-dir', str(tmp_path / 'gp')]) == 2
     err = capsys.readouterr().err
     assert 'give --dataset SPEC' in err and '--download' in err
 
 
 def test_default_without_shared_data_is_gardens_point(tmp_path, monkeypatch):
-    monkeypatch.setattr(demo, 'shared_data_dir', lambda: None)
+    monkeypatch.delenv('LLN_DATA', raising=False)
     args = demo.build_parser().parse_args(['--out', 'o', '--download', '--download-dir', str(tmp_path / 'gp')])
     spec, frac, why = demo.choose_dataset(args)
     assert spec == f'gardenspoint:{tmp_path / "gp"}' and frac is None and 'downloaded' in why
@@ -182,7 +184,7 @@ def test_default_without_shared_data_is_gardens_point(tmp_path, monkeypatch):
 def test_download_calls_fetch_gardenspoint(tmp_path, monkeypatch, capsys):
     """--download on a Gardens Point folder that lacks its traverses fetches it (here a stub that
     writes a tiny copy; the download itself is tested against a loopback server elsewhere)."""
-    import lln_ros.evaluation as evaluation
+    import lln_ros.download as download
     calls = []
 
     def fake_fetch(root, url, progress=True, **kw):
@@ -193,7 +195,7 @@ def test_download_calls_fetch_gardenspoint(tmp_path, monkeypatch, capsys):
             for i in range(3):
                 cv2.imwrite(str(Path(root) / sub / f'{i}.png'), rng.integers(0, 255, (64, 96, 3), np.uint8))
         return ['day_right', 'night_right']
-    monkeypatch.setattr(evaluation, 'fetch_gardenspoint', fake_fetch)
+    monkeypatch.setattr(download, 'fetch_gardenspoint', fake_fetch)
     root = tmp_path / 'gp'
     assert demo.main(['--dataset', f'gardenspoint:{root}', '--download', '--download-url', 'http://127.0.0.1:9/x.zip',
                       '--out', str(tmp_path / 'o'), '--check']) == 0

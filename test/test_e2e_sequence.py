@@ -4,11 +4,11 @@ colcon-installed extractor and matcher (mapping mode, sequence_length 10), score
 scored (prefilter_k 0)."""
 import numpy as np
 import pytest
+from test_e2e_rtabmap import GAP, play_rtabmap
 
 from conftest import shared_data
 from lln_ros import datasets, metrics
-from lln_ros.evaluation import evaluate_dataset
-from test_e2e_rtabmap import GAP, play_rtabmap
+from lln_ros.eval import evaluate_dataset
 
 LENGTH = 10
 
@@ -38,7 +38,8 @@ def test_online_sequence_figures_equal_lln_eval(online, extractor, tmp_path):
                                            'cache_dir': str(tmp_path / 'cache'), 'progress': False,
                                            'timing_images': 1, 'timing_queries': 1, 'timing_repeats': 1})
     off = run.entry['methods']['lln+seq']
-    print(f'\nrtabmap_loop lln+seq (prefilter_k {prefilter_k}) online: P@100%R {on["p_at_100r"]:.3f} R@100%P {on["r_at_100p"]:.3f}; '
+    print(f'\nrtabmap_loop lln+seq (prefilter_k {prefilter_k}) online: P@100%R {on["p_at_100r"]:.3f} '
+          f'R@100%P {on["r_at_100p"]:.3f}; '
           f'offline (lln-eval): P@100%R {off["p_at_100r"]:.3f} R@100%P {off["r_at_100p"]:.3f}')
     # the same search on the same frames; the single-frame scores differ only by the node's JPEG
     # decode path and float16 map storage, so allow one query of 44 either way

@@ -1,4 +1,4 @@
-"""lln-eval and lln_ros.evaluation on real pixels: a tiny aligned set cut from the photograph matplotlib
+"""lln-eval and lln_ros.eval on real pixels: a tiny aligned set cut from the photograph matplotlib
 ships, the Gardens Point download against a loopback HTTP server, bad input, and rtabmap_loop."""
 import functools
 import http.server
@@ -16,11 +16,12 @@ import pytest
 from conftest import shared_data
 from lln_ros import datasets
 from lln_ros.cli.eval import main
-from lln_ros.evaluation import (METHODS, REPORT_KEYS, Head, evaluate, fetch_gardenspoint, parse_head,
-                                variant)
+from lln_ros.download import fetch_gardenspoint
+from lln_ros.eval import METHODS, REPORT_KEYS, Head, evaluate, parse_head
+from lln_ros.eval.methods import variant
+from lln_ros.landmarks import stack_landmarks
 from lln_ros.lln import LLNHead, head_fingerprint, save_checkpoint
 from lln_ros.retrieval import rank_all
-from lln_ros.landmarks import stack_landmarks
 
 REQUIRED = {'p_at_100r', 'r_at_1', 'r_at_5', 'r_at_10', 'auc_pr', 'r_at_100p', 'extract_ms',
             'match_ms_per_pair', 'n'}
@@ -460,7 +461,7 @@ def test_rtabmap_loop(tmp_path, capsys):
 def test_untrained_head_has_the_checkpoint_architecture(extractor, tmp_path):
     """"trained vs untrained" must differ only in training: the untrained head copies the architecture
     and init seed of the checkpoint it is compared with."""
-    from lln_ros.evaluation import load_heads
+    from lln_ros.eval import load_heads
     dim = extractor.backbone.dim
     path = tmp_path / 'small.pt'
     save_checkpoint(str(path), LLNHead(dim, {'channels': 16, 'kernel_sizes': (1, 3), 'seed': 3}),

@@ -7,8 +7,7 @@ import pytest
 
 from conftest import shared_data
 from lln_ros.image import load_image
-from lln_ros.reloc import (Keypoints, Relocalizer, RelocError, camera_matrix, pair_boxes,
-                           region_boxes)
+from lln_ros.reloc import Keypoints, Relocalizer, RelocError, camera_matrix, pair_boxes, region_boxes
 from lln_ros.similarity import match_pair
 
 

@@ -9,8 +9,16 @@ import pytest
 from conftest import shared_data
 from lln_ros.cli.eval import main
 from lln_ros.errors import LLNError
-from lln_ros.sequence import (KeyframeSequence, SequenceError, SequenceMatcher, contrast_enhance,
-                              rank_sequences, sad_descriptors, sad_difference, sad_size)
+from lln_ros.sequence import (
+    KeyframeSequence,
+    SequenceError,
+    SequenceMatcher,
+    contrast_enhance,
+    rank_sequences,
+    sad_descriptors,
+    sad_difference,
+    sad_size,
+)
 
 S = 10**9  # ns per second
 

@@ -101,7 +101,8 @@ def test_match_tables_reproduce_the_similarity_of_all_cells(traverses, tmp_path)
     ex.conf = {**ex.conf, 'method': 'all'}
     q, refs = t.fq[3].numpy(), t.fr.numpy()
     d, h, w = q.shape
-    local = lambda f: f.reshape(d, h * w).T / np.linalg.norm(f.reshape(d, h * w).T, axis=1, keepdims=True)
+    def local(f):
+        return f.reshape(d, h * w).T / np.linalg.norm(f.reshape(d, h * w).T, axis=1, keepdims=True)
     cells = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 2)
     partner, value = training.match_tables(local(q), np.stack([local(f) for f in refs]), cells)
     assert partner.shape == value.shape == (10, h * w)

@@ -12,7 +12,7 @@ import argparse
 import json
 import sys
 
-from ..errors import LLNError
+from .common import run_cli
 
 
 def _positive(text: str) -> float:
@@ -105,14 +105,7 @@ def run(args) -> int:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        return run(args)
-    except LLNError as e:
-        print(f'lln-bag: error: {e}', file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print('lln-bag: interrupted', file=sys.stderr)
-        return 130
+    return run_cli('lln-bag', lambda: run(args))
 
 
 if __name__ == '__main__':

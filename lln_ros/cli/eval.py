@@ -26,29 +26,35 @@ import shlex
 import sys
 from pathlib import Path
 
+from .common import (
+    UsageError,
+    add_model_arguments,
+    add_prefilter_argument,
+    add_scale_argument,
+    download_dataset,
+    extractor_conf,
+    parser_from_doc,
+    progress_log,
+    read_dataset,
+    run_cli,
+)
+
 PROG = 'lln-eval'
 
 
-class UsageError(Exception):
-    """Bad command-line values found after argparse (one line, exit 2)."""
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=PROG, description=__doc__.strip().splitlines()[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter,
-                                epilog='\n'.join(__doc__.strip().splitlines()[1:]))
+    from ..eval.methods import ALL_METHODS, METHODS
+    from ..eval.runner import default_conf as conf
+    from ..reloc import DETECTORS
+    p = parser_from_doc(PROG, __doc__)
     p.add_argument('--dataset', action='append', required=True, metavar='SPEC', help='dataset (repeatable)')
-    p.add_argument('--methods', default='holistic,lln,act,rand,all',
-                   help='comma-separated subset of holistic,lln,act,rand,all,sad,seqslam '
-                        '(default: holistic,lln,act,rand,all)')
-    p.add_argument('--top-n', type=int, default=50, help='landmarks per image for lln/act/rand (default 50)')
-    p.add_argument('--prefilter-k', type=int, default=30,
-                   help='holistic candidates every local method reranks (default 30, the paper\'s; '
-                        '0 = every reference, an exhaustive rerank)')
-    p.add_argument('--scale', type=float, default=1.0, help='offset-weight width in grid cells (default 1)')
-    p.add_argument('--sequence', type=int, default=0, metavar='L',
+    p.add_argument('--methods', default=','.join(METHODS),
+                   help=f'comma-separated subset of {",".join(ALL_METHODS)} (default: {",".join(METHODS)})')
+    add_prefilter_argument(p, "holistic candidates every local method reranks (the paper's 30)")
+    add_scale_argument(p)
+    p.add_argument('--sequence', type=int, default=conf['sequence'], metavar='L',
                    help='add an X+seq row per holistic/local method: sequence search over L queries '
-                        '(0 = off; seqslam uses L, or 10)')
+                        f'(0 = off; seqslam uses L, or {conf["seqslam_length"]})')
     p.add_argument('--out', required=True, metavar='DIR', help='output folder (results.json, results.md, PNGs)')
     p.add_argument('--range', help='START:END fractions of every aligned dataset (e.g. 0.7:1)')
     p.add_argument('--weights', action='append', metavar='[LABEL=]CKPT',
@@ -57,38 +63,45 @@ def build_parser() -> argparse.ArgumentParser:
                    help='row label for the --weights given in the same position (repeatable)')
     p.add_argument('--heads', action='append', metavar='LABEL=CKPT[,LABEL=CKPT]',
                    help='several labelled heads at once, e.g. trained=best.pt,untrained=')
-    p.add_argument('--backbone', default='efficientnet_lite0')
-    p.add_argument('--layer', default='', help="backbone feature layer (default: the backbone's)")
-    p.add_argument('--backbone-weights', default='', help='local backbone state dict (resnet101 needs one)')
-    p.add_argument('--input-height', type=int, default=288, help='network input height (default 288)')
-    p.add_argument('--cache', default='cache/features', help='backbone feature cache (default cache/features)')
+    add_model_arguments(p, weights=False)
+    p.add_argument('--cache', default=conf['cache_dir'], help=f'backbone feature cache (default {conf["cache_dir"]})')
     p.add_argument('--download', action='store_true',
                    help='gardenspoint:DIR lacking its folders: fetch GardensPoint_Walking.zip into DIR')
     p.add_argument('--download-url', default=None, help='where --download fetches from (default: the public archive)')
     p.add_argument('--threads', type=int, default=0,
                    help='torch threads, and numpy BLAS threads when run as a command (0 = defaults)')
-    p.add_argument('--timing-images', type=int, default=5, help='images per dataset extraction is timed on')
-    p.add_argument('--timing-queries', type=int, default=10, help='queries per dataset matching is timed on')
-    p.add_argument('--timing-repeats', type=int, default=3, help='timing rounds; the best of them counts')
-    p.add_argument('--examples', type=int, default=2, help='success and failure match pictures per dataset')
-    p.add_argument('--heatmap-images', type=int, default=4, help='images in the heatmap figure (0 = none)')
+    p.add_argument('--timing-images', type=int, default=conf['timing_images'],
+                   help='images per dataset extraction is timed on')
+    p.add_argument('--timing-queries', type=int, default=conf['timing_queries'],
+                   help='queries per dataset matching is timed on')
+    p.add_argument('--timing-repeats', type=int, default=conf['timing_repeats'],
+                   help='timing rounds; the best of them counts')
+    p.add_argument('--examples', type=int, default=conf['examples'],
+                   help='success and failure match pictures per dataset')
+    p.add_argument('--heatmap-images', type=int, default=conf['heatmap_images'],
+                   help='images in the heatmap figure (0 = none)')
     p.add_argument('--no-plots', action='store_true', help='write results.json and results.md only')
     p.add_argument('--reloc', action='store_true',
                    help='also relocalization: top-5 lln candidates, region-constrained vs all-keypoint matching')
-    p.add_argument('--reloc-min-inliers', type=int, default=30, help='inliers a true candidate needs (default 30)')
-    p.add_argument('--reloc-top', type=int, default=5, help='lln candidates per query for --reloc (default 5)')
-    p.add_argument('--reloc-queries', type=int, default=0, help='evenly spaced queries for --reloc (0 = all)')
-    p.add_argument('--reloc-detector', default='orb', choices=['orb', 'sift', 'akaze'])
-    p.add_argument('--reloc-margin', type=float, default=1.0, help='region growth in cells (default 1)')
-    p.add_argument('--reloc-fast-threshold', type=int, default=20,
-                   help='ORB FAST threshold (default 20; 5 for blurry upsampled images such as Nordland)')
+    p.add_argument('--reloc-min-inliers', type=int, default=conf['reloc_min_inliers'],
+                   help=f'inliers a true candidate needs (default {conf["reloc_min_inliers"]})')
+    p.add_argument('--reloc-top', type=int, default=conf['reloc_top'],
+                   help=f'lln candidates per query for --reloc (default {conf["reloc_top"]})')
+    p.add_argument('--reloc-queries', type=int, default=conf['reloc_queries'],
+                   help='evenly spaced queries for --reloc (0 = all)')
+    p.add_argument('--reloc-detector', default=conf['reloc_detector'], choices=DETECTORS)
+    p.add_argument('--reloc-margin', type=float, default=conf['reloc_margin'],
+                   help=f'region growth in cells (default {conf["reloc_margin"]:g})')
+    p.add_argument('--reloc-fast-threshold', type=int, default=conf['reloc_fast_threshold'],
+                   help=f'ORB FAST threshold (default {conf["reloc_fast_threshold"]}; 5 for blurry upsampled '
+                        'images such as Nordland)')
     p.add_argument('--check', action='store_true', help='read and check every dataset and head, then stop')
     p.add_argument('--quiet', action='store_true', help='no progress output')
     return p
 
 
 def head_specs(args):
-    from ..evaluation import parse_head
+    from ..eval.methods import parse_head
     weights, labels = args.weights or [], args.label or []
     if len(labels) > len(weights):
         raise UsageError(f'--label given {len(labels)} times but --weights only {len(weights)} times')
@@ -105,35 +118,10 @@ def head_specs(args):
     return heads
 
 
-def load_dataset(spec: str, frac, download: bool):
-    """(Dataset or None when it must be downloaded first, the --range it got)."""
-    from .. import datasets
-    from ..errors import DatasetError
-    from ..evaluation import GARDENS_POINT_FOLDERS
-    kind, _, rest = spec.partition(':')
-    if kind == 'gardenspoint':
-        args = [a for a in rest.split(',') if a]
-        if len(args) in (1, 3):
-            root = Path(args[0])
-            need = args[1:] or ['day_right', 'night_right']
-            if not all((root / f).is_dir() for f in need):
-                if download:
-                    return None, None
-                raise DatasetError(f'{root} is not the Gardens Point Walking layout '
-                                   f'({", ".join(f + "/" for f in GARDENS_POINT_FOLDERS)}); '
-                                   f'add --download to fetch GardensPoint_Walking.zip into it')
-    use = frac if kind == 'aligned' else None
-    ds = datasets.parse_spec(spec, use)
-    if use:
-        ds.name = f'{ds.name}[{use[0]:g}:{use[1]:g}]'
-    return ds, use
-
-
 def run(args, argv) -> dict:
-    from .. import datasets
-    from ..evaluation import GARDENS_POINT_URL, evaluate, fetch_gardenspoint, load_heads, parse_methods
+    from ..eval import evaluate, load_heads, parse_methods
 
-    log = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    log = progress_log(args.quiet)
     try:
         methods = parse_methods(args.methods)
     except ValueError as e:
@@ -151,26 +139,19 @@ def run(args, argv) -> dict:
     heads = head_specs(args)
 
     # 1. read and check every dataset (the readers decode every image) before anything is computed
-    loaded = [load_dataset(spec, frac, args.download) for spec in args.dataset]
+    loaded = [read_dataset(spec, frac, args.download) for spec in args.dataset]
     if frac and not any(use for _, use in loaded):
         raise UsageError('--range applies to aligned: datasets only, and none was given')
 
     # 2. the model and every head (checkpoint metadata must fit the backbone)
     from ..extractor import Extractor
-    extractor = Extractor({'backbone': {'name': args.backbone, 'layer': args.layer,
-                                        'weights_path': args.backbone_weights},
-                           'top_n': args.top_n, 'input_height': args.input_height,
-                           'num_threads': args.threads})
+    extractor = Extractor(extractor_conf(args, num_threads=args.threads))
     heads = load_heads(extractor, heads)
 
     # 3. downloads last: nothing is fetched when another input is bad
     for i, (spec, (ds, _)) in enumerate(zip(args.dataset, loaded)):
         if ds is None:
-            root = spec.partition(':')[2].split(',')[0]
-            url = args.download_url or GARDENS_POINT_URL
-            log(f'{PROG}: {root} lacks the Gardens Point folders; downloading {url}')
-            fetch_gardenspoint(root, url, progress=not args.quiet)
-            loaded[i] = (datasets.parse_spec(spec), None)
+            loaded[i] = (download_dataset(PROG, spec, args.download_url, args.quiet, log), None)
     dsets = [ds for ds, _ in loaded]
     for spec, ds in zip(args.dataset, dsets):
         log(f'{PROG}: {ds.name}: {len(ds.query_paths)} queries, {len(ds.ref_paths)} refs ({spec})')
@@ -194,7 +175,6 @@ def run(args, argv) -> dict:
 
 
 def main(argv=None) -> int:
-    from ..errors import LLNError
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     if args.threads > 0:
@@ -203,21 +183,17 @@ def main(argv=None) -> int:
         # a variable the user set wins.
         for var in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
             os.environ.setdefault(var, str(args.threads))
-    try:
+
+    def go() -> int:
         out = run(args, argv)
-    except (LLNError, UsageError) as e:
-        print(f'{PROG}: error: {e}', file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f'{PROG}: interrupted', file=sys.stderr)
-        return 130
-    if 'checked' in out:
-        print(f'{PROG}: {len(out["checked"])} dataset(s) OK: {", ".join(out["checked"])}')
-    else:
-        out_dir = Path(out['out'])
-        print(f'{PROG}: wrote {out_dir / "results.json"}, {out_dir / "results.md"} and '
-              f'{len(out["figures"])} PNGs')
-    return 0
+        if 'checked' in out:
+            print(f'{PROG}: {len(out["checked"])} dataset(s) OK: {", ".join(out["checked"])}')
+        else:
+            out_dir = Path(out['out'])
+            print(f'{PROG}: wrote {out_dir / "results.json"}, {out_dir / "results.md"} and '
+                  f'{len(out["figures"])} PNGs')
+        return 0
+    return run_cli(PROG, go)
 
 
 if __name__ == '__main__':

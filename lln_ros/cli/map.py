@@ -14,7 +14,8 @@ import argparse
 import json
 import sys
 
-from ..errors import LLNError, MapError
+from ..errors import MapError
+from .common import run_cli
 
 _BATCH = 256  # keyframes per transaction / insert while copying
 
@@ -76,37 +77,38 @@ def check(uri: str) -> list[str]:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    # a map that cannot be opened or refuses a copy exits 1, as scripts and tests rely on
+    return run_cli('lln-map', lambda: run(args), error_status=1)
+
+
+def run(args) -> int:
     from ..mapstore import MapStore
-    try:
-        if args.command == 'info':
-            with MapStore.open(args.map, create=False) as store:
-                info = store.info()
-            if args.json:
-                print(json.dumps(info, default=str))
-            else:
-                for key, value in info.items():
-                    print(f'{key:16s} {value}')
-        elif args.command == 'check':
-            problems = check(args.map)
-            if problems:
-                print(f'{args.map}: {len(problems)} problem(s)')
-                for p in problems:
-                    print(f'  - {p}')
-                return 1
-            print(f'{args.map}: healthy')
-        elif args.command == 'compact':
-            with MapStore.open(args.map, create=False) as store:
-                result = store.compact()
-            sizes = (f": {result['bytes_before']} -> {result['bytes_after']} bytes"
-                     if result else ' (Milvus compacts in the background)')
-            print(f'compacted {args.map}{sizes}')
+    if args.command == 'info':
+        with MapStore.open(args.map, create=False) as store:
+            info = store.info()
+        if args.json:
+            print(json.dumps(info, default=str))
         else:
-            src, dst = (args.map, args.dest) if args.command == 'export' else (args.src, args.map)
-            n = copy_map(src, dst)
-            print(f'copied {n} keyframes from {src} to {dst}')
-    except LLNError as e:
-        print(f'lln-map: {e}', file=sys.stderr)
-        return 1
+            for key, value in info.items():
+                print(f'{key:16s} {value}')
+    elif args.command == 'check':
+        problems = check(args.map)
+        if problems:
+            print(f'{args.map}: {len(problems)} problem(s)')
+            for p in problems:
+                print(f'  - {p}')
+            return 1
+        print(f'{args.map}: healthy')
+    elif args.command == 'compact':
+        with MapStore.open(args.map, create=False) as store:
+            result = store.compact()
+        sizes = (f": {result['bytes_before']} -> {result['bytes_after']} bytes"
+                 if result else ' (Milvus compacts in the background)')
+        print(f'compacted {args.map}{sizes}')
+    else:
+        src, dst = (args.map, args.dest) if args.command == 'export' else (args.src, args.map)
+        n = copy_map(src, dst)
+        print(f'copied {n} keyframes from {src} to {dst}')
     return 0
 
 

@@ -8,42 +8,34 @@ import argparse
 import json
 import sys
 
-from ..errors import LLNError
+from .common import add_model_arguments, add_scale_argument, check_output_file, extractor_conf, run_cli
+
+PROG = 'lln-match'
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog='lln-match', description=__doc__.strip().splitlines()[0])
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__.strip().splitlines()[0])
     p.add_argument('image_a')
     p.add_argument('image_b')
-    p.add_argument('--method', default='lln', choices=['lln', 'act', 'rand', 'all'])
+    from ..landmarks import METHODS
+    p.add_argument('--method', default=METHODS[0], choices=METHODS)
     add_model_arguments(p)
-    p.add_argument('--scale', type=float, default=1.0, help='offset-weight width in grid cells (default 1)')
+    add_scale_argument(p)
     p.add_argument('--plot', metavar='PNG', help='write the two images with matched regions linked')
     p.add_argument('--json', action='store_true', help='print one JSON object instead of text')
     return p
 
 
-def add_model_arguments(p: argparse.ArgumentParser) -> None:
-    """The extractor options every pair command shares (lln-match, lln-reloc)."""
-    p.add_argument('--top-n', type=int, default=50, help='landmarks per image (default 50)')
-    p.add_argument('--input-height', type=int, default=288, help='network input height (default 288)')
-    p.add_argument('--backbone', default='efficientnet_lite0')
-    p.add_argument('--layer', default='', help='backbone feature layer (default: the backbone\'s)')
-    p.add_argument('--backbone-weights', default='', help='local backbone state dict (resnet101 needs one)')
-    p.add_argument('--weights', default='', help='LLN head checkpoint (default: the shipped one)')
-
-
 def extractor_from_args(args, method: str = 'lln'):
     from ..extractor import Extractor
-    return Extractor({
-        'backbone': {'name': args.backbone, 'layer': args.layer, 'weights_path': args.backbone_weights},
-        'weights': args.weights, 'top_n': args.top_n, 'method': method, 'input_height': args.input_height})
+    return Extractor(extractor_conf(args, method=method))
 
 
 def run(args) -> dict:
     from ..image import load_image
     from ..similarity import match_pair
 
+    check_output_file(args.plot, '--plot')
     images = [load_image(args.image_a), load_image(args.image_b)]
     extractor = extractor_from_args(args, args.method)
     a, b = extractor.extract_batch(images)
@@ -73,14 +65,12 @@ def run(args) -> dict:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    try:
+
+    def go() -> int:
         out = run(args)
-    except LLNError as e:
-        print(f'lln-match: error: {e}', file=sys.stderr)
-        return 2
-    if args.json:
-        print(json.dumps(out))
-    else:
+        if args.json:
+            print(json.dumps(out))
+            return 0
         print(f'similarity S = {out["similarity"]:.3f}  (holistic cosine {out["holistic"]:.3f})')
         print(f'{out["pairs"]} mutual pairs of {out["n"]} landmarks ({out["method"]}), '
               f'offset (dx, dy) = {tuple(out["offset"])} grid cells')
@@ -88,7 +78,8 @@ def main(argv=None) -> int:
             print('note: the LLN head is untrained (seeded Xavier init); see README', file=sys.stderr)
         if out['plot']:
             print(f'plot written to {out["plot"]}')
-    return 0
+        return 0
+    return run_cli(PROG, go)
 
 
 if __name__ == '__main__':

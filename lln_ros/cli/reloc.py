@@ -13,8 +13,8 @@ import argparse
 import json
 import sys
 
-from ..errors import LLNError
-from .match import add_model_arguments, extractor_from_args
+from .common import add_model_arguments, check_output_file, run_cli
+from .match import extractor_from_args
 
 PROG = 'lln-reloc'
 
@@ -24,7 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.strip().splitlines()[0])
     p.add_argument('query')
     p.add_argument('keyframe')
-    p.add_argument('--detector', default='orb', choices=DETECTORS)
+    p.add_argument('--detector', default=default_conf['detector'], choices=DETECTORS)
     p.add_argument('--max-keypoints', type=int, default=default_conf['max_keypoints'])
     p.add_argument('--ratio', type=float, default=default_conf['ratio'], help='Lowe ratio (default 0.8)')
     p.add_argument('--margin', type=float, default=default_conf['margin'],
@@ -44,6 +44,7 @@ def run(args) -> dict:
     from ..reloc import Relocalizer, camera_matrix, pair_boxes
     from ..similarity import match_pair
 
+    check_output_file(args.plot, '--plot')
     images = [load_image(args.query), load_image(args.keyframe)]
     K = camera_matrix(args.intrinsics) if args.intrinsics else None
     reloc = Relocalizer({'detector': args.detector, 'max_keypoints': args.max_keypoints, 'ratio': args.ratio,
@@ -76,12 +77,11 @@ def run(args) -> dict:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        out = run(args)
-    except LLNError as e:
-        print(f'{PROG}: error: {e}', file=sys.stderr)
-        return 2
-    if args.json:
+    return run_cli(PROG, lambda: report(run(args), args.json))
+
+
+def report(out: dict, as_json: bool) -> int:
+    if as_json:
         print(json.dumps(out))
         return 0
     print(f'place: S = {out["similarity"]:.3f}, {out["region_pairs"]} mutual landmark pairs; '

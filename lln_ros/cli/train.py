@@ -18,6 +18,8 @@ import json
 import shlex
 import sys
 
+from .common import run_cli
+
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog='lln-train', description=__doc__.strip().splitlines()[0])
@@ -84,19 +86,14 @@ def run(args) -> dict:
 
 
 def main(argv=None) -> int:
-    from ..errors import LLNError
     args = build_parser().parse_args(argv)
-    try:
+
+    def go() -> int:
         result = run(args)
-    except LLNError as e:
-        print(f'lln-train: error: {e}', file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print('lln-train: interrupted; OUT/last.pt holds the last finished epoch (rerun to resume)',
-              file=sys.stderr)
-        return 130
-    print(json.dumps({'best_val_p_at_100r': result['best_val_p_at_100r']}))
-    return 0
+        print(json.dumps({'best_val_p_at_100r': result['best_val_p_at_100r']}))
+        return 0
+    return run_cli('lln-train', go,
+                   interrupted='interrupted; OUT/last.pt holds the last finished epoch (rerun to resume)')
 
 
 if __name__ == '__main__':

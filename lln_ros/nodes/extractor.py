@@ -29,10 +29,9 @@ from ..backbones import BACKBONES
 from ..backbones import default_conf as BACKBONE
 from ..extractor import Extractor
 from ..extractor import default_conf as EXTRACTOR
-from ..image import check_image
+from ..image import check_image, heatmap_bgr
 from ..landmarks import METHODS
 from ..limits import default_conf as LIMITS
-from ..plotting import heatmap_bgr
 from ..stream import StampGaps
 from .common import MODEL_QOS, Health, loss_events, run_node, start_diagnostics, subscription_qos, worst
 from .parameters import Param, declare_all

@@ -14,8 +14,15 @@ import time
 import cv2
 import numpy as np
 
-from .sequence import (contrast_enhance, dense_to_ranked, rank_sequences, sad_conf, sad_descriptors,
-                       sad_difference, sad_size)
+from ..sequence import (
+    contrast_enhance,
+    dense_to_ranked,
+    rank_sequences,
+    sad_conf,
+    sad_descriptors,
+    sad_difference,
+    sad_size,
+)
 
 PEER_METHODS = ('sad', 'seqslam')
 
@@ -23,7 +30,7 @@ PEER_METHODS = ('sad', 'seqslam')
 def _grey(path) -> np.ndarray:
     im = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if im is None:
-        from .errors import ImageError
+        from ..errors import ImageError
         raise ImageError(f'cannot read image {path}')
     return im
 
