@@ -464,7 +464,7 @@ def evaluate(datasets: list, extractor, conf: dict | None = None, heads: list[He
                                          'fingerprint': head_fingerprint(h.module)} for h in heads},
             'timing_images': int(conf['timing_images']), 'timing_queries': int(conf['timing_queries']),
             'timing_repeats': int(conf['timing_repeats']),
-            'torch_threads': torch.get_num_threads(),
+            'torch_threads': torch.get_num_threads(), 'runtime': extractor.model_info.get('runtime', 'torch'),
             'blas_threads': os.environ.get('OPENBLAS_NUM_THREADS') or os.environ.get('OMP_NUM_THREADS') or 'default',
             'feature_cache': str(conf['cache_dir']),
             'command': command,

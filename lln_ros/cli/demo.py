@@ -63,6 +63,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .match import add_runtime_argument, runtime_conf
+
 PROG = 'lln-demo'
 NORDLAND_RANGE = (0.7, 1.0)
 BAG_TOPIC = '/camera/image_raw'
@@ -148,6 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--weights', default='', help="LLN head checkpoint (default '': the shipped head)")
     p.add_argument('--threads', type=int, default=1,
                    help='torch threads per extractor and offline, BLAS threads per node (default 1)')
+    add_runtime_argument(p)
     p.add_argument('--offline', action=argparse.BooleanOptionalAction, default=True,
                    help='also run the offline evaluator and compare (default on)')
     p.add_argument('--cache', metavar='DIR', help='offline feature cache (default DIR/cache/features)')
@@ -657,6 +660,8 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
                             '-p', f'method:={ext_method}', '-p', f'top_n:={args.top_n}', *common]
         if args.weights:
             extractor_params += ['-p', f'weights:={Path(args.weights).expanduser().resolve()}']
+        if args.runtime:
+            extractor_params += ['-p', f'runtime:={args.runtime}']
         procs.append(NodeProcess('matcher', exes['matcher'], [
             '-p', f'map_path:={(out / "map.db").resolve()}', '-p', 'mode:=localization',
             '-p', f'prefilter_k:={args.prefilter_k}', '-p', f'k:={k}',
@@ -959,7 +964,7 @@ def run_offline(ds, spec: str, args, out: Path, log) -> dict:
     from ..extractor import Extractor
     ext_method = 'lln' if args.method == 'holistic' else args.method
     extractor = Extractor({'top_n': args.top_n, 'method': ext_method, 'num_threads': args.threads,
-                           'weights': str(Path(args.weights).expanduser().resolve()) if args.weights else ''})
+                           **runtime_conf(args), 'weights': str(Path(args.weights).expanduser().resolve()) if args.weights else ''})
     conf = {'methods': [args.method], 'top_n': args.top_n, 'prefilter_k': args.prefilter_k, 'scale': 1.0,
             'timing_images': 3, 'timing_queries': 5, 'timing_repeats': 1, 'examples': args.examples,
             'heatmap_images': 4, 'cache_dir': args.cache or str(out / 'cache' / 'features'),

@@ -26,6 +26,8 @@ import shlex
 import sys
 from pathlib import Path
 
+from .match import add_runtime_argument, runtime_conf
+
 PROG = 'lln-eval'
 
 
@@ -66,7 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help='gardenspoint:DIR lacking its folders: fetch GardensPoint_Walking.zip into DIR')
     p.add_argument('--download-url', default=None, help='where --download fetches from (default: the public archive)')
     p.add_argument('--threads', type=int, default=0,
-                   help='torch threads, and numpy BLAS threads when run as a command (0 = defaults)')
+                   help='extractor runtime threads, and numpy BLAS threads when run as a command (0 = defaults)')
+    add_runtime_argument(p)
     p.add_argument('--timing-images', type=int, default=5, help='images per dataset extraction is timed on')
     p.add_argument('--timing-queries', type=int, default=10, help='queries per dataset matching is timed on')
     p.add_argument('--timing-repeats', type=int, default=3, help='timing rounds; the best of them counts')
@@ -160,7 +163,7 @@ def run(args, argv) -> dict:
     extractor = Extractor({'backbone': {'name': args.backbone, 'layer': args.layer,
                                         'weights_path': args.backbone_weights},
                            'top_n': args.top_n, 'input_height': args.input_height,
-                           'num_threads': args.threads})
+                           'num_threads': args.threads, **runtime_conf(args)})
     heads = load_heads(extractor, heads)
 
     # 3. downloads last: nothing is fetched when another input is bad

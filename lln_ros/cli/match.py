@@ -1,6 +1,7 @@
 """lln-match: how similar are two images, and which regions match?
 
-    lln-match A.jpg B.jpg [--method lln|act|rand|all] [--top-n 50] [--plot out.png] [--json]
+    lln-match A.jpg B.jpg [--method lln|act|rand|all] [--top-n 50] [--runtime onnxruntime|torch]
+              [--plot out.png] [--json]
 """
 from __future__ import annotations
 
@@ -31,13 +32,27 @@ def add_model_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument('--layer', default='', help='backbone feature layer (default: the backbone\'s)')
     p.add_argument('--backbone-weights', default='', help='local backbone state dict (resnet101 needs one)')
     p.add_argument('--weights', default='', help='LLN head checkpoint (default: the shipped one)')
+    add_runtime_argument(p)
+
+
+def add_runtime_argument(p: argparse.ArgumentParser) -> None:
+    """--runtime, for every command that builds an Extractor (the default lives in its default_conf)."""
+    p.add_argument('--runtime', default=None,
+                   help='what runs the network: onnxruntime | torch (default onnxruntime, torch when '
+                        'ONNX Runtime is not installed); the landmarks are the same')
+
+
+def runtime_conf(args) -> dict:
+    """{'runtime': ...} when --runtime was given, else {} (the extractor's default applies)."""
+    return {'runtime': args.runtime} if getattr(args, 'runtime', None) else {}
 
 
 def extractor_from_args(args, method: str = 'lln'):
     from ..extractor import Extractor
     return Extractor({
         'backbone': {'name': args.backbone, 'layer': args.layer, 'weights_path': args.backbone_weights},
-        'weights': args.weights, 'top_n': args.top_n, 'method': method, 'input_height': args.input_height})
+        'weights': args.weights, 'top_n': args.top_n, 'method': method, 'input_height': args.input_height,
+        **runtime_conf(args)})
 
 
 def run(args) -> dict:

@@ -21,7 +21,7 @@ from std_msgs.msg import String
 
 from .. import msgs
 from ..errors import LLNError
-from ..extractor import Extractor
+from ..extractor import Extractor, default_conf as extractor_defaults
 from ..image import check_image
 from ..plotting import heatmap_bgr
 from .common import MODEL_QOS, Health, declare, run_node, start_diagnostics, subscription_qos
@@ -40,6 +40,8 @@ PARAMETERS = {
     'publish_keypoints': (False, "also publish ORB keypoints on 'keypoints' (matcher verify mode)"),
     'keypoints_max': (500, 'ORB keypoints per image with publish_keypoints'),
     'num_threads': (0, 'torch intra-op threads; 0 = torch default'),
+    'runtime': (extractor_defaults['runtime'], 'what runs the network: onnxruntime (falls back to torch when '
+                'not installed) | torch; same landmarks, model_info says which ran'),
     'diagnostics_period': (1.0, 'seconds between /diagnostics messages; 0 = off'),
 }
 
@@ -73,7 +75,7 @@ class ExtractorNode(Node):
         self.extractor = Extractor({
             'backbone': {'name': p['backbone'], 'layer': p['layer'], 'weights_path': p['backbone_weights']},
             'weights': p['weights'], 'top_n': p['top_n'], 'input_height': p['input_height'],
-            'method': p['method'], 'num_threads': p['num_threads']})
+            'method': p['method'], 'num_threads': p['num_threads'], 'runtime': p['runtime']})
         self.health = Health(self)
         self.landmarks_pub = self.create_publisher(PointCloud2, 'landmarks', 10)
         self.activation_pub = self.create_publisher(Image, 'activation', 2) if p['publish_activation'] else None
@@ -100,7 +102,7 @@ class ExtractorNode(Node):
         info = self.extractor.model_info
         self.get_logger().info(
             f"extracting {p['method']} top-{p['top_n']} landmarks with {info['descriptor_space']} "
-            f"(head {info['head']}{'' if info['head_trained'] else ', UNTRAINED'}) from "
+            f"(head {info['head']}{'' if info['head_trained'] else ', UNTRAINED'}, {info['runtime']}) from "
             f"'{self.resolve_topic_name('image/compressed' if compressed else 'image')}'")
 
     def on_image(self, msg) -> None:
