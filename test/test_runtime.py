@@ -194,3 +194,40 @@ def test_lln_match_runtime_flag(tmp_path):
     bad = subprocess.run([str(exe), str(root / '5.jpg'), str(root / '50.jpg'), '--runtime', 'tf'],
                          capture_output=True, text=True, timeout=600)
     assert bad.returncode == 2 and 'unknown runtime' in bad.stderr
+
+
+# ------------------------------------------------------------------ the node parameter
+
+def test_extractor_node_runtime_parameter(tmp_path):
+    """The real node (its console script, own DDS domain): `runtime` picks the runtime, the latched
+    model_info says which ran, and both publish the same landmark cells for the same image."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from ros_harness import VENV_BIN, Probe, RosProcess, ros_env
+    from sensor_msgs.msg import Image, PointCloud2
+    from std_msgs.msg import String
+
+    from lln_ros import msgs
+    image = cv2.resize(load_image(str(shared_data('rtabmap_loop', '5.jpg'))), (384, 288))
+    env = ros_env(tmp_path, {'LLN_CACHE': os.environ.get('LLN_CACHE', str(runtime.cache_dir()))})
+    cells = {}
+    for rt in ('torch', 'onnxruntime'):
+        proc = RosProcess(VENV_BIN / 'extractor', ['-p', f'runtime:={rt}', '-p', 'num_threads:=1',
+                                                   '-p', 'reliability:=reliable'], env, tmp_path / f'{rt}.log')
+        try:
+            with Probe(env) as probe:
+                info, got = [], probe.collect(PointCloud2, 'landmarks')
+                probe.node.create_subscription(String, 'model_info', lambda m: info.append(json.loads(m.data)),
+                                               QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                                                          durability=DurabilityPolicy.TRANSIENT_LOCAL))
+                pub = probe.publisher(Image, 'image')
+                probe.spin_until(lambda: not proc.alive() or (info and pub.get_subscription_count() > 0), 120,
+                                 'extractor up')
+                assert proc.alive(), proc.log()
+                assert info[0]['runtime'] == rt and info[0]['descriptor_space'] == 'efficientnet_lite0/stage6/192'
+                pub.publish(msgs.array_to_image(image, 'rgb8', msgs.make_header(1_000_000_000, 'cam')))
+                probe.spin_until(lambda: got, 120, 'landmarks')
+                cells[rt] = msgs.cloud_to_landmarks(got[0]).cells
+        finally:
+            proc.stop()
+        assert f', {rt}) from' in proc.log()  # the start-up line names it
+    assert np.array_equal(cells['torch'], cells['onnxruntime'])
