@@ -35,6 +35,7 @@ setup(
             'lln-demo = lln_ros.cli.demo:main',
             'lln-reloc = lln_ros.cli.reloc:main',
             'lln-map = lln_ros.cli.map:main',
+            'lln-export = lln_ros.cli.export:main',
         ],
     },
 )

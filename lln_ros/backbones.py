@@ -12,8 +12,10 @@ wheel, where there are any).
 from __future__ import annotations
 
 import contextlib
+import copy
 import io
 import os
+import types
 
 import torch
 from torch import nn
@@ -90,6 +92,20 @@ class EfficientNetLite(nn.Module):
                            'head': stage_ends[-1]}[layer]
         self.dim = widths[self.last_block] if layer != 'head' else net._bn1.num_features
 
+    def exportable(self) -> 'EfficientNetLite':
+        """A copy for ONNX export whose "same" padding is constant, valid for inputs whose height
+        and width are multiples of 32 (all the extractor feeds; lln_ros.image.network_size).
+
+        The library computes the padding per call from the input size with math.ceil, which a trace
+        turns into a constant minus the live size: the exported graph would crop every input to the
+        traced size. For a multiple of 32 each stride-2 convolution sees an even size, where TF's
+        "same" padding is (k-1)*d - 1 (stride 2) or (k-1)*d (stride 1), whatever the size."""
+        net = copy.deepcopy(self)
+        for m in net.modules():
+            if type(m).__name__ == 'Conv2dDynamicSamePadding':
+                m.forward = types.MethodType(_even_input_same_conv, m)
+        return net
+
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         # normalisation these weights were trained with: (x*255 - 127) / 128
         x = (images * 255.0 - 127.0) / 128.0
@@ -100,6 +116,20 @@ class EfficientNetLite(nn.Module):
         if self.layer == 'head':
             x = net._swish(net._bn1(net._conv_head(x)))
         return x
+
+
+def _even_input_same_conv(conv: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
+    """Conv2dDynamicSamePadding.forward for even input sizes, with the padding as constants."""
+    pads = []
+    for k, s, d in zip(conv.weight.shape[-2:], conv.stride, conv.dilation):
+        p = max((k - 1) * d - (1 if s == 2 else 0), 0) if s in (1, 2) else None
+        if p is None:
+            raise ModelError(f'cannot export a stride-{s} same-padded convolution')
+        pads.append((p // 2, p - p // 2))
+    (top, bottom), (left, right) = pads
+    if top or bottom or left or right:
+        x = nn.functional.pad(x, [left, right, top, bottom])
+    return nn.functional.conv2d(x, conv.weight, conv.bias, conv.stride, conv.padding, conv.dilation, conv.groups)
 
 
 class _Bottleneck(nn.Module):

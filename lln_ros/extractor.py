@@ -3,6 +3,11 @@
     extractor = Extractor({'top_n': 50, 'method': 'lln'})
     landmarks = extractor(image)            # uint8 (H, W) or (H, W, 3|4), RGB unless channel_order='bgr'
     many = extractor.extract_batch(images)  # same result, batched through the network
+
+`runtime` picks what runs the network (lln_ros.runtime): 'onnxruntime' (the default; the graph is
+exported once and cached, see lln_ros.runtime) or 'torch'. Both give the same landmarks; when ONNX
+Runtime is not installed the extractor says so in one log line and runs torch. model_info['runtime']
+names the one that runs.
 """
 from __future__ import annotations
 
@@ -17,6 +22,7 @@ from .errors import ModelError
 from .image import check_image, resize_for_network
 from .landmarks import METHODS, LandmarkSet, l2_normalize, select_landmarks
 from .lln import LLNHead, head_fingerprint, load_checkpoint
+from .runtime import RUNTIMES, build_network
 
 default_conf = {
     'backbone': backbones.default_conf,
@@ -25,7 +31,8 @@ default_conf = {
     'input_height': 288,
     'method': 'lln',
     'rand_seed': 0,
-    'num_threads': 0,      # torch intra-op threads; 0 = leave torch's default
+    'runtime': 'onnxruntime',  # torch | onnxruntime (falls back to torch when not installed)
+    'num_threads': 0,      # intra-op threads of the runtime; 0 = the runtime's default
 }
 
 
@@ -44,8 +51,10 @@ class Extractor:
             raise ModelError(f'unknown method {conf["method"]!r}; choose one of {METHODS}')
         if int(conf['top_n']) < 1:
             raise ModelError(f'top_n must be at least 1, got {conf["top_n"]}')
-        if conf['num_threads']:
-            torch.set_num_threads(int(conf['num_threads']))
+        if conf['runtime'] not in RUNTIMES:
+            raise ModelError(f'unknown runtime {conf["runtime"]!r}; choose one of {list(RUNTIMES)}')
+        if int(conf['num_threads']):
+            torch.set_num_threads(int(conf['num_threads']))  # also the torch head of from_features
         self.backbone = backbones.build_backbone(conf['backbone'])
         name, layer = conf['backbone']['name'], self.backbone.layer
         weights = conf['weights'] or shipped_weights(name, layer)
@@ -58,28 +67,29 @@ class Extractor:
             self.head_meta = {'trained': False}
         for p in self.head.parameters():
             p.requires_grad_(False)
+        self.network = build_network(name, layer, self.backbone, self.head, conf['runtime'],
+                                     int(conf['num_threads']))
         self.descriptor_space = f'{name}/{layer}/{self.backbone.dim}'
         self.model_info = {
             'backbone': name, 'layer': layer, 'descriptor_dim': self.backbone.dim,
             'descriptor_space': self.descriptor_space,
             'head': head_fingerprint(self.head), 'head_trained': bool(self.head_meta.get('trained', True)),
             'weights': weights or '', 'input_height': int(conf['input_height']),
+            # not part of the descriptor space: maps built with one runtime answer the other's queries
+            'runtime': self.network.runtime,
         }
 
-    @torch.inference_mode()
     def backbone_features(self, rgb_batch: np.ndarray) -> torch.Tensor:
         """RGB uint8 (B, H, W, 3), already at network size -> features (B, D, H/32, W/32).
 
         Rounded to float16 precision: the feature cache stores float16, so live extraction and
         evaluation from the cache see the same numbers (and agree on every ranking)."""
-        feats = self.backbone(torch.from_numpy(rgb_batch).permute(0, 3, 1, 2).float().div_(255.0))
-        return feats.half().float()
+        return torch.from_numpy(self.network(rgb_batch)[0])
 
-    @torch.inference_mode()
-    def features(self, rgb_batch: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        """RGB uint8 (B, H, W, 3) at network size -> (features (B, D, h, w), head logits (B, h, w))."""
-        feats = self.backbone_features(rgb_batch)
-        return feats, self.head.logits(feats)
+    def features(self, rgb_batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """RGB uint8 (B, H, W, 3) at network size -> (features (B, D, h, w), head logits (B, h, w)),
+        float32 numpy arrays, the features float16-exact."""
+        return self.network(rgb_batch)
 
     def __call__(self, image: np.ndarray, channel_order: str = 'rgb') -> LandmarkSet:
         return self.extract_batch([image], channel_order)[0]
@@ -99,7 +109,7 @@ class Extractor:
                 feats, logits = self.features(np.stack([net[i] for i in chunk]))
                 for j, i in enumerate(chunk):
                     h, w = rgb[i].shape[:2]
-                    out[i] = self._landmarks(feats[j].numpy(), logits[j].numpy(), (w, h))
+                    out[i] = self._landmarks(feats[j], logits[j], (w, h))
         return out
 
     @torch.inference_mode()

@@ -50,7 +50,8 @@ def photo() -> np.ndarray:
 
 
 @pytest.fixture(scope='session')
-def colcon_install(tmp_path_factory):
-    """The package built by colcon into a fresh workspace, as a ROS user builds it."""
+def colcon_install(tmp_path_factory, extractor):
+    """The package built by colcon into a fresh workspace, as a ROS user builds it. After the
+    session extractor, which exports the ONNX graph into the cache: nodes then start without it."""
     from ros_harness import colcon_build
     return colcon_build(tmp_path_factory.mktemp('ws'))

@@ -119,6 +119,19 @@ def add_model_arguments(p: argparse.ArgumentParser, weights: bool = True) -> Non
     )
     if weights:
         p.add_argument('--weights', default=ext['weights'], help='LLN head checkpoint (default: the shipped one)')
+    add_runtime_argument(p)
+
+
+def add_runtime_argument(p: argparse.ArgumentParser) -> None:
+    """--runtime, for every command that builds an Extractor (the default lives in its default_conf)."""
+    p.add_argument('--runtime', default=None, choices=('onnxruntime', 'torch'),
+                   help='what runs the network (default onnxruntime, torch when ONNX Runtime is not '
+                        'installed); the landmarks are the same')
+
+
+def runtime_conf(args) -> dict:
+    """{'runtime': ...} when --runtime was given, else {} (the extractor's default applies)."""
+    return {'runtime': args.runtime} if getattr(args, 'runtime', None) else {}
 
 
 def add_prefilter_argument(p: argparse.ArgumentParser, what: str = 'holistic candidates reranked') -> None:
@@ -148,7 +161,7 @@ def extractor_conf(args, **extra) -> dict:
     }
     if getattr(args, 'weights', None) is not None and isinstance(args.weights, str):
         conf['weights'] = args.weights
-    return {**conf, **extra}
+    return {**conf, **runtime_conf(args), **extra}
 
 
 def check_output_file(path: str | None, flag: str) -> None:

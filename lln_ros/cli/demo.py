@@ -71,6 +71,7 @@ from .common import (
     RunError,
     UsageError,
     add_prefilter_argument,
+    add_runtime_argument,
     data_dir,
     download_dataset,
     parser_from_doc,
@@ -125,6 +126,7 @@ def build_parser():
     p.add_argument('--weights', default=ext['weights'], help="LLN head checkpoint (default '': the shipped head)")
     p.add_argument('--threads', type=int, default=1,
                    help='torch threads per extractor and offline, BLAS threads per node (default 1)')
+    add_runtime_argument(p)
     p.add_argument('--offline', action=argparse.BooleanOptionalAction, default=True,
                    help='also run the offline evaluator and compare (default on)')
     p.add_argument('--cache', metavar='DIR', help='offline feature cache (default DIR/cache/features)')
@@ -230,6 +232,8 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
                             '-p', f'method:={ext_method}', '-p', f'top_n:={args.top_n}', *common]
         if args.weights:
             extractor_params += ['-p', f'weights:={Path(args.weights).expanduser().resolve()}']
+        if args.runtime:
+            extractor_params += ['-p', f'runtime:={args.runtime}']
         procs.append(NodeProcess(exes['matcher'], [
             '-p', f'map_path:={(out / "map.db").resolve()}', '-p', 'mode:=localization',
             '-p', f'prefilter_k:={args.prefilter_k}', '-p', f'k:={k}',

@@ -69,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='gardenspoint:DIR lacking its folders: fetch GardensPoint_Walking.zip into DIR')
     p.add_argument('--download-url', default=None, help='where --download fetches from (default: the public archive)')
     p.add_argument('--threads', type=int, default=0,
-                   help='torch threads, and numpy BLAS threads when run as a command (0 = defaults)')
+                   help='extractor runtime threads, and numpy BLAS threads when run as a command (0 = defaults)')
     p.add_argument('--timing-images', type=int, default=conf['timing_images'],
                    help='images per dataset extraction is timed on')
     p.add_argument('--timing-queries', type=int, default=conf['timing_queries'],

@@ -1,6 +1,7 @@
 """lln-match: how similar are two images, and which regions match?
 
-    lln-match A.jpg B.jpg [--method lln|act|rand|all] [--top-n 50] [--plot out.png] [--json]
+    lln-match A.jpg B.jpg [--method lln|act|rand|all] [--top-n 50] [--runtime onnxruntime|torch]
+              [--plot out.png] [--json]
 """
 from __future__ import annotations
 

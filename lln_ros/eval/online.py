@@ -185,11 +185,12 @@ def compare(online: dict, off_ranked: np.ndarray, off_scores: np.ndarray, off_su
 def run_offline(ds, spec: str, args, out: Path, log) -> dict:
     """The same dataset through lln-eval's code (evaluate) with the nodes' method, top-n and
     prefilter-k, into out/offline; the ranking and summary of its one row."""
+    from ..cli.common import runtime_conf
     from ..extractor import Extractor
     from .runner import evaluate
     ext_method = 'lln' if args.method == 'holistic' else args.method
     extractor = Extractor({'top_n': args.top_n, 'method': ext_method, 'num_threads': args.threads,
-                           'weights': str(Path(args.weights).expanduser().resolve()) if args.weights else ''})
+                           **runtime_conf(args), 'weights': str(Path(args.weights).expanduser().resolve()) if args.weights else ''})
     conf = {'methods': [args.method], 'top_n': args.top_n, 'prefilter_k': args.prefilter_k,
             'timing_images': 3, 'timing_queries': 5, 'timing_repeats': 1, 'examples': args.examples,
             'heatmap_images': 4, 'cache_dir': args.cache or str(out / 'cache' / 'features'),

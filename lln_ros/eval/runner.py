@@ -275,7 +275,8 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
         'info': info,
         'grid': list(hq[0].grid) if hq else None,
         'timing': {'images': len(timing_images), 'queries': len(timed),
-                   'torch_threads': torch.get_num_threads()},
+                   'torch_threads': torch.get_num_threads(),
+                   'runtime': extractor.model_info.get('runtime', 'torch')},
         'recall_at_k_holistic': [finite(float(r)) for r in curve],
         'methods': rows_out,
     }

@@ -54,7 +54,10 @@ PARAMETERS = {
     'publish_activation': Param(False, "also publish the LLN activation heatmap on 'activation'", dynamic=True),
     'publish_keypoints': Param(False, "also publish ORB keypoints on 'keypoints' (matcher verify mode)"),
     'keypoints_max': Param(500, 'ORB keypoints per image with publish_keypoints', range=(1, LIMITS['max_keypoints'])),
-    'num_threads': Param(EXTRACTOR['num_threads'], 'torch intra-op threads; 0 = torch default', range=(0, 1024)),
+    'num_threads': Param(EXTRACTOR['num_threads'], 'inference threads (torch intra-op / ONNX Runtime intra-op); '
+                         '0 = the runtime default', range=(0, 1024)),
+    'runtime': Param(EXTRACTOR['runtime'], 'what runs the network: onnxruntime (falls back to torch when not '
+                     'installed) | torch; same landmarks, model_info says which ran', choices=('onnxruntime', 'torch')),
     'diagnostics_period': Param(1.0, 'seconds between /diagnostics messages; 0 = off', dynamic=True,
                                 range=(0.0, 3600.0)),
     'max_image_pixels': Param(LIMITS['max_image_pixels'], 'limit: width x height of an image, raw or decoded '
@@ -92,7 +95,7 @@ class ExtractorNode(Node):
         self.extractor = Extractor({
             'backbone': {'name': p['backbone'], 'layer': p['layer'], 'weights_path': p['backbone_weights']},
             'weights': p['weights'], 'top_n': p['top_n'], 'input_height': p['input_height'],
-            'method': p['method'], 'num_threads': p['num_threads']})
+            'method': p['method'], 'num_threads': p['num_threads'], 'runtime': p['runtime']})
         self.health = Health(self)
         self.landmarks_pub = self.create_publisher(PointCloud2, 'landmarks', 10)
         self.activation_pub = None
@@ -121,7 +124,7 @@ class ExtractorNode(Node):
         info = self.extractor.model_info
         self.get_logger().info(
             f"extracting {p['method']} top-{p['top_n']} landmarks with {info['descriptor_space']} "
-            f"(head {info['head']}{'' if info['head_trained'] else ', UNTRAINED'}) from "
+            f"(head {info['head']}{'' if info['head_trained'] else ', UNTRAINED'}, {info['runtime']}) from "
             f"'{self.image_topic}'")
 
     def set_activation(self, on: bool) -> None:

@@ -1,0 +1,209 @@
+"""Inference runtimes for the extractor's network: torch, or the same network in ONNX Runtime.
+
+The network is the frozen backbone cut at the configured layer followed by the LLN head:
+
+    rgb uint8 (B, H, W, 3), H and W multiples of 32
+      -> features float32 (B, D, H/32, W/32), rounded to float16 precision
+      -> logits   float32 (B, H/32, W/32)       (the head's 1x1 fuse output before its ReLU)
+
+Both runtimes run this one graph (`ExtractorNetwork`), so they agree to float rounding; the float16
+rounding of the features is inside the graph, before the head, as in the torch path.
+
+    net = build_network(backbone, head, runtime='onnxruntime', num_threads=1)
+    feats, logits = net(rgb_batch)            # numpy arrays
+    net.runtime                               # the runtime that actually runs: 'onnxruntime' | 'torch'
+
+ONNX Runtime runs a graph exported from torch once and cached: `cache_dir()/onnx/`, where
+cache_dir() is $LLN_CACHE, else $XDG_CACHE_HOME/lln_ros, else ~/.cache/lln_ros. The file name is
+keyed by backbone, layer, a fingerprint of the backbone and of the head weights and the graph version;
+height and width are dynamic axes, so one file serves every input size. `lln-export` writes the same
+file ahead of time (e.g. on a robot whose home is read-only at run time, with LLN_CACHE set).
+"""
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import io
+import logging
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from .errors import ModelError
+
+log = logging.getLogger(__name__)
+
+RUNTIMES = ('torch', 'onnxruntime')
+# bump when ExtractorNetwork or the export settings change: old cache files are then not reused
+GRAPH_VERSION = 1
+OPSET = 17
+
+# ONNX Runtime session settings, chosen by measurement (bench/bench_runtime_settings.py; README):
+# no spinning, because on shared cores a spinning worker only takes time from the thread that has
+# work; sequential execution, because this graph is one chain of convolutions.
+ORT_SESSION_CONFIG = {'session.intra_op.allow_spinning': '0', 'session.inter_op.allow_spinning': '0'}
+
+
+def cache_dir() -> Path:
+    """Where lln_ros keeps derived files (exported graphs): $LLN_CACHE, else the XDG cache dir."""
+    if os.environ.get('LLN_CACHE'):
+        return Path(os.path.expanduser(os.environ['LLN_CACHE']))
+    base = os.environ.get('XDG_CACHE_HOME') or os.path.join(os.path.expanduser('~'), '.cache')
+    return Path(base) / 'lln_ros'
+
+
+def module_fingerprint(module: nn.Module) -> str:
+    """Short content hash of a module's state (parameter names and values)."""
+    h = hashlib.sha256()
+    for name, t in sorted(module.state_dict().items()):
+        h.update(name.encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()[:12]
+
+
+class ExtractorNetwork(nn.Module):
+    """Backbone + LLN head on uint8 RGB: the graph both runtimes run (shapes in the module doc)."""
+
+    def __init__(self, backbone: nn.Module, head: nn.Module):
+        super().__init__()
+        self.backbone = backbone
+        self.head = head
+
+    def forward(self, rgb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = rgb.permute(0, 3, 1, 2).float() / 255.0
+        # float16 precision: the feature cache stores float16, so live extraction and evaluation
+        # from the cache see the same numbers (and agree on every ranking)
+        feats = self.backbone(x).half().float()
+        return feats, self.head.logits(feats)
+
+
+class TorchNetwork:
+    runtime = 'torch'
+
+    def __init__(self, backbone: nn.Module, head: nn.Module, num_threads: int = 0):
+        if num_threads:
+            torch.set_num_threads(int(num_threads))
+        self.net = ExtractorNetwork(backbone, head).eval()
+
+    @torch.inference_mode()
+    def __call__(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        feats, logits = self.net(torch.from_numpy(np.ascontiguousarray(rgb)))
+        return feats.numpy(), logits.numpy()
+
+
+def onnx_path(backbone_name: str, layer: str, backbone: nn.Module, head: nn.Module,
+              root: str | os.PathLike | None = None) -> Path:
+    """Cache file of the exported graph for this backbone/layer/weights (dynamic height and width)."""
+    name = (f'{backbone_name}_{layer}_b{module_fingerprint(backbone)}_h{module_fingerprint(head)}'
+            f'_v{GRAPH_VERSION}_dynhw.onnx')
+    return Path(root) / name if root else cache_dir() / 'onnx' / name
+
+
+def export_onnx(backbone: nn.Module, head: nn.Module, path: str | os.PathLike) -> Path:
+    """Export ExtractorNetwork to `path` (atomically; a half-written file never has the real name).
+
+    The TorchScript-based exporter (dynamo=False) is used: it needs only torch and `onnx` (not
+    onnxscript), works offline and keeps height/width dynamic. A backbone whose padding depends on
+    the input size gives its `exportable()` copy (constant padding, exact for multiples of 32).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    exportable = getattr(backbone, 'exportable', None)
+    net = ExtractorNetwork(exportable() if exportable else backbone, head).eval()
+    dummy = torch.zeros(1, 288, 384, 3, dtype=torch.uint8)
+    tmp = path.with_name(f'{path.name}.{os.getpid()}.tmp')
+    try:
+        with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
+            warnings.simplefilter('ignore')  # tracer warnings about the size-dependent padding (see above)
+            torch.onnx.export(
+                net, (dummy,), str(tmp), dynamo=False, opset_version=OPSET,
+                input_names=['rgb'], output_names=['features', 'logits'],
+                dynamic_axes={'rgb': {0: 'batch', 1: 'height', 2: 'width'},
+                              'features': {0: 'batch', 2: 'rows', 3: 'cols'},
+                              'logits': {0: 'batch', 1: 'rows', 2: 'cols'}})
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def ensure_onnx(backbone_name: str, layer: str, backbone: nn.Module, head: nn.Module,
+                root: str | os.PathLike | None = None) -> Path:
+    """The cached graph for this model, exported first when missing. Concurrent processes (nodes
+    started together) wait on a lock file instead of exporting the same graph twice."""
+    path = onnx_path(backbone_name, layer, backbone, head, root)
+    if path.is_file():
+        return path
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path.with_name(path.name + '.lock'), 'w') as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not path.is_file():
+            log.info('exporting the %s/%s network to %s (once; cached)', backbone_name, layer, path)
+            export_onnx(backbone, head, path)
+    return path
+
+
+def ort_session(path: str | os.PathLike, num_threads: int = 0):
+    """An ONNX Runtime CPU session with the settings above; num_threads 0 = ORT's default."""
+    import onnxruntime as ort
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = int(num_threads)
+    so.inter_op_num_threads = 1
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    so.log_severity_level = 3  # warnings about unused initializers etc. are noise to a user
+    for key, value in ORT_SESSION_CONFIG.items():
+        so.add_session_config_entry(key, value)
+    return ort.InferenceSession(str(path), so, providers=['CPUExecutionProvider'])
+
+
+class OnnxRuntimeNetwork:
+    runtime = 'onnxruntime'
+
+    def __init__(self, path: str | os.PathLike, num_threads: int = 0):
+        self.path = str(path)
+        self.session = ort_session(path, num_threads)
+
+    def __call__(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if rgb.ndim != 4 or rgb.shape[1] % 32 or rgb.shape[2] % 32:
+            # the graph's padding is exact for multiples of 32 only (backbones.EfficientNetLite.exportable)
+            raise ModelError(f'the ONNX network takes (B, H, W, 3) with H and W multiples of 32, got {rgb.shape}')
+        feats, logits = self.session.run(None, {'rgb': np.ascontiguousarray(rgb, dtype=np.uint8)})
+        return feats, logits
+
+
+def onnxruntime_available() -> bool:
+    try:
+        import onnxruntime  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def build_network(backbone_name: str, layer: str, backbone: nn.Module, head: nn.Module,
+                  runtime: str = 'onnxruntime', num_threads: int = 0):
+    """TorchNetwork or OnnxRuntimeNetwork. onnxruntime falls back to torch, with one log line,
+    when ONNX Runtime is not installed or the graph cannot be exported or loaded."""
+    if runtime not in RUNTIMES:
+        raise ModelError(f'unknown runtime {runtime!r}; choose one of {list(RUNTIMES)}')
+    if runtime == 'onnxruntime':
+        if not onnxruntime_available():
+            log.warning('onnxruntime is not installed (pip install onnxruntime): extracting with torch')
+        else:
+            try:
+                path = ensure_onnx(backbone_name, layer, backbone, head)
+                try:
+                    return OnnxRuntimeNetwork(path, num_threads)
+                except Exception:  # noqa: BLE001  a damaged cache file: export it again, once
+                    path.unlink(missing_ok=True)
+                    return OnnxRuntimeNetwork(ensure_onnx(backbone_name, layer, backbone, head), num_threads)
+            except Exception as e:  # noqa: BLE001  any exporter/runtime failure leaves torch working
+                log.warning('cannot run %s/%s in onnxruntime (%s: %s): extracting with torch',
+                            backbone_name, layer, type(e).__name__, str(e).splitlines()[0] if str(e) else '')
+    return TorchNetwork(backbone, head, num_threads)
