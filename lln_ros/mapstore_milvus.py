@@ -128,6 +128,8 @@ class MilvusMapStore(MapStore):
         'insert_bytes': 16 << 20,  # largest insert message; the 2.3 server refuses gRPC messages > 64 MB
         'refresh_s': 1.0,          # a reader re-reads the id list (other processes' writes) at most this often
         'consistency': 'Session',  # collections' consistency level; Strong waits ~0.4 s per read
+        'seal_rows': 1000,         # flush (seal) after this many inserted rows: searching unsealed rows is
+                                   # brute force and slow (Milvus Lite: 30 -> 500 ms at 4,000 unsealed)
     }
 
     def __init__(self, path, model: dict | None = None, create: bool = True, verify: bool = True,
@@ -160,7 +162,8 @@ class MilvusMapStore(MapStore):
                 os.makedirs(os.path.dirname(where['uri']), exist_ok=True)
             except OSError as e:
                 raise MapError(f'cannot create map {self.path}: {e}') from e
-        self._client = None
+        self._client, self._broken = None, False
+        self._unsealed = 0
         try:
             with self._errors('open'):
                 kwargs = {'uri': where['uri'], 'timeout': self.conf['timeout']}
@@ -170,7 +173,9 @@ class MilvusMapStore(MapStore):
                 if where['db_name']:
                     self._use_database(where['db_name'], create)
                     self._client.close()   # use_database asks DescribeDatabase, which a 2.3 server lacks
-                    self._client = MilvusClient(**kwargs, db_name=where['db_name'])
+                    kwargs['db_name'] = where['db_name']
+                    self._client = MilvusClient(**kwargs)
+                self._connect_kwargs = kwargs
                 if not self._client.has_collection(self._meta_c):
                     if not create:
                         raise MapError(f'no map at {self.path} (create=False; no {self._meta_c} collection)')
@@ -195,11 +200,31 @@ class MilvusMapStore(MapStore):
         except Exception as e:
             if not _is_milvus_error(e):
                 raise
-            raise MapError(f'map {self.path}: {what} failed: {explain(e)}') from e
+            text = explain(e)
+            # pymilvus's own recovery can stay failed after a server restart: a new client next call
+            self._broken = self._broken or any(w in text for w in ('UNAVAILABLE', 'Fail connecting', 'onnection'))
+            raise MapError(f'map {self.path}: {what} failed: {text}') from e
+
+    def _reconnect(self) -> None:
+        from pymilvus import MilvusClient
+        with self._errors('reconnecting'):
+            try:
+                self._client.close()
+            except Exception:   # the old channel is broken anyway
+                pass
+            self._client = MilvusClient(**self._connect_kwargs)
+            for name in (self._meta_c, self._fr_c, self._kp_c):
+                if self._client.has_collection(name):
+                    self._client.load_collection(name)
+            self._broken = False
+            log.info('map %s: reconnected to the Milvus server', self.path)
 
     def _ready(self) -> None:
         if self._client is None:
             raise MapError(f'map {self.path} is closed')
+        if self._broken:
+            self._broken = False
+            self._reconnect()
         if time.monotonic() - self._refreshed >= self.conf['refresh_s']:
             self._refresh()
 
@@ -425,12 +450,16 @@ class MilvusMapStore(MapStore):
                     self._client.insert(self._fr_c, batch)
                     self._ids.extend(r['id'] for r in batch)
                     self._next_id = max(self._next_id, max(r['id'] for r in batch) + 1)
+                    self._unsealed += len(batch)
                     batch, size = [], 0
                 if row is not None:
                     batch.append(row)
                     size += nbytes
             if ids is not None:
                 self._ids.sort()
+            if self.conf['seal_rows'] and self._unsealed >= self.conf['seal_rows']:
+                self._client.flush(self._fr_c)
+                self._unsealed = 0
             return new_ids
 
     def query(self, lset: LandmarkSet, prefilter_k: int = 30, k: int = 5, min_score: float | None = None,

@@ -72,6 +72,18 @@ def enter_loopback_namespace() -> None:
         raise OSError('new network namespace has interfaces besides lo')
 
 
+def _bind_reusing(port: int):
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind(('127.0.0.1', port))
+        sock.listen()
+        return sock
+    except OSError:
+        sock.close()
+        return None
+
+
 def milvus_version() -> str | None:
     try:
         from importlib.metadata import version
@@ -117,10 +129,17 @@ class LoopbackMilvus:
     def start(self, timeout: float = 180.0) -> 'LoopbackMilvus':
         t = time.monotonic()
         server = self._milvus.MilvusServer(wait_for_started=False)
+        # its port probe binds without SO_REUSEADDR, so after a kill (sockets in TIME_WAIT) it would
+        # silently move the server to the next port; the server itself (Go) reuses the address
+        server.config.try_bind_port = _bind_reusing
         server.set_base_dir(self.data_dir)
-        server.listen_port = PORT
+        server.config.configs['proxy_port'] = PORT
         server.start()
         self.server = server
+        if server.listen_port != PORT or server.webservice_port != METRICS_PORT:
+            self.stop()
+            raise RuntimeError(f'Milvus server got ports {server.listen_port}/{server.webservice_port}, '
+                               f'not {PORT}/{METRICS_PORT}')
         url = f'http://127.0.0.1:{server.webservice_port}/healthz'
         while time.monotonic() - t < timeout:
             if server.server_proc.poll() is not None:
@@ -174,7 +193,8 @@ class LoopbackMilvus:
             return f'(no log: {e})'
 
     def close(self) -> None:
-        self.stop()
+        """Stop (SIGKILL: its data is deleted next, and a graceful stop takes up to 30 s) and clean up."""
+        self.stop(kill=self.own_dir)
         if self.own_dir:
             shutil.rmtree(self.data_dir, ignore_errors=True)
 
