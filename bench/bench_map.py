@@ -1,8 +1,16 @@
 """Map server at scale: insert rate, query latency, memory, disk and cold start vs map size.
 
     python bench/bench_map.py [--sizes 1000,10000,100000] [--dir /tmp/lln_bench_map] [--threads 1]
-                              [--backend sqlite|milvus] [--index-threshold 50000]
-                              [--plot out/bench_map.png] [--json]
+                              [--backend sqlite,milvus-lite,milvus] [--uri milvus://HOST:PORT[/db]]
+                              [--index-threshold 50000] [--plot out/bench_map.png] [--json]
+
+--backend: one or more of sqlite (the embedded map), milvus-lite (Milvus Lite in --dir) and milvus (a
+Milvus server at --uri, default $LLN_MILVUS_URI; the map is database lln_bench, map bench_<pid>,
+dropped at the end), each measured in turn in this process, then compared (query p50 / SQLite's).
+A real server here, confined to loopback (test/milvus_loopback.py says why):
+
+    .venv/bin/python test/milvus_loopback.py --server -- .venv/bin/python bench/bench_map.py \
+        --backend sqlite,milvus-lite,milvus --sizes 1000,10000
 
 One map grows through every size in --sizes (plus the in-between steps of the plot). Synthetic
 landmark sets with the default model's shapes: n=50 unit descriptors of D=192 (efficientnet_lite0/
@@ -12,7 +20,8 @@ by the landmark similarity S, k=5.
 
 At each table size:
   insert/s (bulk)   add_many of 1000 keyframes per transaction, while growing the map
-  insert/s (online) add() one keyframe per transaction (fsync each), 100 of them, as the node does
+  insert/s (online) add() one keyframe per transaction (fsync each), 200 of them, as the node does,
+                    right after the bulk load and the queries; "slowest 50" is the slowest window of 50
   p50 / p99 ms      query latency, 200 queries, warm (in the growing process)
   exhaustive p50    prefilter_k 0 (every keyframe fetched and reranked, what Nordland-like routes
                     need, see docs/results.md), 20 queries, maps up to --exhaustive-max keyframes
@@ -160,7 +169,16 @@ def _exact_top(store, q: np.ndarray, k: int) -> set:
     return set(ids[np.argsort(-(x @ q))[:k]].tolist())
 
 
+def dir_bytes(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob('*') if f.is_file() and not f.is_symlink())
+
+
 def bytes_on_disk(uri: str) -> int:
+    """Bytes of the map on disk; a Milvus server's whole data dir ($LLN_MILVUS_DATA_DIR, without its
+    binaries) when it is known (NaN otherwise): main() subtracts what it held before the map."""
+    if uri.startswith('milvus://'):
+        data = os.environ.get('LLN_MILVUS_DATA_DIR')
+        return dir_bytes(Path(data) / 'data') if data else float('nan')
     path = Path(uri.split('://', 1)[-1].split('?')[0]) if '://' in uri else Path(uri)
     if path.is_dir():
         return sum(f.stat().st_size for f in path.rglob('*') if f.is_file())
@@ -171,7 +189,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--sizes', default='1000,10000,100000')
     ap.add_argument('--dir', default='/tmp/lln_bench_map', help='where the map is built (deleted first)')
-    ap.add_argument('--backend', default='sqlite', choices=['sqlite', 'milvus'])
+    ap.add_argument('--backend', default='sqlite', help='comma-separated: sqlite, milvus-lite, milvus (a server)')
+    ap.add_argument('--uri', default=os.environ.get('LLN_MILVUS_URI', ''),
+                    help='--backend milvus: the server, milvus://host:port[/database] (default $LLN_MILVUS_URI)')
     ap.add_argument('--plot', default='out/bench_map.png', help="latency-vs-size plot ('' = none)")
     ap.add_argument('--queries', type=int, default=200)
     ap.add_argument('--threads', default='1', help='BLAS / OpenMP threads (read before numpy loads)')
@@ -181,12 +201,34 @@ def main(argv=None) -> int:
                     help='largest map also timed with prefilter_k 0 (every keyframe reranked)')
     ap.add_argument('--json', action='store_true')
     args = ap.parse_args(argv)
+    backends = args.backend.split(',')
+    bad = [b for b in backends if b not in ('sqlite', 'milvus-lite', 'milvus')]
+    if bad or ('milvus' in backends and not args.uri.startswith('milvus://')):
+        ap.error(f'--backend: unknown {bad}' if bad else '--backend milvus needs --uri milvus://host:port (or $LLN_MILVUS_URI)')
+    results = {}
+    for backend in backends:
+        results[backend] = run(args, backend)
+        print_table(args, backend, results[backend])
+    if len(backends) > 1:
+        print_comparison(results)
+    if args.json:
+        print(json.dumps(results))
+    if args.plot:
+        plot(args, results)
+    return 0
+
+
+def run(args, backend: str) -> dict:
+    """Grow one map of this backend through --sizes; measure at each (see the module docstring)."""
     sizes = sorted(int(s) for s in args.sizes.split(','))
     steps = sorted(set(sizes) | {s for s in PLOT_STEPS if s <= sizes[-1]})
     work = Path(args.dir)
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
-    uri = str(work / 'map.db') if args.backend == 'sqlite' else f'milvus-lite://{work}/map.db'
+    server_map = f'bench_{os.getpid()}'
+    uri = {'sqlite': str(work / 'map.db'), 'milvus-lite': f'milvus-lite://{work}/map.db',
+           'milvus': f"{args.uri.split('?')[0].rstrip('/')}{'' if urlpath(args.uri) else '/lln_bench'}?map={server_map}"}[backend]
+    disk_before = bytes_on_disk(uri) if backend == 'milvus' else 0
     rng = np.random.default_rng(0)
     rows, curve = [], []
     conf = {'index_threshold': args.index_threshold} if args.index_threshold else None
@@ -206,63 +248,98 @@ def main(argv=None) -> int:
         print(f'{step:>7} keyframes: p50 {stats["p50_ms"]:.1f} ms, p99 {stats["p99_ms"]:.1f} ms', file=sys.stderr)
         if step not in sizes:
             continue
-        online = [synthetic_set(rng) for _ in range(100)]
-        t = time.perf_counter()
-        new = [store.add(s, (0, 0)) for s in online]
-        online_rate = len(online) / (time.perf_counter() - t)
+        online = [synthetic_set(rng) for _ in range(200)]
+        stamps = [time.perf_counter()]
+        new = []
+        for s in online:
+            new.append(store.add(s, (0, 0)))
+            stamps.append(time.perf_counter())
+        online_rate = len(online) / (stamps[-1] - stamps[0])
+        slowest = min(50 / (stamps[i + 50] - stamps[i]) for i in range(0, len(online) - 49, 10))
         store.delete(new)   # keep the map at exactly `step` keyframes
         store.save()
-        disk = bytes_on_disk(uri)
+        disk = bytes_on_disk(uri) - disk_before
         store.close()
         cold = cold_start(uri, verify=True, conf=conf)
         cold_fast = cold_start(uri, verify=False, conf=conf)
         store = MapStore.open(uri, create=False, verify=False, conf=conf)
         rows.append({'keyframes': step, 'insert_bulk_per_s': bulk_count / bulk_time, 'insert_online_per_s': online_rate,
+                     'insert_online_slowest50_per_s': slowest,
                      **stats, 'cold_start_s': cold['open_s'], 'cold_start_noverify_s': cold_fast['open_s'],
                      'rss_mb': cold['rss_mb'], 'rss_growth_mb': cold['rss_mb'] - cold['rss_before_mb'],
                      'index_mb': step * DIM * 4 / 2**20, 'kb_per_keyframe': disk / step / 1000,
                      'index': store.info().get('index')})
     store.close()
-    info = {'backend': args.backend, 'threads': args.threads, 'n': N_LANDMARKS, 'D': DIM, 'machine': platform.processor() or platform.machine(),
-            'cpus': os.cpu_count(), 'load': os.getloadavg(),
-            'max_rss_mb_builder': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
-    if args.json:
-        print(json.dumps({'info': info, 'rows': rows, 'curve': curve}))
-    else:
-        print(f"backend {args.backend}, n={N_LANDMARKS}, D={DIM}, {info['cpus']} CPUs, "
-              f"load {', '.join(f'{v:.2f}' for v in info['load'])}")
-        head = ('keyframes', 'index', 'ins/s bulk', 'ins/s online', 'p50 ms', 'p99 ms', 'exhaustive p50 ms',
-                'top-1', 'recall@30',
-                'cold s', 'cold s (no verify)', 'RSS MB', 'RSS growth MB', 'index MB', 'KB/kf')
-        print('| ' + ' | '.join(head) + ' |')
-        print('|' + '---|' * len(head))
-        for r in rows:
-            every = f"{r['exhaustive_p50_ms']:.0f}" if r['exhaustive_p50_ms'] is not None else '-'
-            recall = f"{r['recall30']:.2f}" if r['recall30'] is not None else (
-                '1 (exact)' if r['index'] == 'exact' else 'n/a')
-            print(f"| {r['keyframes']:,} | {r['index']} | {r['insert_bulk_per_s']:.0f} | {r['insert_online_per_s']:.0f} "
-                  f"| {r['p50_ms']:.1f} | {r['p99_ms']:.1f} | {every} | {r['top1']:.2f} | {recall} "
-                  f"| {r['cold_start_s']:.2f} | {r['cold_start_noverify_s']:.2f} | {r['rss_mb']:.0f} "
-                  f"| {r['rss_growth_mb']:.0f} | {r['index_mb']:.0f} | {r['kb_per_keyframe']:.1f} |")
-    if args.plot:
-        import matplotlib
-        matplotlib.use('Agg')
-        import matplotlib.pyplot as plt
-        fig, ax = plt.subplots(figsize=(6, 4))
-        n = [c['keyframes'] for c in curve]
-        ax.plot(n, [c['p50_ms'] for c in curve], 'o-', label='p50')
-        ax.plot(n, [c['p99_ms'] for c in curve], 's--', label='p99')
-        ax.set_xscale('log')
-        ax.set_xlabel('keyframes in the map')
-        ax.set_ylabel('query latency, ms (prefilter 30 + rerank)')
-        ax.set_title(f'{args.backend} map, n={N_LANDMARKS}, D={DIM}')
-        ax.grid(True, which='both', alpha=0.3)
-        ax.legend()
-        Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(args.plot, dpi=120, bbox_inches='tight')
-        print(f'plot: {args.plot}', file=sys.stderr)
+    if backend == 'milvus':   # an idle server's CPU climbs with every collection left loaded
+        from pymilvus import MilvusClient
+        where = __import__('lln_ros.mapstore_milvus', fromlist=['parse_uri']).parse_uri(uri)
+        client = MilvusClient(uri=where['uri'], db_name=where['db_name'])
+        for name in client.list_collections():
+            if name.startswith(server_map + '_'):
+                client.drop_collection(name)
+        client.close()
     shutil.rmtree(work, ignore_errors=True)
-    return 0
+    info = {'backend': backend, 'uri': uri, 'threads': args.threads, 'n': N_LANDMARKS, 'D': DIM,
+            'machine': platform.processor() or platform.machine(), 'cpus': os.cpu_count(), 'load': os.getloadavg(),
+            'max_rss_mb_builder': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    return {'info': info, 'rows': rows, 'curve': curve}
+
+
+def urlpath(uri: str) -> str:
+    return uri.split('://', 1)[-1].split('?')[0].partition('/')[2].strip('/')
+
+
+def print_table(args, backend: str, result: dict) -> None:
+    info, rows = result['info'], result['rows']
+    print(f"backend {backend} ({info['uri']}), n={N_LANDMARKS}, D={DIM}, {info['cpus']} CPUs, "
+          f"load after it {', '.join(f'{v:.2f}' for v in info['load'])}")
+    head = ('keyframes', 'index', 'ins/s bulk', 'ins/s online', 'slowest 50 /s', 'p50 ms', 'p99 ms',
+            'exhaustive p50 ms', 'top-1', 'recall@30', 'cold s', 'cold s (no verify)', 'RSS MB', 'RSS growth MB',
+            'index MB', 'KB/kf')
+    print('| ' + ' | '.join(head) + ' |')
+    print('|' + '---|' * len(head))
+    for r in rows:
+        every = f"{r['exhaustive_p50_ms']:.0f}" if r['exhaustive_p50_ms'] is not None else '-'
+        recall = f"{r['recall30']:.2f}" if r['recall30'] is not None else (
+            '1 (exact)' if r['index'] in ('exact', 'FLAT') else 'n/a')
+        print(f"| {r['keyframes']:,} | {r['index']} | {r['insert_bulk_per_s']:.0f} | {r['insert_online_per_s']:.0f} "
+              f"| {r['insert_online_slowest50_per_s']:.0f} | {r['p50_ms']:.1f} | {r['p99_ms']:.1f} | {every} "
+              f"| {r['top1']:.2f} | {recall} | {r['cold_start_s']:.2f} | {r['cold_start_noverify_s']:.2f} "
+              f"| {r['rss_mb']:.0f} | {r['rss_growth_mb']:.0f} | {r['index_mb']:.0f} | {r['kb_per_keyframe']:.1f} |")
+    print()
+
+
+def print_comparison(results: dict) -> None:
+    """Query p50 of every backend over SQLite's, and online inserts, at each size."""
+    base = {r['keyframes']: r for r in results.get('sqlite', {'rows': []})['rows']}
+    print('| backend | keyframes | p50 ms | p50 / SQLite p50 | ins/s online | slowest 50 /s | load after |')
+    print('|---|---|---|---|---|---|---|')
+    for backend, result in results.items():
+        for r in result['rows']:
+            ratio = r['p50_ms'] / base[r['keyframes']]['p50_ms'] if r['keyframes'] in base else float('nan')
+            print(f"| {backend} | {r['keyframes']:,} | {r['p50_ms']:.1f} | {ratio:.1f}x | {r['insert_online_per_s']:.0f} "
+                  f"| {r['insert_online_slowest50_per_s']:.0f} | {result['info']['load'][0]:.1f} |")
+
+
+def plot(args, results: dict) -> None:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for backend, result in results.items():
+        n = [c['keyframes'] for c in result['curve']]
+        line, = ax.plot(n, [c['p50_ms'] for c in result['curve']], 'o-', label=f'{backend} p50')
+        ax.plot(n, [c['p99_ms'] for c in result['curve']], 's--', color=line.get_color(), label=f'{backend} p99')
+    ax.set_xscale('log')
+    ax.set_yscale('log')
+    ax.set_xlabel('keyframes in the map')
+    ax.set_ylabel('query latency, ms (prefilter 30 + rerank)')
+    ax.set_title(f'map backends, n={N_LANDMARKS}, D={DIM}')
+    ax.grid(True, which='both', alpha=0.3)
+    ax.legend(fontsize=8)
+    Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.plot, dpi=120, bbox_inches='tight')
+    print(f'plot: {args.plot}', file=sys.stderr)
 
 
 if __name__ == '__main__':

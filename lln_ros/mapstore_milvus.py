@@ -4,29 +4,43 @@
     MapStore.open('milvus://milvus.fleet:19530/lln?map=city')   # a Milvus server or cluster
 
 URI: ``milvus://host:port[/database][?map=name]`` talks to ``http://host:port`` (token from the
-environment variable MILVUS_TOKEN, e.g. ``user:password``); ``milvus-lite://PATH`` opens Milvus Lite
-at PATH (must end in .db). ``map`` (default ``lln``) prefixes the collection names, so one database
-holds many maps. Written with the pymilvus MilvusClient API, which Milvus Lite also speaks.
+environment variable MILVUS_TOKEN, e.g. ``user:password``); the database is created when a new map
+is created in it. ``milvus-lite://PATH`` opens Milvus Lite at PATH (must end in .db). ``map``
+(default ``lln``) prefixes the collection names, so one database holds many maps. Written with the
+pymilvus MilvusClient API; tested on Milvus Lite 3.2.2 and on a real Milvus 2.3.5 standalone server
+(test/test_milvus_server.py).
 
-Collections (Milvus needs one vector field per collection)::
+Schema version 2 (collections; Milvus 2.3 allows one vector field per collection)::
 
     {map}_meta       key VARCHAR primary, value VARCHAR, unused FLOAT_VECTOR(2)   -- format,
                      schema_version, model, descriptor_space, descriptor_dim, next_id (ids never reused)
-    {map}_keyframes  id INT64 primary, stamp_sec, stamp_nanosec INT64, image_w, image_h, cell_w,
-                     cell_h FLOAT, grid_rows, grid_cols, n INT32,
-                     global_descriptor FLOAT_VECTOR(D), FLAT index, inner product
-    {map}_landmarks  pk INT64 auto, keyframe_id INT64 (INVERTED index), rank INT32 (0..n-1),
-                     col, row INT16, score FLOAT, center FLOAT_VECTOR(2) (u, v pixels),
-                     descriptor ARRAY<INT16>(D): the float16 descriptor's bits
+    {map}_frames     one row per keyframe: id INT64 primary, stamp_sec, stamp_nanosec INT64,
+                     image_w, image_h, cell_w, cell_h FLOAT, grid_rows, grid_cols, n INT32,
+                     global_descriptor FLOAT_VECTOR(D) (FLAT index, inner product; searched by Milvus),
+                     landmarks ARRAY<VARCHAR(65535)>(64): base64 of the SQLite backend's four blobs
+                     concatenated, cells int16 (n, 2) | centers float32 (n, 2) | scores float32 (n,) |
+                     descriptors float16 (n, D), little-endian, cut into 65,532-character pieces
+    {map}_keypoints  (created by the first add_keypoints; verify mode) keyframe_id INT64 primary,
+                     n, width INT32, data ARRAY<VARCHAR>: base64 of uv float32 (n, 2) | descriptors
+                     uint8 (n, width), unused FLOAT_VECTOR(2)
 
-Milvus Lite 3.2 has no FLOAT16_VECTOR or BINARY field, so descriptors travel as int16 arrays
-holding float16 bits (same precision as the SQLite backend). One writer per map: the id list and
-next_id are kept in memory and only this process adds to the map. ``add`` returns when Milvus has
-acknowledged the insert; ``save`` flushes (seals) the segments. Not kill -9 tested (the SQLite
-backend is).
+One row per keyframe because a query then costs one Milvus search that returns the prefiltered
+keyframes with their landmarks; schema 1 had a row per landmark ({map}_keyframes + {map}_landmarks)
+and a query filtered ~1,500 rows (526 ms p50 at 1,000 keyframes on Milvus Lite). A keyframe holds up
+to 3.1 MB of landmarks (n * D <= ~1.5 M). Schema 1 maps are migrated at open (MIGRATIONS).
+
+Consistency: collections use Session consistency (this client reads its own writes at once; Milvus's
+default, Bounded, hid the meta record just written). Opening reads with Strong consistency, so a map
+written by another process is seen whole. One writer per map; readers in other processes see its new
+keyframes within conf['refresh_s'] (the id list is refreshed at most that often). ``add`` returns once
+Milvus acknowledged the insert; inserts go in batches of at most conf['insert_bytes'] (the server
+refuses gRPC messages over 64 MB). Every pymilvus / gRPC error becomes a MapError naming the map.
+Ids are reserved in blocks of ID_BLOCK in the meta record, so an add costs one insert; a process
+that stops skips the rest of its block (ids are never reused, not always consecutive).
 """
 from __future__ import annotations
 
+import base64
 import contextlib
 import json
 import logging
@@ -37,14 +51,19 @@ from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
-from .errors import MapError
+from .errors import DescriptorError, LLNError, MapError
 from .landmarks import LandmarkSet
 from .mapstore import FORMAT, MapCandidate, MapStore
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 1
-_QUERY_ROWS = 16384  # Milvus caps offset + limit of one query at 16384 rows
+SCHEMA_VERSION = 2
+ID_BLOCK = 1024        # ids reserved per meta write
+_PIECE = 65532         # base64 characters per VARCHAR piece: a multiple of 4, <= 65535
+_PIECES = 64           # pieces per row (the ARRAY's max_capacity)
+_FETCH_IDS = 256       # keyframes per fetch-by-id query: a reply of ~9 MB at n=50, D=320
+_QUERY_ROWS = 16384    # Milvus caps offset + limit of one query at 16384 rows
+_SCALARS = ('stamp_sec', 'stamp_nanosec', 'image_w', 'image_h', 'cell_w', 'cell_h', 'grid_rows', 'grid_cols', 'n')
 
 
 def parse_uri(uri: str) -> dict:
@@ -68,12 +87,49 @@ def parse_uri(uri: str) -> dict:
     return {'uri': endpoint, 'db_name': db, 'map': name, 'label': f'milvus://{url.netloc}/{db}?map={name}'}
 
 
+def pack(*arrays: np.ndarray) -> list[str]:
+    """Arrays' bytes, concatenated, as base64 pieces for an ARRAY<VARCHAR> field."""
+    text = base64.b64encode(b''.join(a.tobytes() for a in arrays)).decode('ascii')
+    if len(text) > _PIECE * _PIECES:
+        raise DescriptorError(f'{len(text) * 3 // 4} bytes do not fit one Milvus row '
+                              f'(at most {_PIECE * _PIECES * 3 // 4}); store fewer landmarks or keypoints')
+    return [text[i:i + _PIECE] for i in range(0, len(text), _PIECE)] or ['']
+
+
+def unpack(pieces) -> bytes:
+    return base64.b64decode(''.join(pieces))
+
+
+def explain(e: BaseException) -> str:
+    """A pymilvus / gRPC error as one line, with what to do for the common ones."""
+    code = getattr(e, 'code', None)
+    code = code() if callable(code) else code
+    text = f'{type(e).__name__}: {getattr(e, "details", lambda: None)() or e}'.replace('\n', ' ')
+    if 'RESOURCE_EXHAUSTED' in f'{code} {text}' or 'larger than max' in text:
+        text += (' (a gRPC message over the server limit, 64 MB on Milvus 2.3 (grpc.serverMaxRecvSize): '
+                 "lower conf['insert_bytes'])")
+    elif 'UNAVAILABLE' in f'{code} {text}' or 'connect' in text.lower():
+        text += ' (is the Milvus server running and reachable?)'
+    return text[:800]
+
+
+def _is_milvus_error(e: BaseException) -> bool:
+    mod = type(e).__module__ or ''
+    return (mod.startswith(('pymilvus', 'grpc', 'milvus_lite')) or isinstance(e, (ConnectionError, TimeoutError))
+            or any(c.__module__.startswith(('grpc', 'pymilvus')) for c in type(e).__mro__))
+
+
 class MilvusMapStore(MapStore):
     """A map in Milvus collections (see the module docstring); MapStore's API and error behaviour."""
 
     default_conf = {
-        'index_type': 'FLAT',   # global-descriptor index; on a cluster e.g. 'HNSW' or 'AUTOINDEX'
-        'timeout': 30.0,        # seconds per Milvus call
+        'index_type': 'FLAT',      # global-descriptor index; on a cluster e.g. 'HNSW' or 'AUTOINDEX'
+        'timeout': 30.0,           # seconds per Milvus call
+        'insert_bytes': 16 << 20,  # largest insert message; the 2.3 server refuses gRPC messages > 64 MB
+        'refresh_s': 1.0,          # a reader re-reads the id list (other processes' writes) at most this often
+        'consistency': 'Session',  # collections' consistency level; Strong waits ~0.4 s per read
+        'seal_rows': 1000,         # flush (seal) after this many inserted rows: searching unsealed rows is
+                                   # brute force and slow (Milvus Lite: 30 -> 500 ms at 4,000 unsealed)
     }
 
     def __init__(self, path, model: dict | None = None, create: bool = True, verify: bool = True,
@@ -89,9 +145,12 @@ class MilvusMapStore(MapStore):
         self._lock = threading.RLock()
         self._model = None
         self._ids: list[int] = []
-        self._next_id = 1
-        names = {k: f"{where['map']}_{k}" for k in ('meta', 'keyframes', 'landmarks')}
-        self._meta_c, self._kf_c, self._lm_c = names['meta'], names['keyframes'], names['landmarks']
+        self._next_id = self._reserved = 1
+        self._refreshed = time.monotonic()
+        self._has_keypoints = False
+        m = where['map']
+        self._meta_c, self._fr_c, self._kp_c = f'{m}_meta', f'{m}_frames', f'{m}_keypoints'
+        self._v1 = (f'{m}_keyframes', f'{m}_landmarks')
         is_lite = not where['uri'].startswith('http')
         if is_lite and os.path.exists(where['uri']) and not os.path.isdir(where['uri']):
             raise MapError(f'{where["uri"]} is a file, not a Milvus Lite map (a directory); '
@@ -103,17 +162,20 @@ class MilvusMapStore(MapStore):
                 os.makedirs(os.path.dirname(where['uri']), exist_ok=True)
             except OSError as e:
                 raise MapError(f'cannot create map {self.path}: {e}') from e
-        try:
-            kwargs = {'uri': where['uri'], 'timeout': self.conf['timeout']}
-            if where['db_name']:
-                kwargs['db_name'] = where['db_name']
-            if os.environ.get('MILVUS_TOKEN') and not is_lite:
-                kwargs['token'] = os.environ['MILVUS_TOKEN']
-            self._client = MilvusClient(**kwargs)
-        except Exception as e:  # pymilvus raises MilvusException, ConnectionError, OSError ...
-            raise MapError(f'cannot open map {self.path}: {e}') from e
+        self._client, self._broken = None, False
+        self._unsealed = 0
         try:
             with self._errors('open'):
+                kwargs = {'uri': where['uri'], 'timeout': self.conf['timeout']}
+                if os.environ.get('MILVUS_TOKEN') and not is_lite:
+                    kwargs['token'] = os.environ['MILVUS_TOKEN']
+                self._client = MilvusClient(**kwargs)
+                if where['db_name']:
+                    self._use_database(where['db_name'], create)
+                    self._client.close()   # use_database asks DescribeDatabase, which a 2.3 server lacks
+                    kwargs['db_name'] = where['db_name']
+                    self._client = MilvusClient(**kwargs)
+                self._connect_kwargs = kwargs
                 if not self._client.has_collection(self._meta_c):
                     if not create:
                         raise MapError(f'no map at {self.path} (create=False; no {self._meta_c} collection)')
@@ -122,7 +184,8 @@ class MilvusMapStore(MapStore):
             if model is not None:
                 self.use_model(model)
         except BaseException:
-            self._client.close()
+            if self._client is not None:
+                self._client.close()
             self._client = None
             raise
 
@@ -130,74 +193,105 @@ class MilvusMapStore(MapStore):
 
     @contextlib.contextmanager
     def _errors(self, what: str):
-        from pymilvus.exceptions import MilvusException
         try:
             yield
-        except MilvusException as e:
-            raise MapError(f'map {self.path}: {what} failed: {e}') from e
+        except LLNError:
+            raise
+        except Exception as e:
+            if not _is_milvus_error(e):
+                raise
+            text = explain(e)
+            # pymilvus's own recovery can stay failed after a server restart: a new client next call
+            self._broken = self._broken or any(w in text for w in ('UNAVAILABLE', 'Fail connecting', 'onnection'))
+            raise MapError(f'map {self.path}: {what} failed: {text}') from e
+
+    def _reconnect(self) -> None:
+        from pymilvus import MilvusClient
+        with self._errors('reconnecting'):
+            try:
+                self._client.close()
+            except Exception:   # the old channel is broken anyway
+                pass
+            self._client = MilvusClient(**self._connect_kwargs)
+            for name in (self._meta_c, self._fr_c, self._kp_c):
+                if self._client.has_collection(name):
+                    self._client.load_collection(name)
+            self._broken = False
+            log.info('map %s: reconnected to the Milvus server', self.path)
 
     def _ready(self) -> None:
         if self._client is None:
             raise MapError(f'map {self.path} is closed')
+        if self._broken:
+            self._broken = False
+            self._reconnect()
+        if time.monotonic() - self._refreshed >= self.conf['refresh_s']:
+            self._refresh()
 
-    def _create_meta(self) -> None:
+    def _use_database(self, db: str, create: bool) -> None:
+        names = self._client.list_databases()
+        if db not in names:
+            if not create:
+                raise MapError(f'no map at {self.path}: the server has no database {db!r} '
+                               f'(it has {sorted(names)}; create=False)')
+            self._client.create_database(db)
+            log.info('created database %s for map %s', db, self.path)
+
+    def _create(self, name: str, fields: list, vector: str, dim: int) -> None:
         from pymilvus import DataType, MilvusClient
         schema = MilvusClient.create_schema(auto_id=False)
-        schema.add_field('key', DataType.VARCHAR, is_primary=True, max_length=64)
-        schema.add_field('value', DataType.VARCHAR, max_length=65535)
-        schema.add_field('unused', DataType.FLOAT_VECTOR, dim=2)
+        for field, kind, extra in fields:
+            schema.add_field(field, getattr(DataType, kind), **extra)
+        schema.add_field(vector, DataType.FLOAT_VECTOR, dim=dim)
         index = self._client.prepare_index_params()
-        index.add_index('unused', index_type='FLAT', metric_type='L2')
-        self._client.create_collection(self._meta_c, schema=schema, index_params=index)
+        index.add_index(vector, index_type=self.conf['index_type'] if dim > 2 else 'FLAT',
+                        metric_type='IP' if dim > 2 else 'L2')
+        self._client.create_collection(name, schema=schema, index_params=index,
+                                       consistency_level=self.conf['consistency'])
+
+    def _create_meta(self) -> None:
+        self._create(self._meta_c, [('key', 'VARCHAR', {'is_primary': True, 'max_length': 64}),
+                                    ('value', 'VARCHAR', {'max_length': 65535})], 'unused', 2)
         from . import __version__
         self._put_meta({'format': FORMAT, 'schema_version': str(SCHEMA_VERSION),
                         'created': str(int(time.time())), 'created_by': f'lln_ros {__version__}',
                         'next_id': '1'})
 
+    def _create_frames(self, dim: int) -> None:
+        pieces = {'element_type': None, 'max_capacity': _PIECES, 'max_length': 65535}
+        from pymilvus import DataType
+        pieces['element_type'] = DataType.VARCHAR
+        self._create(self._fr_c, [('id', 'INT64', {'is_primary': True})]
+                     + [(f, 'INT64', {}) for f in _SCALARS[:2]] + [(f, 'FLOAT', {}) for f in _SCALARS[2:6]]
+                     + [(f, 'INT32', {}) for f in _SCALARS[6:]] + [('landmarks', 'ARRAY', pieces)],
+                     'global_descriptor', dim)
+
     def _put_meta(self, values: dict) -> None:
         self._client.upsert(self._meta_c, [{'key': k, 'value': str(v), 'unused': [0.0, 0.0]}
                                            for k, v in values.items()])
 
-    def _meta(self) -> dict:
-        rows = self._client.query(self._meta_c, filter='key != ""', output_fields=['key', 'value'])
+    def _meta(self, strong: bool = False) -> dict:
+        rows = self._client.query(self._meta_c, filter='key != ""', output_fields=['key', 'value'],
+                                  **({'consistency_level': 'Strong'} if strong else {}))
         return {r['key']: r['value'] for r in rows}
 
-    def _create_data_collections(self, dim: int) -> None:
-        from pymilvus import DataType, MilvusClient
-        if not self._client.has_collection(self._kf_c):
-            schema = MilvusClient.create_schema(auto_id=False)
-            schema.add_field('id', DataType.INT64, is_primary=True)
-            for name in ('stamp_sec', 'stamp_nanosec'):
-                schema.add_field(name, DataType.INT64)
-            for name in ('image_w', 'image_h', 'cell_w', 'cell_h'):
-                schema.add_field(name, DataType.FLOAT)
-            for name in ('grid_rows', 'grid_cols', 'n'):
-                schema.add_field(name, DataType.INT32)
-            schema.add_field('global_descriptor', DataType.FLOAT_VECTOR, dim=dim)
-            index = self._client.prepare_index_params()
-            index.add_index('global_descriptor', index_type=self.conf['index_type'], metric_type='IP')
-            self._client.create_collection(self._kf_c, schema=schema, index_params=index)
-        if not self._client.has_collection(self._lm_c):
-            schema = MilvusClient.create_schema(auto_id=True)
-            schema.add_field('pk', DataType.INT64, is_primary=True)
-            schema.add_field('keyframe_id', DataType.INT64)
-            schema.add_field('rank', DataType.INT32)
-            schema.add_field('col', DataType.INT16)
-            schema.add_field('row', DataType.INT16)
-            schema.add_field('score', DataType.FLOAT)
-            schema.add_field('center', DataType.FLOAT_VECTOR, dim=2)
-            schema.add_field('descriptor', DataType.ARRAY, element_type=DataType.INT16, max_capacity=dim)
-            index = self._client.prepare_index_params()
-            index.add_index('center', index_type='FLAT', metric_type='L2')
-            index.add_index('keyframe_id', index_type='INVERTED')
-            self._client.create_collection(self._lm_c, schema=schema, index_params=index)
+    def _scan_ids(self, strong: bool = False) -> list[int]:
+        it = self._client.query_iterator(self._fr_c, batch_size=4096, filter='id >= 0', output_fields=['id'],
+                                         **({'consistency_level': 'Strong'} if strong else {}))
+        ids = []
+        try:
+            while rows := it.next():
+                ids.extend(int(r['id']) for r in rows)
+        finally:
+            it.close()
+        return sorted(ids)
 
     def _load(self) -> None:
-        for name in (self._meta_c, self._kf_c, self._lm_c):
+        for name in (self._meta_c, self._fr_c, self._kp_c):
             # a fresh server process (Milvus Lite in a new process) starts with collections released
             if self._client.has_collection(name):
                 self._client.load_collection(name)
-        meta = self._meta()
+        meta = self._meta(strong=True)
         if meta.get('format') != FORMAT:
             raise MapError(f'{self.path} is a Milvus database but not an lln_ros map '
                            f'(meta format is {meta.get("format")!r}, expected {FORMAT!r})')
@@ -205,21 +299,56 @@ class MilvusMapStore(MapStore):
         if version > SCHEMA_VERSION:
             raise MapError(f'map {self.path} has schema version {version}; this lln_ros reads up to '
                            f'{SCHEMA_VERSION}: upgrade lln_ros')
+        while version < SCHEMA_VERSION:
+            if version not in MIGRATIONS:
+                raise MapError(f'map {self.path} has schema version {version} and there is no migration to '
+                               f'{version + 1}')
+            MIGRATIONS[version](self, meta)
+            self._put_meta({'schema_version': str(version + 1)})   # the commit point of the migration
+            log.info('migrated map %s from schema %d to %d', self.path, version, version + 1)
+            version += 1
+            meta = self._meta(strong=True)
+        for old in self._v1:   # left by a migration that stopped after its commit point
+            if self._client.has_collection(old):
+                self._client.drop_collection(old)
         self._model = self._read_model_record(meta['model']) if 'model' in meta else None
-        self._next_id = int(meta.get('next_id', 1))
+        self._next_id = self._reserved = int(meta.get('next_id', 1))
         self._ids = []
+        self._has_keypoints = self._client.has_collection(self._kp_c)
         if self._model is None:
             return
-        self._create_data_collections(int(self._model['descriptor_dim']))
-        it = self._client.query_iterator(self._kf_c, batch_size=4096, filter='id >= 0', output_fields=['id'])
-        try:
-            while rows := it.next():
-                self._ids.extend(int(r['id']) for r in rows)
-        finally:
-            it.close()
-        self._ids.sort()
+        if not self._client.has_collection(self._fr_c):
+            self._create_frames(int(self._model['descriptor_dim']))
+        self._ids = self._scan_ids(strong=True)
+        self._refreshed = time.monotonic()
         if self._ids and self._ids[-1] >= self._next_id:
             raise MapError(f'map {self.path} is damaged: keyframe {self._ids[-1]} but next_id {self._next_id}')
+
+    def _refresh(self) -> None:
+        """See other processes' writes: new ids above ours, a rescan when the count disagrees."""
+        self._refreshed = time.monotonic()
+        try:
+            with self._errors('refresh'):
+                if self._model is None:
+                    meta = self._meta()
+                    if 'model' not in meta:
+                        return
+                    self._model = self._read_model_record(meta['model'])
+                    if not self._client.has_collection(self._fr_c):
+                        return
+                    self._client.load_collection(self._fr_c)
+                last = self._ids[-1] if self._ids else -1
+                new = self._client.query(self._fr_c, filter=f'id > {last}', output_fields=['id'], limit=_QUERY_ROWS)
+                self._ids.extend(sorted(int(r['id']) for r in new))
+                count = int(self._client.query(self._fr_c, filter='', output_fields=['count(*)'])[0]['count(*)'])
+                if count != len(self._ids) or len(new) == _QUERY_ROWS:
+                    self._ids = self._scan_ids()
+                if self._ids and self._ids[-1] >= self._next_id:   # another process wrote
+                    self._next_id = self._reserved = self._ids[-1] + 1
+                if not self._has_keypoints:
+                    self._has_keypoints = self._client.has_collection(self._kp_c)
+        except MapError as e:   # a reader keeps answering from the ids it has
+            log.warning('%s', e)
 
     # ------------------------------------------------------------------ model
 
@@ -229,7 +358,8 @@ class MilvusMapStore(MapStore):
         with self._lock, self._errors('recording the model'):
             self._ready()
             if self._model is None:
-                self._create_data_collections(model['descriptor_dim'])
+                if not self._client.has_collection(self._fr_c):
+                    self._create_frames(model['descriptor_dim'])
                 self._put_meta({'model': json.dumps(model, sort_keys=True, default=str),
                                 'descriptor_space': model['descriptor_space'],
                                 'descriptor_dim': str(model['descriptor_dim'])})
@@ -239,63 +369,58 @@ class MilvusMapStore(MapStore):
 
     # ------------------------------------------------------------------ rows <-> sets
 
-    def _rows_to_sets(self, kf_rows: list, lm_rows: list) -> dict[int, LandmarkSet]:
-        dim = int(self._model['descriptor_dim'])
-        by_kf: dict[int, list] = {}
-        for r in lm_rows:
-            by_kf.setdefault(int(r['keyframe_id']), []).append(r)
-        out = {}
-        for k in kf_rows:
-            kid, n = int(k['id']), int(k['n'])
-            lms = sorted(by_kf.get(kid, []), key=lambda r: r['rank'])
-            if len(lms) != n:
-                raise MapError(f'map {self.path} is damaged: keyframe {kid} has {len(lms)} landmarks, expected {n}')
-            desc = np.array([r['descriptor'] for r in lms], np.int16)
-            if desc.shape != (n, dim):
-                raise MapError(f'map {self.path} is damaged: keyframe {kid} descriptors are {desc.shape}, '
-                               f'expected {(n, dim)}')
-            out[kid] = LandmarkSet(
-                global_descriptor=np.asarray(k['global_descriptor'], np.float32),
-                descriptors=desc.view(np.float16).astype(np.float32),
-                cells=np.array([[r['col'], r['row']] for r in lms], np.int32),
-                centers=np.array([r['center'] for r in lms], np.float32),
-                scores=np.array([r['score'] for r in lms], np.float32),
-                cell_size=np.array([k['cell_w'], k['cell_h']], np.float32),
-                image_size=np.array([k['image_w'], k['image_h']], np.float32),
-                grid=(int(k['grid_rows']), int(k['grid_cols'])), activation=None,
-                descriptor_space=self._model['descriptor_space'],
-                meta={'keyframe_id': kid, 'stamp': (int(k['stamp_sec']), int(k['stamp_nanosec']))})
-        return out
+    @staticmethod
+    def _frame_row(kid: int, lset: LandmarkSet, sec: int, nsec: int) -> dict:
+        return {'id': kid, 'stamp_sec': sec, 'stamp_nanosec': nsec,
+                'image_w': float(lset.image_size[0]), 'image_h': float(lset.image_size[1]),
+                'cell_w': float(lset.cell_size[0]), 'cell_h': float(lset.cell_size[1]),
+                'grid_rows': int(lset.grid[0]), 'grid_cols': int(lset.grid[1]), 'n': len(lset),
+                'global_descriptor': np.asarray(lset.global_descriptor, np.float32).tolist(),
+                'landmarks': pack(np.ascontiguousarray(lset.cells, '<i2'), np.ascontiguousarray(lset.centers, '<f4'),
+                                  np.ascontiguousarray(lset.scores, '<f4'),
+                                  np.ascontiguousarray(lset.descriptors, '<f2'))}
+
+    def _row_to_set(self, k: dict) -> LandmarkSet:
+        kid, n, dim = int(k['id']), int(k['n']), int(self._model['descriptor_dim'])
+        try:
+            blob = unpack(k['landmarks'])
+        except (ValueError, TypeError) as e:
+            raise MapError(f'map {self.path} is corrupt: keyframe {kid} landmarks are not base64 ({e})') from None
+        if n < 1 or len(blob) != n * (16 + 2 * dim):
+            raise MapError(f'map {self.path} is corrupt: keyframe {kid} landmarks are {len(blob)} bytes, '
+                           f'expected {n * (16 + 2 * dim)} (n={n}, D={dim})')
+        cells = np.frombuffer(blob, '<i2', 2 * n, 0).reshape(n, 2)
+        centers = np.frombuffer(blob, '<f4', 2 * n, 4 * n).reshape(n, 2)
+        scores = np.frombuffer(blob, '<f4', n, 12 * n)
+        desc = np.frombuffer(blob, '<f2', n * dim, 16 * n).reshape(n, dim)
+        return LandmarkSet(
+            global_descriptor=np.asarray(k['global_descriptor'], np.float32),
+            descriptors=desc.astype(np.float32), cells=cells.astype(np.int32), centers=centers.astype(np.float32),
+            scores=scores.astype(np.float32), cell_size=np.array([k['cell_w'], k['cell_h']], np.float32),
+            image_size=np.array([k['image_w'], k['image_h']], np.float32),
+            grid=(int(k['grid_rows']), int(k['grid_cols'])), activation=None,
+            descriptor_space=self._model['descriptor_space'],
+            meta={'keyframe_id': kid, 'stamp': (int(k['stamp_sec']), int(k['stamp_nanosec']))})
 
     def _fetch(self, ids, kf_rows: list | None = None) -> dict[int, LandmarkSet]:
         ids = [int(i) for i in ids]
         if not ids:
             return {}
         with self._errors('read'):
-            return self._fetch_rows(ids, kf_rows)
-
-    def _fetch_rows(self, ids: list[int], kf_rows: list | None) -> dict[int, LandmarkSet]:
-        if kf_rows is None:
-            kf_rows = self._client.query(self._kf_c, filter=f'id in {ids}', output_fields=['*'])
-        by_id = {int(k['id']): k for k in kf_rows}
-        lm_rows, chunk, rows_in_chunk = [], [], 0
-        for i in [i for i in ids if i in by_id] + [None]:
-            n = int(by_id[i]['n']) if i is not None else 0
-            if chunk and (i is None or rows_in_chunk + n > _QUERY_ROWS):
-                lm_rows += self._client.query(self._lm_c, filter=f'keyframe_id in {chunk}', limit=rows_in_chunk,
-                                              output_fields=['keyframe_id', 'rank', 'col', 'row', 'score',
-                                                             'center', 'descriptor'])
-                chunk, rows_in_chunk = [], 0
-            if i is not None:
-                chunk.append(i)
-                rows_in_chunk += n
-        return self._rows_to_sets(list(by_id.values()), lm_rows)
+            if kf_rows is None:
+                kf_rows = []
+                for start in range(0, len(ids), _FETCH_IDS):
+                    chunk = ids[start:start + _FETCH_IDS]
+                    kf_rows += self._client.query(self._fr_c, filter=f'id in {chunk}', output_fields=['*'],
+                                                  limit=len(chunk))
+            return {int(k['id']): self._row_to_set(k) for k in kf_rows}
 
     # ------------------------------------------------------------------ public API
 
     def add_many(self, sets: list[LandmarkSet], stamps, ids=None) -> list[int]:
-        """Store keyframes; returns their ids once Milvus acknowledged both inserts.
-        ids: keep these ids (export / import between maps); MapError if one is taken."""
+        """Store keyframes; returns their ids once Milvus acknowledged every insert. ids: keep these
+        ids (export / import between maps); MapError if one is taken. Inserts go in messages of at
+        most conf['insert_bytes']; if one fails, the keyframes of the batches before it stay stored."""
         if not sets:
             return []
         stamps, given = self._check_many(sets, stamps, ids)
@@ -312,33 +437,35 @@ class MilvusMapStore(MapStore):
                 taken = sorted(set(new_ids) & set(self._ids))
                 if taken:
                     raise MapError(f'map {self.path} already has keyframes {taken[:10]}')
+            rows = [self._frame_row(kid, lset, sec, nsec) for kid, lset, (sec, nsec) in zip(new_ids, sets, stamps)]
             next_id = max(self._next_id, max(new_ids) + 1)
-            # next_id first: a crash between the writes may skip ids, never reuse them
-            self._put_meta({'next_id': next_id})
-            kf_rows, lm_rows = [], []
-            for kid, lset, (sec, nsec) in zip(new_ids, sets, stamps):
-                kf_rows.append({'id': kid, 'stamp_sec': sec, 'stamp_nanosec': nsec,
-                                'image_w': float(lset.image_size[0]), 'image_h': float(lset.image_size[1]),
-                                'cell_w': float(lset.cell_size[0]), 'cell_h': float(lset.cell_size[1]),
-                                'grid_rows': int(lset.grid[0]), 'grid_cols': int(lset.grid[1]), 'n': len(lset),
-                                'global_descriptor': np.asarray(lset.global_descriptor, np.float32).tolist()})
-                bits = np.ascontiguousarray(lset.descriptors, np.float16).view(np.int16)
-                for j in range(len(lset)):
-                    lm_rows.append({'keyframe_id': kid, 'rank': j, 'col': int(lset.cells[j, 0]),
-                                    'row': int(lset.cells[j, 1]), 'score': float(lset.scores[j]),
-                                    'center': lset.centers[j].astype(np.float32).tolist(),
-                                    'descriptor': bits[j].tolist()})
-            # landmarks before keyframes: a keyframe the index can find always has its landmarks
-            self._client.insert(self._lm_c, lm_rows)
-            self._client.insert(self._kf_c, kf_rows)
-            self._next_id = next_id
-            self._ids.extend(new_ids)
-            self._ids.sort()
+            if next_id > self._reserved:
+                # reserve before writing: a crash between the writes may skip ids, never reuse them
+                self._put_meta({'next_id': next_id + ID_BLOCK})
+                self._reserved = next_id + ID_BLOCK
+            batch, size = [], 0
+            for row in rows + [None]:
+                nbytes = 0 if row is None else sum(map(len, row['landmarks'])) + 12 * len(row['global_descriptor']) + 256
+                if batch and (row is None or size + nbytes > self.conf['insert_bytes']):
+                    self._client.insert(self._fr_c, batch)
+                    self._ids.extend(r['id'] for r in batch)
+                    self._next_id = max(self._next_id, max(r['id'] for r in batch) + 1)
+                    self._unsealed += len(batch)
+                    batch, size = [], 0
+                if row is not None:
+                    batch.append(row)
+                    size += nbytes
+            if ids is not None:
+                self._ids.sort()
+            if self.conf['seal_rows'] and self._unsealed >= self.conf['seal_rows']:
+                self._client.flush(self._fr_c)
+                self._unsealed = 0
             return new_ids
 
     def query(self, lset: LandmarkSet, prefilter_k: int = 30, k: int = 5, min_score: float | None = None,
               exclude_recent: int = 0, method_rerank: bool = True, scale: float = 1.0) -> list[MapCandidate]:
-        """As SQLiteMapStore.query: holistic top prefilter_k in Milvus (0 = every keyframe), reranked here."""
+        """As SQLiteMapStore.query: holistic top prefilter_k by one Milvus search that also returns
+        their landmarks (0 = every keyframe), reranked here."""
         prefilter_k, k, exclude_recent = self._query_args(lset, prefilter_k, k, exclude_recent, method_rerank)
         with self._lock, self._errors('query'):
             self._ready()
@@ -352,9 +479,9 @@ class MilvusMapStore(MapStore):
                 return []
             if prefilter_k:
                 where = f'id < {self._ids[-exclude_recent]}' if exclude_recent else ''
-                hits = self._client.search(self._kf_c, data=[np.asarray(lset.global_descriptor, np.float32).tolist()],
-                                           anns_field='global_descriptor', limit=prefilter_k, filter=where,
-                                           search_params={'metric_type': 'IP'}, output_fields=['*'])[0]
+                hits = self._client.search(self._fr_c, data=[np.asarray(lset.global_descriptor, np.float32).tolist()],
+                                           anns_field='global_descriptor', limit=min(prefilter_k, _QUERY_ROWS),
+                                           filter=where, search_params={'metric_type': 'IP'}, output_fields=['*'])[0]
                 ids = np.array([int(h['id']) for h in hits], np.int64)
                 hol = np.array([float(h['distance']) for h in hits], np.float32)
                 sets = self._fetch(ids, [{**h['entity'], 'id': h['id']} for h in hits])
@@ -370,14 +497,61 @@ class MilvusMapStore(MapStore):
             raise KeyError(f'no keyframe {keyframe_id} in map {self.path}')
         return sets[int(keyframe_id)]
 
+    def add_keypoints(self, keyframe_id: int, uv: np.ndarray, descriptors: np.ndarray) -> None:
+        """Store a keyframe's keypoints (as SQLiteMapStore.add_keypoints): uv (N, 2) float32 original
+        pixels, binary descriptors (N, B) uint8; replaces earlier ones."""
+        uv = np.ascontiguousarray(uv, '<f4').reshape(-1, 2)
+        desc = np.ascontiguousarray(descriptors)
+        if desc.dtype != np.uint8 or desc.ndim != 2 or len(desc) != len(uv):
+            raise DescriptorError(f'keypoints need (N, B) uint8 descriptors for N={len(uv)} points, '
+                                  f'got {desc.dtype} {desc.shape}')
+        row = {'keyframe_id': int(keyframe_id), 'n': len(uv), 'width': int(desc.shape[1]),
+               'data': pack(uv, desc), 'unused': [0.0, 0.0]}
+        with self._lock, self._errors('storing keypoints'):
+            self._ready()
+            if int(keyframe_id) not in set(self._ids):
+                raise KeyError(f'no keyframe {keyframe_id} in map {self.path}')
+            if not self._has_keypoints and not self._client.has_collection(self._kp_c):
+                from pymilvus import DataType
+                self._create(self._kp_c, [('keyframe_id', 'INT64', {'is_primary': True}), ('n', 'INT32', {}),
+                                          ('width', 'INT32', {}),
+                                          ('data', 'ARRAY', {'element_type': DataType.VARCHAR,
+                                                             'max_capacity': _PIECES, 'max_length': 65535})],
+                             'unused', 2)
+            self._has_keypoints = True
+            self._client.upsert(self._kp_c, [row])
+
+    def keypoints(self, keyframe_id: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """(uv (N, 2) float32, descriptors (N, B) uint8) of a keyframe, or None when none were stored."""
+        with self._lock, self._errors('reading keypoints'):
+            self._ready()
+            if not self._has_keypoints:
+                return None
+            rows = self._client.query(self._kp_c, filter=f'keyframe_id == {int(keyframe_id)}',
+                                      output_fields=['n', 'width', 'data'])
+        if not rows:
+            return None
+        n, width, blob = int(rows[0]['n']), int(rows[0]['width']), unpack(rows[0]['data'])
+        if len(blob) != n * (8 + width):
+            raise MapError(f'map {self.path} is corrupt: keyframe {keyframe_id} keypoints are {len(blob)} bytes '
+                           f'for n={n}, width {width}')
+        return (np.frombuffer(blob, '<f4', 2 * n).reshape(n, 2).copy(),
+                np.frombuffer(blob, np.uint8, n * width, 8 * n).reshape(n, width).copy())
+
+    def _delete_ids(self, present: list[int]) -> None:
+        for start in range(0, len(present), 4096):
+            chunk = present[start:start + 4096]
+            # keyframes first: the index never finds a keyframe whose keypoints are gone
+            self._client.delete(self._fr_c, filter=f'id in {chunk}')
+            if self._has_keypoints:
+                self._client.delete(self._kp_c, filter=f'keyframe_id in {chunk}')
+
     def delete(self, keyframe_ids) -> int:
         with self._lock, self._errors('delete'):
             self._ready()
             present = sorted({int(i) for i in keyframe_ids} & set(self._ids))
             if present:
-                # keyframes first: the index never finds a keyframe whose landmarks are gone
-                self._client.delete(self._kf_c, filter=f'id in {present}')
-                self._client.delete(self._lm_c, filter=f'keyframe_id in {present}')
+                self._delete_ids(present)
                 gone = set(present)
                 self._ids = [i for i in self._ids if i not in gone]
             return len(present)
@@ -385,9 +559,7 @@ class MilvusMapStore(MapStore):
     def clear(self) -> int:
         with self._lock, self._errors('clear'):
             self._ready()
-            if self._model is not None:
-                self._client.delete(self._kf_c, filter='id >= 0')
-                self._client.delete(self._lm_c, filter='keyframe_id >= 0')
+            self._delete_ids(list(self._ids))
             removed, self._ids = len(self._ids), []
             return removed
 
@@ -407,7 +579,7 @@ class MilvusMapStore(MapStore):
         """Flush (seal) the collections' growing segments."""
         with self._lock, self._errors('flush'):
             self._ready()
-            for name in (self._meta_c, self._kf_c, self._lm_c):
+            for name in (self._meta_c, self._fr_c, self._kp_c):
                 if self._client.has_collection(name):
                     self._client.flush(name)
 
@@ -415,14 +587,14 @@ class MilvusMapStore(MapStore):
         with self._lock, self._errors('compact'):
             self._ready()
             self.save()
-            for name in (self._kf_c, self._lm_c):
+            for name in (self._fr_c, self._kp_c):
                 if self._client.has_collection(name):
                     self._client.compact(name)
             return {}
 
     def check(self, limit: int = 20) -> list[str]:
-        """Problems found (empty list = healthy): format, model record, keyframe ids against the
-        collection, every keyframe's landmark count against its n."""
+        """Problems found (empty list = healthy): format, schema version, the id list against the
+        collection, every keyframe's landmark bytes against its n and D, keypoints without keyframe."""
         problems: list[str] = []
         with self._lock:
             self._ready()
@@ -432,30 +604,32 @@ class MilvusMapStore(MapStore):
                     problems.append(f'schema_version is {meta.get("schema_version")!r}, expected {SCHEMA_VERSION}')
                 if self._model is None:
                     return problems
-                counts, n_of = {}, {}
-                for coll, field, sink in ((self._lm_c, 'keyframe_id', counts), (self._kf_c, 'id', n_of)):
-                    it = self._client.query_iterator(coll, batch_size=4096, filter=f'{field} >= 0',
-                                                     output_fields=[field] + (['n'] if coll == self._kf_c else []))
-                    try:
-                        while rows := it.next():
-                            for r in rows:
-                                key = int(r[field])
-                                sink[key] = r['n'] if coll == self._kf_c else sink.get(key, 0) + 1
-                    finally:
-                        it.close()
-                if sorted(n_of) != self._ids:
-                    problems.append(f'keyframes collection holds {len(n_of)} ids, this process knows {len(self._ids)}')
-                bad = [f'keyframe {k}: {counts.get(k, 0)} landmark rows, expected n={n}'
-                       for k, n in n_of.items() if counts.get(k, 0) != n]
-                orphans = sorted(set(counts) - set(n_of))
-                bad += [f'landmark rows of keyframe {k} but no such keyframe' for k in orphans]
+                found, bad = [], []
+                it = self._client.query_iterator(self._fr_c, batch_size=256, filter='id >= 0', output_fields=['*'])
+                try:
+                    while rows := it.next():
+                        for r in rows:
+                            found.append(int(r['id']))
+                            try:
+                                self._row_to_set(r)
+                            except MapError as e:
+                                bad.append(str(e))
+                finally:
+                    it.close()
+                if sorted(found) != self._ids:
+                    problems.append(f'frames collection holds {len(found)} ids, this process knows {len(self._ids)}')
+                if self._has_keypoints:
+                    kp = self._client.query(self._kp_c, filter='keyframe_id >= 0', output_fields=['keyframe_id'],
+                                            limit=_QUERY_ROWS)
+                    bad += [f'keypoints of keyframe {k} but no such keyframe'
+                            for k in sorted({int(r['keyframe_id']) for r in kp} - set(found))]
                 problems.extend(bad[:limit])
                 if len(bad) > limit:
                     problems.append(f'... and {len(bad) - limit} more like that')
             except MapError as e:
                 problems.append(str(e))
             except Exception as e:  # MilvusException and friends: the check reports, it does not raise
-                problems.append(f'Milvus error while checking: {e}')
+                problems.append(f'Milvus error while checking: {explain(e)}')
         return problems
 
     def close(self) -> None:
@@ -470,3 +644,72 @@ class MilvusMapStore(MapStore):
     def __repr__(self) -> str:
         state = 'closed' if self._client is None else f'{len(self._ids)} keyframes'
         return f'MilvusMapStore({self.path!r}, {state})'
+
+
+# ---------------------------------------------------------------------- migrations
+
+def _v1_rows_to_sets(store: MilvusMapStore, kf_rows: list, lm_rows: list) -> list[tuple]:
+    """Schema 1 rows (a keyframe row + one row per landmark) -> [(id, LandmarkSet, (sec, nsec))]."""
+    by_kf: dict[int, list] = {}
+    for r in lm_rows:
+        by_kf.setdefault(int(r['keyframe_id']), []).append(r)
+    out = []
+    for k in kf_rows:
+        kid, n = int(k['id']), int(k['n'])
+        lms = sorted(by_kf.get(kid, []), key=lambda r: r['rank'])
+        if len(lms) != n:
+            raise MapError(f'map {store.path} (schema 1) is damaged: keyframe {kid} has {len(lms)} landmarks, '
+                           f'expected {n}; not migrated')
+        out.append((kid, LandmarkSet(
+            global_descriptor=np.asarray(k['global_descriptor'], np.float32),
+            descriptors=np.array([r['descriptor'] for r in lms], np.int16).view(np.float16).astype(np.float32),
+            cells=np.array([[r['col'], r['row']] for r in lms], np.int32),
+            centers=np.array([r['center'] for r in lms], np.float32),
+            scores=np.array([r['score'] for r in lms], np.float32),
+            cell_size=np.array([k['cell_w'], k['cell_h']], np.float32),
+            image_size=np.array([k['image_w'], k['image_h']], np.float32),
+            grid=(int(k['grid_rows']), int(k['grid_cols'])), activation=None,
+            descriptor_space=store._model['descriptor_space']), (int(k['stamp_sec']), int(k['stamp_nanosec']))))
+    return out
+
+
+def _migrate_1_to_2(store: MilvusMapStore, meta: dict) -> None:
+    """Schema 1 (a row per landmark in {map}_landmarks) -> 2 (a row per keyframe in {map}_frames).
+    Copies every keyframe, checks the count, then the caller records schema 2 and the old
+    collections are dropped. Stopped half-way, it starts again from the schema 1 collections."""
+    c, (kf_c, lm_c) = store._client, store._v1
+    if 'model' not in meta or not c.has_collection(kf_c):
+        return
+    store._model = store._read_model_record(meta['model'])
+    if c.has_collection(store._fr_c):
+        c.drop_collection(store._fr_c)   # from a migration that stopped half-way
+    store._create_frames(int(store._model['descriptor_dim']))
+    for name in (kf_c, lm_c):
+        c.load_collection(name)
+    it = c.query_iterator(kf_c, batch_size=4096, filter='id >= 0', output_fields=['id'], consistency_level='Strong')
+    ids = []
+    try:
+        while rows := it.next():
+            ids.extend(int(r['id']) for r in rows)
+    finally:
+        it.close()
+    ids.sort()
+    for start in range(0, len(ids), _FETCH_IDS):
+        chunk = ids[start:start + _FETCH_IDS]
+        kf_rows = c.query(kf_c, filter=f'id in {chunk}', output_fields=['*'], limit=len(chunk))
+        lm_rows = []
+        for i in range(0, len(kf_rows), 64):   # <= 64 keyframes of <= 256 landmarks: under 16,384 rows
+            part = [int(k['id']) for k in kf_rows[i:i + 64]]
+            lm_rows += c.query(lm_c, filter=f'keyframe_id in {part}', limit=sum(int(k['n']) for k in kf_rows[i:i + 64]),
+                               output_fields=['keyframe_id', 'rank', 'col', 'row', 'score', 'center', 'descriptor'])
+        rows = [store._frame_row(kid, lset, sec, nsec) for kid, lset, (sec, nsec) in
+                _v1_rows_to_sets(store, kf_rows, lm_rows)]
+        c.insert(store._fr_c, rows)
+    copied = int(c.query(store._fr_c, filter='', output_fields=['count(*)'], consistency_level='Strong')[0]['count(*)'])
+    if copied != len(ids):
+        raise MapError(f'migrating map {store.path} to schema 2: copied {copied} of {len(ids)} keyframes; '
+                       f'the schema 1 collections are kept, opening again retries')
+
+
+# schema version v -> function(store, meta) that upgrades a v map to v + 1
+MIGRATIONS = {1: _migrate_1_to_2}

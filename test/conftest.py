@@ -55,3 +55,30 @@ def colcon_install(tmp_path_factory, extractor):
     session extractor, which exports the ONNX graph into the cache: nodes then start without it."""
     from ros_harness import colcon_build
     return colcon_build(tmp_path_factory.mktemp('ws'))
+
+
+@pytest.fixture(scope='session')
+def milvus_server():
+    """A real Milvus standalone server on 127.0.0.1, started once per run and stopped at its end.
+    Only inside a network namespace that has nothing but lo (the server listens on every interface):
+    test_milvus_server.py::test_real_server_suite re-runs the milvus_server tests in one."""
+    from milvus_loopback import LoopbackMilvus, milvus_version, only_loopback
+    if milvus_version() is None:
+        pytest.skip('the PyPI package `milvus` (a Milvus 2.3.5 standalone server) is not installed')
+    if not only_loopback():
+        pytest.skip('a real Milvus server runs only in a loopback-only network namespace: '
+                    'test_milvus_server.py::test_real_server_suite runs this test in one')
+    server = LoopbackMilvus().start()
+    yield server
+    server.close()
+
+
+@pytest.fixture
+def milvus_map(milvus_server, request):
+    """A fresh map URI on the real server (database lln_test, a map name of this test's own);
+    its collections are dropped afterwards (an idle server's CPU climbs with every loaded one)."""
+    import re
+    name = 't' + re.sub(r'[^0-9a-zA-Z]', '_', request.node.name)[-40:] + f'_{id(request) % 10000}'
+    yield f'{milvus_server.uri}/lln_test?map={name}'
+    from milvus_loopback import drop_maps
+    drop_maps(milvus_server, 'lln_test', name + '_')

@@ -1,5 +1,6 @@
-"""One suite, both map backends: the embedded SQLite + FAISS map and Milvus (tested on Milvus Lite,
-which speaks the client API a Milvus cluster does). Small maps of synthetic landmark sets."""
+"""One suite, both map backends: the embedded SQLite + FAISS map and Milvus, on Milvus Lite and on a
+real Milvus 2.3.5 server (the `milvus-server` cases run inside a loopback-only network namespace, see
+test_milvus_server.py). Small maps of synthetic landmark sets."""
 import importlib.util
 import json
 import os
@@ -15,7 +16,8 @@ from test_mapstore import MODEL, OTHER_MODEL, make_set
 
 HAVE_MILVUS = importlib.util.find_spec('pymilvus') is not None and importlib.util.find_spec('milvus_lite') is not None
 BACKENDS = ['sqlite', pytest.param('milvus', marks=pytest.mark.skipif(
-    not HAVE_MILVUS, reason='pymilvus / milvus-lite not installed (requirements.txt)'))]
+    not HAVE_MILVUS, reason='pymilvus / milvus-lite not installed (requirements.txt)')),
+    pytest.param('milvus-server', marks=pytest.mark.milvus_server)]
 
 
 def uri_for(kind, tmp_path, name='map'):
@@ -30,6 +32,8 @@ def rng():
 
 @pytest.fixture(params=BACKENDS)
 def uri(request, tmp_path):
+    if request.param == 'milvus-server':
+        return request.getfixturevalue('milvus_map')
     return uri_for(request.param, tmp_path)
 
 
@@ -168,13 +172,14 @@ def run_cli(*args, check=True):
 
 
 @pytest.mark.skipif(not HAVE_MILVUS, reason='pymilvus / milvus-lite not installed (requirements.txt)')
-def test_cli_export_import_between_backends(tmp_path, rng):
+@pytest.mark.parametrize('target', ['lite', pytest.param('server', marks=pytest.mark.milvus_server)])
+def test_cli_export_import_between_backends(tmp_path, rng, request, target):
     src = tmp_path / 'src.db'
     sets = [make_set(rng) for _ in range(15)]
     with MapStore.open(src, model=MODEL) as store:
         ids = store.add_many(sets, [(10 + i, i) for i in range(15)])
         store.delete([ids[1]])
-    milvus = f'milvus-lite://{tmp_path}/fleet.db'
+    milvus = f'milvus-lite://{tmp_path}/fleet.db' if target == 'lite' else request.getfixturevalue('milvus_map')
     out = run_cli('export', str(src), milvus)
     assert '14 keyframes' in out.stdout
     back = tmp_path / 'back.db'
