@@ -183,11 +183,11 @@ def runtime_table(r: dict) -> str:
     lines.append('')
     for t in (1, 2):
         if f'speedup_384_{t}t_quiet' in s:
-            lines.append(f'onnxruntime vs torch at 384x288, {t} thread(s): {s[f"speedup_384_{t}t_quiet"]:.2f}x '
+            lines.append(f'- onnxruntime vs torch at 384x288, {t} thread(s): {s[f"speedup_384_{t}t_quiet"]:.2f}x '
                          f'faster (with the competing process: {s[f"speedup_384_{t}t_loaded"]:.2f}x)')
     for t in (1, 2):
         if f'default_loaded_over_quiet_384_{t}t' in s:
-            lines.append(f'default runtime, 384x288, {t} thread(s): p50 with the competing process = '
+            lines.append(f'- default runtime, 384x288, {t} thread(s): p50 with the competing process = '
                          f'{s[f"default_loaded_over_quiet_384_{t}t"]:.2f}x its p50 without')
     return '\n'.join(lines)
 

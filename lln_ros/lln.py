@@ -57,13 +57,18 @@ class LLNHead(nn.Module):
         return torch.relu(self.logits(features))
 
 
-def head_fingerprint(head: LLNHead) -> str:
-    """Short content hash of the head's parameters: names the selection model in map metadata."""
+def state_fingerprint(module: nn.Module) -> str:
+    """Short content hash of a module's state (parameter and buffer names and values)."""
     h = hashlib.sha256()
-    for name, t in sorted(head.state_dict().items()):
+    for name, t in sorted(module.state_dict().items()):
         h.update(name.encode())
         h.update(t.detach().cpu().numpy().tobytes())
     return h.hexdigest()[:12]
+
+
+def head_fingerprint(head: LLNHead) -> str:
+    """Short content hash of the head's parameters: names the selection model in map metadata."""
+    return state_fingerprint(head)
 
 
 def save_checkpoint(path: str, head: LLNHead, backbone: str, layer: str, **extra) -> None:

@@ -9,7 +9,7 @@ The network is the frozen backbone cut at the configured layer followed by the L
 Both runtimes run this one graph (`ExtractorNetwork`), so they agree to float rounding; the float16
 rounding of the features is inside the graph, before the head, as in the torch path.
 
-    net = build_network(backbone, head, runtime='onnxruntime', num_threads=1)
+    net = build_network('efficientnet_lite0', 'stage6', backbone, head, runtime='onnxruntime', num_threads=1)
     feats, logits = net(rgb_batch)            # numpy arrays
     net.runtime                               # the runtime that actually runs: 'onnxruntime' | 'torch'
 
@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
-import hashlib
 import io
 import logging
 import os
@@ -35,6 +34,7 @@ import torch
 from torch import nn
 
 from .errors import ModelError
+from .lln import state_fingerprint
 
 log = logging.getLogger(__name__)
 
@@ -57,15 +57,6 @@ def cache_dir() -> Path:
     return Path(base) / 'lln_ros'
 
 
-def module_fingerprint(module: nn.Module) -> str:
-    """Short content hash of a module's state (parameter names and values)."""
-    h = hashlib.sha256()
-    for name, t in sorted(module.state_dict().items()):
-        h.update(name.encode())
-        h.update(t.detach().cpu().contiguous().numpy().tobytes())
-    return h.hexdigest()[:12]
-
-
 class ExtractorNetwork(nn.Module):
     """Backbone + LLN head on uint8 RGB: the graph both runtimes run (shapes in the module doc)."""
 
@@ -85,9 +76,8 @@ class ExtractorNetwork(nn.Module):
 class TorchNetwork:
     runtime = 'torch'
 
-    def __init__(self, backbone: nn.Module, head: nn.Module, num_threads: int = 0):
-        if num_threads:
-            torch.set_num_threads(int(num_threads))
+    def __init__(self, backbone: nn.Module, head: nn.Module):
+        # threads: torch's pool is per process, so the caller sets it (Extractor does)
         self.net = ExtractorNetwork(backbone, head).eval()
 
     @torch.inference_mode()
@@ -99,7 +89,7 @@ class TorchNetwork:
 def onnx_path(backbone_name: str, layer: str, backbone: nn.Module, head: nn.Module,
               root: str | os.PathLike | None = None) -> Path:
     """Cache file of the exported graph for this backbone/layer/weights (dynamic height and width)."""
-    name = (f'{backbone_name}_{layer}_b{module_fingerprint(backbone)}_h{module_fingerprint(head)}'
+    name = (f'{backbone_name}_{layer}_b{state_fingerprint(backbone)}_h{state_fingerprint(head)}'
             f'_v{GRAPH_VERSION}_dynhw.onnx')
     return Path(root) / name if root else cache_dir() / 'onnx' / name
 
@@ -206,4 +196,4 @@ def build_network(backbone_name: str, layer: str, backbone: nn.Module, head: nn.
             except Exception as e:  # noqa: BLE001  any exporter/runtime failure leaves torch working
                 log.warning('cannot run %s/%s in onnxruntime (%s: %s): extracting with torch',
                             backbone_name, layer, type(e).__name__, str(e).splitlines()[0] if str(e) else '')
-    return TorchNetwork(backbone, head, num_threads)
+    return TorchNetwork(backbone, head)

@@ -101,7 +101,7 @@ def test_onnx_network_refuses_sizes_it_would_get_wrong(pair):
 
 
 def test_model_info_names_the_runtime_and_default(pair):
-    assert Extractor.__module__ and pair[0].model_info['runtime'] == 'torch'
+    assert pair[0].model_info['runtime'] == 'torch'
     assert pair[1].model_info['runtime'] == 'onnxruntime'
     # the descriptor space does not depend on the runtime: the map's compatibility key
     assert pair[0].descriptor_space == pair[1].descriptor_space
