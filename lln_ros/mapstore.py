@@ -427,7 +427,8 @@ class MapStore:
         if any(sp != given for sp in spaces):
             raise MapError(f'landmark sets from different models in one add_many: {given}, '
                            f'{next(sp for sp in spaces if sp != given)}')
-        return stamps, given
+        # validated as any model is: a new map's model record may be written from it
+        return stamps, self._check_model_dict(given)
 
     def __len__(self) -> int:
         with self._lock:
