@@ -98,10 +98,10 @@ def test_runtime_parameters_and_diagnostic_levels(colcon_install, tmp_path, plac
         assert m.status.level == DiagnosticStatus.OK and m.status.message == 'running'
 
         described = m.call(DescribeParameters, 'describe_parameters',
-                           DescribeParameters.Request(names=['k', 'min_score', 'mode', 'method'])).descriptors
-        k, min_score, mode, method = described
-        assert not k.read_only and (k.integer_range[0].from_value, k.integer_range[0].to_value) == (1, 10_000)
-        assert not min_score.read_only and min_score.floating_point_range[0].to_value == 1e6
+                           DescribeParameters.Request(names=['k', 'offset_scale', 'mode', 'method'])).descriptors
+        k, offset_scale, mode, method = described
+        assert not k.read_only and (k.integer_range[0].from_value, k.integer_range[0].to_value) == (1, 10_000_000)
+        assert not offset_scale.read_only and offset_scale.floating_point_range[0].from_value == 1e-3
         assert mode.read_only and 'read-only' in mode.additional_constraints
         assert 'one of: lln | holistic' in method.additional_constraints
 
@@ -111,7 +111,7 @@ def test_runtime_parameters_and_diagnostic_levels(colcon_install, tmp_path, plac
         m.probe.spin_until(lambda: answers, 30, 'an answer')
         assert len(answers[-1]) == 2 and answers[-1]['score'].min() >= 0.5
         # refused, with the reason, and nothing changes
-        for values, reason in (({'k': 0}, 'out of range'), ({'min_score': 1e9}, 'out of range'),
+        for values, reason in (({'k': 0}, 'out of range'), ({'offset_scale': 0.0}, 'out of range'),
                                ({'method': 'bogus'}, 'must be one of lln | holistic'),
                                ({'mode': 'mapping'}, 'read-only'), ({'k': 2.5}, 'Wrong parameter type'),
                                ({'sequence_max_gap': 0.0}, 'out of range')):
