@@ -4,7 +4,7 @@
     ros2 launch lln_ros lln.launch.py image:=/camera/image_raw image_transport:=compressed \
         map_path:=~/maps/campus.db mode:=localization
     ros2 launch lln_ros lln.launch.py feed:=keyframes map_path:=/tmp/reference.db   # build a map only
-    ros2 launch lln_ros lln.launch.py use_sim_time:=true reliability:=reliable       # with lln-bag play --clock
+    ros2 launch lln_ros lln.launch.py use_sim_time:=true reliability:=reliable frame_queue:=100  # bag, --clock
     ros2 launch lln_ros lln.launch.py namespace:=robot1 verify:=true visualize:=true rviz:=true \
         map_path:=milvus://127.0.0.1:19530?map=campus log_level:=debug
 
@@ -40,6 +40,9 @@ def generate_launch_description() -> LaunchDescription:
         DeclareLaunchArgument('reliability', default_value='best_effort', choices=['best_effort', 'reliable'],
                               description='image subscription QoS: best_effort (camera drivers) | '
                                           'reliable (bag playback without drops)'),
+        DeclareLaunchArgument('frame_queue', default_value='1',
+                              description='frames waiting for extraction: 1 = newest only (cameras) | e.g. 100 '
+                                          'for bag replays, so no frame is skipped'),
         DeclareLaunchArgument('mode', default_value='localization', choices=['localization', 'mapping'],
                               description='localization: answer queries, map unchanged | mapping: answer '
                                           'each query, then store it (online loop-closure detection)'),
@@ -84,6 +87,7 @@ def generate_launch_description() -> LaunchDescription:
         parameters=[LaunchConfiguration('extractor_params'),
                     {'image_transport': LaunchConfiguration('image_transport'),
                      'reliability': LaunchConfiguration('reliability'),
+                     'frame_queue': LaunchConfiguration('frame_queue'),
                      'publish_keypoints': verify, 'use_sim_time': use_sim_time}],
         remappings=[('image', image), ('image/compressed', [image, '/compressed'])],
     )

@@ -1,4 +1,5 @@
-"""Every ROS message encode/decode of lln_ros, in one place. Algorithm code stays ROS-free.
+"""Every ROS message encode/decode of lln_ros, in one place (the brief: one module owns the codecs;
+its length, ~600 lines, is that). Algorithm code stays ROS-free.
 
 Typed tables travel as `sensor_msgs/PointCloud2`: height 1, one row (point) per record,
 little-endian, is_dense true. A table is a numpy structured array on the Python side:

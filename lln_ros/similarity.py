@@ -62,27 +62,37 @@ def cross_match(query: np.ndarray, cands: np.ndarray, valid_q: np.ndarray,
     return np.where(mutual, nn_ab, -1), np.where(mutual, best, 0.0).astype(np.float32)
 
 
+DENSE_BINS = 1 << 22  # offset_mode counts in a dense array up to this many bins (32 MB of float64)
+
+
 def offset_mode(offsets: np.ndarray, matched: np.ndarray, sims: np.ndarray) -> np.ndarray:
     """Most frequent offset per candidate. offsets (K, n_a, 2) int, matched (K, n_a) bool,
     sims (K, n_a). Returns (K, 2) int; (0, 0) for a candidate with no pairs.
 
     Ties between equally full bins go to the bin with the larger summed cosine, then to the lower
-    bin index, so the result never depends on pair order. Only the occupied bins are counted (a
-    sort of the P <= K * n_a pairs), so memory follows the pairs, not the grid: a grid declared
-    huge (tiny cells, a vast image) cannot make this allocate K * (2 * span + 1)^2 bins."""
+    bin index, so the result never depends on pair order. Bins are counted in a dense array of
+    K * (2 * span + 1)^2 while that is at most DENSE_BINS (the usual case, fastest), otherwise only
+    the occupied bins (a sort of the P <= K * n_a pairs; the same result): a grid declared huge (tiny
+    cells, a vast image) once made this allocate terabytes."""
     k, n_a, _ = offsets.shape
-    mode = np.zeros((k, 2), np.int64)
-    if not matched.any():
-        return mode
-    span = int(np.abs(offsets[matched]).max(initial=0))
+    span = int(np.abs(offsets).max(initial=0))
     side = 2 * span + 1
     code = (offsets[..., 1] + span) * side + (offsets[..., 0] + span)            # (K, n_a)
     flat = (np.arange(k, dtype=np.int64)[:, None] * side * side + code)[matched]  # (P,)
+    weights = np.maximum(sims[matched], 0.0)
+    if k * side * side <= DENSE_BINS:
+        counts = np.bincount(flat, minlength=k * side * side).astype(np.float64)
+        # the cosine sum is < n_a + 1, so scaled by 1/(n_a+1) it only breaks ties between equal counts
+        tie = np.bincount(flat, weights=weights, minlength=k * side * side)
+        best = (counts + tie / (n_a + 1)).reshape(k, side * side).argmax(axis=1)
+        mode = np.stack([best % side - span, best // side - span], axis=1)
+        mode[~matched.any(axis=1)] = 0
+        return mode
+    mode = np.zeros((k, 2), np.int64)
+    if not len(flat):
+        return mode
     bins, inverse = np.unique(flat, return_inverse=True)                          # occupied bins, sorted
-    counts = np.bincount(inverse).astype(np.float64)
-    # the cosine sum is < n_a + 1, so scaled by 1/(n_a+1) it only breaks ties between equal counts
-    tie = np.bincount(inverse, weights=np.maximum(sims[matched], 0.0))
-    value = counts + tie / (n_a + 1)
+    value = np.bincount(inverse).astype(np.float64) + np.bincount(inverse, weights=weights) / (n_a + 1)
     cand = bins // (side * side)
     order = np.lexsort((bins, -value, cand))        # per candidate: best value, then lowest bin
     first = order[np.r_[True, cand[order][1:] != cand[order][:-1]]]

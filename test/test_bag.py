@@ -377,7 +377,9 @@ def test_play_clock_drives_sim_time_faster_than_real_time(tmp_path):
     got, clocks = result['got'], result['clocks']
     assert [g['stamp'] for g in got] == stamps  # reliable: every frame, in order, stamps unchanged
     assert clocks == sorted(clocks), 'the clock ran backwards'
-    assert clocks[0] >= stamps[0] and clocks[-1] == stamps[-1]
+    # the bag's span, never beyond it; the subscriber stops at the last image, and /clock (best effort, another
+    # topic) may still be on its way, so the last clock seen is within a few ticks of the last stamp
+    assert stamps[0] <= clocks[0] and clocks[-1] <= stamps[-1] and stamps[-1] - clocks[-1] < 0.5e9, (clocks, stamps)
     ages = [(g['now'] - g['stamp']) / 1e9 for g in got]
     # the clock reaches a stamp before its message goes out; at 50 Hz x rate 5 it advances 0.1 s a tick
     assert all(0 <= a < 0.5 for a in ages), ages

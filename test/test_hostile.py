@@ -16,10 +16,11 @@ import subprocess
 import sys
 import zlib
 
+import cv2
 import numpy as np
 import pytest
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CompressedImage, PointCloud2
+from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_msgs.msg import String
 
 from lln_ros import msgs
@@ -262,3 +263,22 @@ def test_extractor_refuses_decompression_bombs_from_the_header(rig, small_photo)
     print(f'\nextractor VmHWM: after a good image {idle_mb:.0f} MB, after the PNG bombs {peak_mb:.0f} MB')
     assert peak_mb < EXTRACTOR_HWM_MB and peak_mb - idle_mb < 100, (idle_mb, peak_mb)
     assert proc.alive()
+
+
+def test_extractor_refuses_raw_images_above_the_limit(rig, small_photo):
+    """A raw image above max_image_pixels (lowered here to 20,000) is bad_image by its declared size,
+    before its data is copied; a smaller one right after is published."""
+    proc = rig.extractor('-p', 'max_image_pixels:=20000', '-p', 'input_height:=128', '-p', 'top_n:=10')
+    got = rig.probe.collect(PointCloud2, 'landmarks')
+    pub = rig.probe.publisher(Image, 'image')
+    rig.until(lambda: pub.get_subscription_count() > 0, 'extractor up', proc)
+    big = msgs.array_to_image(small_photo, 'rgb8', header(1))                  # 160 x 188 = 30,080 px
+    pub.publish(big)
+    rig.wait_counter(EXTRACTOR, 'bad_image', 1, proc)
+    small = cv2.resize(small_photo, (120, 150))                                 # 18,000 px
+    pub.publish(msgs.array_to_image(small, 'rgb8', header(2, 'small')))
+    rig.until(lambda: got, 'the image under the limit', proc)
+    assert got[0].header.frame_id == 'small'
+    assert len(log_lines(proc, '160x188 = 30080 pixels is more than max_image_pixels 20000')) == 1, read_log(proc)
+    rig.wait_counter(EXTRACTOR, 'published', 1, proc)
+    assert rig.counter(EXTRACTOR, 'received') == 2 and rig.counter(EXTRACTOR, 'internal_error') == 0

@@ -8,7 +8,7 @@ import ast
 
 import yaml
 
-REQUIRED = {'image', 'image_transport', 'reliability', 'mode', 'feed', 'map_path', 'verify', 'use_sim_time',
+REQUIRED = {'image', 'image_transport', 'reliability', 'frame_queue', 'mode', 'feed', 'map_path', 'verify', 'use_sim_time',
             'namespace', 'log_level', 'visualize', 'rviz', 'dds_profile', 'extractor_params', 'matcher_params'}
 
 

@@ -365,3 +365,27 @@ def test_problems_are_logged_by_kind_rate_limited():
     for i in range(500):   # endless distinct texts share one '<other>' kind after max_kinds
         c.problem('bad_keyframe', f'kind{chr(65 + i % 26)}{chr(65 + i // 26)}')
     assert len(lines) == 3 + 64 + 1
+
+
+def test_a_poisoned_keyframe_from_an_older_map_costs_little(map_path, rng):
+    """A keyframe that an older version stored (a 32,768 px wide image: a 9 x 1024 grid, which passes
+    the int16 cell check) made every later query take 0.5-10 s and 2.1 GB: offset_mode now counts only
+    occupied bins when the dense array would be large, so a query against it allocates megabytes."""
+    import tracemalloc
+    poisoned = make_set(rng, rows=9, cols=1024)
+    poisoned.cell_size = np.array([32, 32], np.float32)
+    poisoned.image_size = np.array([32768, 288], np.float32)
+    poisoned.centers = ((poisoned.cells + 0.5) * 32).astype(np.float32)
+    poisoned.cells[0] = (1023, 8)       # offsets up to ~1,000 cells from any query's
+    with MapStore(map_path, model=MODEL) as store:
+        store.add(poisoned, (1, 0))
+        store.add(make_set(rng), (2, 0))
+    store, _ = open_map(map_path, 'localization', SPACE)
+    with store:
+        loc = Localizer(store, {'prefilter_k': 0})
+        tracemalloc.start()
+        answer = ask(loc, make_set(rng), 10)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    assert answer is not None and len(answer.rows) == 2
+    assert peak < 64 * 2**20, f'{peak / 2**20:.0f} MB traced for one query'

@@ -98,10 +98,10 @@ def test_runtime_parameters_and_diagnostic_levels(colcon_install, tmp_path, plac
         assert m.status.level == DiagnosticStatus.OK and m.status.message == 'running'
 
         described = m.call(DescribeParameters, 'describe_parameters',
-                           DescribeParameters.Request(names=['k', 'min_score', 'mode', 'method'])).descriptors
-        k, min_score, mode, method = described
-        assert not k.read_only and (k.integer_range[0].from_value, k.integer_range[0].to_value) == (1, 10_000)
-        assert not min_score.read_only and min_score.floating_point_range[0].to_value == 1e6
+                           DescribeParameters.Request(names=['k', 'offset_scale', 'mode', 'method'])).descriptors
+        k, offset_scale, mode, method = described
+        assert not k.read_only and (k.integer_range[0].from_value, k.integer_range[0].to_value) == (1, 10_000_000)
+        assert not offset_scale.read_only and offset_scale.floating_point_range[0].from_value == 1e-3
         assert mode.read_only and 'read-only' in mode.additional_constraints
         assert 'one of: lln | holistic' in method.additional_constraints
 
@@ -111,7 +111,7 @@ def test_runtime_parameters_and_diagnostic_levels(colcon_install, tmp_path, plac
         m.probe.spin_until(lambda: answers, 30, 'an answer')
         assert len(answers[-1]) == 2 and answers[-1]['score'].min() >= 0.5
         # refused, with the reason, and nothing changes
-        for values, reason in (({'k': 0}, 'out of range'), ({'min_score': 1e9}, 'out of range'),
+        for values, reason in (({'k': 0}, 'out of range'), ({'offset_scale': 0.0}, 'out of range'),
                                ({'method': 'bogus'}, 'must be one of lln | holistic'),
                                ({'mode': 'mapping'}, 'read-only'), ({'k': 2.5}, 'Wrong parameter type'),
                                ({'sequence_max_gap': 0.0}, 'out of range')):
@@ -194,3 +194,33 @@ def test_bag_replay_with_sim_time(colcon_install, tmp_path, places, sim_time):
     finally:
         code = m.close()
     assert code == 0, m.proc.log()
+
+
+def test_frame_queue_keeps_every_frame_of_a_burst(colcon_install, tmp_path, photo):
+    """frame_queue 30 (for bag replays): a burst of 20 frames, far faster than extraction, is
+    extracted completely, in order; the default (1) would keep only the newest waiting frame."""
+    import cv2
+    from sensor_msgs.msg import Image
+    env = installed_env(colcon_install, ros_env(tmp_path))
+    share = colcon_install / 'lln_ros' / 'share' / 'lln_ros'
+    proc = RosProcess(colcon_install / 'lln_ros' / 'lib' / 'lln_ros' / 'extractor',
+                      ['--params-file', str(share / 'config' / 'extractor.yaml'), '-p', 'frame_queue:=30',
+                       '-p', 'reliability:=reliable', '-p', 'num_threads:=1', '-p', 'input_height:=128'],
+                      env, tmp_path / 'extractor.log')
+    probe = Probe(env)
+    try:
+        images = probe.publisher(Image, 'image')
+        got = probe.collect(PointCloud2, 'landmarks', lambda c: msgs.stamp_to_ns(c.header.stamp))
+        probe.spin_until(lambda: images.get_subscription_count() or not proc.alive(), 120, 'extractor')
+        assert proc.alive(), proc.log()
+        probe.spin_for(1.0)
+        small = np.ascontiguousarray(cv2.resize(photo, (160, 188)))
+        stamps = [T0 + i * 10**8 for i in range(20)]
+        for s in stamps:
+            images.publish(msgs.array_to_image(small, 'rgb8', msgs.make_header(s)))
+        probe.spin_until(lambda: len(got) == len(stamps), 120, 'every frame extracted')
+        assert got == stamps
+    finally:
+        probe.close()
+        code = proc.stop()
+    assert code == 0, proc.log()

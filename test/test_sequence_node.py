@@ -60,9 +60,11 @@ def test_matcher_sequence_online_equals_offline(rig, places, tmp_path):
 def test_matcher_refuses_bad_sequence_parameters(rig, tmp_path):
     """A negative sequence_length or a non-positive sequence_max_gap: exit at start, one FATAL line."""
     import time
-    for args, text in ((('sequence_length:=-1',), 'sequence_length must be 0 (off) or positive'),
-                       (('prefilter_k:=-1',), 'prefilter_k must be 0 (every keyframe) or positive'),
-                       (('sequence_length:=10', 'sequence_max_gap:=0.0'), 'max_gap_s must be positive')):
+    # the descriptor ranges (issue 16) refuse these at declaration, naming the parameter and its range
+    for args, text in ((('sequence_length:=-1',), 'parameter sequence_length: Parameter sequence_length out of range'),
+                       (('prefilter_k:=-1',), 'parameter prefilter_k: Parameter prefilter_k out of range'),
+                       (('sequence_length:=10', 'sequence_max_gap:=0.0'),
+                        'parameter sequence_max_gap: Parameter sequence_max_gap out of range')):
         proc = rig.matcher(tmp_path / 'map.db', *[a for arg in args for a in ('-p', arg)])
         deadline = time.monotonic() + 60
         while proc.alive() and time.monotonic() < deadline:

@@ -8,8 +8,8 @@ Publishes   landmarks (sensor_msgs/PointCloud2, see lln_ros.msgs), activation (s
 Only the newest frame waits for the network: when extraction falls behind, an older waiting frame
 is replaced and counted as dropped, so latency stays bounded by one extraction.
 
-Counters: received = published + dropped + bad_image + internal_error (+ at most one frame in
-flight). Every property of an input (encoding, size, a PNG/JPEG header above max_image_pixels,
+Counters: received = published + dropped + bad_image + internal_error (+ the frames waiting, at
+most frame_queue, and one in flight). Every property of an input (encoding, size, a PNG/JPEG header above max_image_pixels,
 undecodable data) is bad_image; internal_error counts only faults of this code.
 """
 from __future__ import annotations
@@ -51,6 +51,9 @@ PARAMETERS = {
                              choices=('raw', 'compressed')),
     'reliability': Param('best_effort', 'image subscription reliability (reliable: for bags)',
                          choices=('best_effort', 'reliable')),
+    'frame_queue': Param(1, 'frames waiting for extraction: 1 = the newest only (live cameras, latency one '
+                         'extraction); e.g. 100 for bag replays, so no frame is skipped while the backlog fits',
+                         range=(1, 10_000)),
     'publish_activation': Param(False, "also publish the LLN activation heatmap on 'activation'", dynamic=True),
     'publish_keypoints': Param(False, "also publish ORB keypoints on 'keypoints' (matcher verify mode)"),
     'keypoints_max': Param(500, 'ORB keypoints per image with publish_keypoints', range=(1, LIMITS['max_keypoints'])),
@@ -66,26 +69,34 @@ PARAMETERS = {
 }
 
 
-class NewestFrame:
-    """A one-message mailbox: put() replaces what is waiting (returns True when it dropped one)."""
+NO_DATA_S = 5.0  # publishers present and no image for this long: diagnostics WARN
 
-    def __init__(self):
-        self._msg = None
+
+class NewestFrame:
+    """A mailbox of `capacity` messages: put() appends, dropping the oldest waiting one when full
+    (returns True when it dropped one). capacity 1 = only the newest frame waits (live cameras:
+    latency stays one extraction); more = a bag replay keeps every frame while the backlog fits."""
+
+    def __init__(self, capacity: int = 1):
+        from collections import deque
+        self._msgs = deque()
+        self.capacity = int(capacity)
         self._cond = threading.Condition()
 
     def put(self, msg) -> bool:
         with self._cond:
-            dropped = self._msg is not None
-            self._msg = msg
+            dropped = len(self._msgs) >= self.capacity
+            if dropped:
+                self._msgs.popleft()
+            self._msgs.append(msg)
             self._cond.notify()
             return dropped
 
     def take(self, timeout: float):
         with self._cond:
-            if self._msg is None:
+            if not self._msgs:
                 self._cond.wait(timeout)
-            msg, self._msg = self._msg, None
-            return msg
+            return self._msgs.popleft() if self._msgs else None
 
 
 class ExtractorNode(Node):
@@ -111,10 +122,12 @@ class ExtractorNode(Node):
         self.image_topic = self.resolve_topic_name('image/compressed' if compressed else 'image')
         self.create_subscription(CompressedImage if compressed else Image,
                                  'image/compressed' if compressed else 'image', self.on_image,
-                                 subscription_qos(p['reliability'], 5),
+                                 # a reader history shorter than the queue would overwrite a burst before we see it
+                                 subscription_qos(p['reliability'], max(5, p['frame_queue'])),
                                  event_callbacks=loss_events(self.health, f'image subscription {self.image_topic}'))
         self.gaps = StampGaps()
-        self.mailbox = NewestFrame()
+        self.last_image_at, self.publishers_since = 0.0, None
+        self.mailbox = NewestFrame(p['frame_queue'])
         self.latency_ms = 0.0
         self._running = True
         self.worker = threading.Thread(target=self._work, name='lln_extractor_worker', daemon=True)
@@ -147,8 +160,9 @@ class ExtractorNode(Node):
         problems = []
         if delta.get('dropped'):
             problems.append((S.WARN, f"skipped {delta['dropped']} of {delta.get('received', 0)} frames (newest-frame "
-                                     f"policy: extraction takes {self.latency_ms:.0f} ms; lower the input rate or "
-                                     f"replay slower to keep every frame)"))
+                                     f"policy, frame_queue {self.params['frame_queue']}: extraction takes "
+                                     f"{self.latency_ms:.0f} ms; lower the input rate, replay slower, or raise "
+                                     f"frame_queue for a bag to keep every frame)"))
         if delta.get('frames_missing'):
             problems.append((S.WARN, f"{delta['frames_missing']} frames missing upstream (gaps in the image stamps: "
                                      f"lost by DDS or the driver; README 'Camera-sized images')"))
@@ -161,14 +175,18 @@ class ExtractorNode(Node):
             problems.append((S.WARN, f'a publisher of {self.image_topic} has an incompatible QoS (try '
                                      f'reliability {"reliable" if self.params["reliability"] == "best_effort" else "best_effort"})',
                              True))
-        if not delta.get('received') and self.count_publishers(self.image_topic) > 0:
-            problems.append((S.WARN, f'{self.count_publishers(self.image_topic)} publisher(s) on {self.image_topic} '
-                                     f'but no image arrived in the last period (QoS mismatch, or frames too '
-                                     f'large for the middleware: README \'Camera-sized images\')'))
+        publishers, now = self.count_publishers(self.image_topic), time.monotonic()
+        self.publishers_since = (self.publishers_since or now) if publishers else None
+        idle = now - max(self.last_image_at, self.publishers_since or now)
+        if publishers and idle >= NO_DATA_S:  # an idle publisher for a moment is normal; for seconds, not
+            problems.append((S.WARN, f'{publishers} publisher(s) on {self.image_topic} but no image for '
+                                     f'{idle:.0f} s (QoS mismatch, or frames too large for the middleware: '
+                                     f'README \'Camera-sized images\')'))
         return worst(problems)
 
     def on_image(self, msg) -> None:
         self.health.count('received')
+        self.last_image_at = time.monotonic()
         missing = self.gaps.add(msgs.stamp_to_ns(msg.header.stamp))
         if missing:
             self.health.count('frames_missing', missing)

@@ -58,9 +58,9 @@ PARAMETERS = {
     'prefilter_k': Param(LOC['prefilter_k'], 'holistic candidates reranked by the landmark similarity; 0 = every '
                          'keyframe (exhaustive: no holistic cap on recall, cost grows with the map)',
                          dynamic=True, range=(0, 1_000_000)),
-    'k': Param(LOC['k'], 'candidates published per query', dynamic=True, range=(1, 10_000)),
-    'min_score': Param(LOC['min_score'], 'candidates scoring below this are not published', dynamic=True,
-                       range=(-1.0, 1e6)),
+    'k': Param(LOC['k'], 'candidates published per query', dynamic=True, range=(1, 10_000_000)),
+    # no range: any threshold is meaningful (lln-demo passes -1e9 for "publish every candidate")
+    'min_score': Param(LOC['min_score'], 'candidates scoring below this are not published', dynamic=True),
     'exclude_recent': Param(LOC['exclude_recent'], 'mapping mode: the newest N keyframes are never answers',
                             dynamic=True, range=(0, 1_000_000)),
     'method': Param(LOC['method'], 'lln: rerank by landmark similarity S | holistic: global descriptor only',

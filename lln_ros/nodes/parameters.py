@@ -62,7 +62,10 @@ def declare_all(node, spec: dict[str, Param | tuple], on_change: Callable[[dict]
         try:
             node.declare_parameter(name, param.default, param.descriptor())
         except (InvalidParameterValueException, InvalidParameterTypeException) as e:
-            raise ValueError(f'parameter {name}: {e}') from None
+            # rclpy: "Invalid parameter value (-1) for parameter. Reason: <why>: <name>" -> <why>
+            reason = str(e).split('Reason: ', 1)[-1]
+            reason = reason[:-len(f': {name}')] if reason.endswith(f': {name}') else reason
+            raise ValueError(f'parameter {name}: {reason}') from None
         values[name] = node.get_parameter(name).value
         problem = param.problem(values[name])
         if problem:
