@@ -319,11 +319,62 @@ class BagClock:
             self.publish(self.now_ns(min(time.monotonic(), wall)))
 
 
+class _Pace:
+    """Counts the messages on a node's output topic (its type read from the graph) so that the
+    player can wait for one output per published message."""
+
+    def __init__(self, node, topic: str, timeout: float, log: Callable[[str], None]):
+        if not timeout > 0:
+            raise BagError(f'pace timeout must be positive, got {timeout}')
+        from rclpy.executors import SingleThreadedExecutor
+        self.node, self.topic, self.timeout, self.log = node, node.resolve_topic_name(topic), timeout, log
+        self.seen, self.expected_offset, self.timeouts, self.sub = 0, 0, 0, None
+        self.executor = SingleThreadedExecutor(context=node.context)
+        self.executor.add_node(node)
+
+    def _subscribe(self, deadline: float) -> bool:
+        while self.sub is None:
+            types = dict(self.node.get_topic_names_and_types()).get(self.topic)
+            if types:
+                self.sub = self.node.create_subscription(message_class(types[0]), self.topic, self._on_msg,
+                                                         make_qos('reliable', 1000))
+                return True
+            if time.monotonic() > deadline:
+                return False
+            self.executor.spin_once(timeout_sec=0.02)
+        return True
+
+    def start(self, settle: float = 0.5) -> None:
+        """Subscribe before the first message goes out, and let the subscription match its publisher."""
+        if self._subscribe(time.monotonic() + self.timeout):
+            end = time.monotonic() + settle
+            while time.monotonic() < end:
+                self.executor.spin_once(timeout_sec=0.02)
+            self.log(f'pacing on {self.topic}')
+        else:
+            self.log(f'pace: {self.topic} has no publisher yet; pacing starts when it appears')
+
+    def _on_msg(self, _msg) -> None:
+        self.seen += 1
+
+    def wait(self, published: int) -> None:
+        deadline = time.monotonic() + self.timeout
+        if self._subscribe(deadline):
+            while self.seen + self.expected_offset < published and time.monotonic() < deadline:
+                self.executor.spin_once(timeout_sec=0.02)
+        if self.seen + self.expected_offset < published:
+            self.timeouts += 1
+            self.expected_offset = published - self.seen  # go on from here, do not wait for it again
+            if self.timeouts == 1 or self.timeouts % 100 == 0:
+                self.log(f'pace: no message on {self.topic} within {self.timeout:g} s of message {published} '
+                         f'({self.timeouts} time(s)); going on')
+
+
 def play_bag(path: str | os.PathLike, rate: float = 1.0, remaps: dict[str, str] | None = None,
              qos: str = 'reliable', qos_depth: int = 100, wait_subscribers: int = 0,
              wait_timeout: float = 10.0, topics: Iterable[str] | None = None,
              start_delay: float = 0.0, linger: float = 0.5, log: Callable[[str], None] | None = None,
-             context=None, clock_hz: float = 0.0) -> int:
+             context=None, clock_hz: float = 0.0, pace_topic: str = '', pace_timeout: float = 10.0) -> int:
     """Publish a bag's messages into the ROS graph at the recorded timing divided by `rate`.
 
     The recorded CDR bytes are published as they are (rclpy's publish of `bytes`), on publishers
@@ -336,6 +387,11 @@ def play_bag(path: str | os.PathLike, rate: float = 1.0, remaps: dict[str, str] 
     clock_hz > 0: also publish the bag time on /clock (rosgraph_msgs/Clock) at clock_hz and with
     every message, as `ros2 bag play --clock` does; nodes run with use_sim_time:=true then see the
     bag's stamps as "now" (so max_query_age works on a replay, at any --rate).
+    pace_topic: lossless replay into a node slower than the bag (an extractor keeps only the newest
+    waiting frame, by design): after each message, wait until pace_topic (e.g. the extractor's
+    `landmarks`) has carried as many messages as were published, up to pace_timeout seconds (then
+    log it and go on). The recorded timing stays the fastest pace; a wait shifts the rest of the bag
+    (and its /clock) later instead of bursting to catch up.
     """
     import rclpy
     from rclpy.duration import Duration
@@ -367,6 +423,7 @@ def play_bag(path: str | os.PathLike, rate: float = 1.0, remaps: dict[str, str] 
         node = rclpy.create_node('lln_bag_play', context=context, start_parameter_services=False)
         publishers = {t: node.create_publisher(cls, remaps.get(t, t), profile) for t, cls in classes.items()}
         clock = BagClock(node, rate, clock_hz) if clock_hz > 0 else None
+        pace = _Pace(node, pace_topic, pace_timeout, log) if pace_topic else None
         if wait_subscribers > 0:
             deadline = time.monotonic() + wait_timeout
             while True:
@@ -378,6 +435,8 @@ def play_bag(path: str | os.PathLike, rate: float = 1.0, remaps: dict[str, str] 
                                             f'subscriber(s) per topic; have {counts}')
                 time.sleep(0.02)
             log(f'subscribers ready: {counts}')
+        if pace is not None:
+            pace.start()
         if start_delay > 0:
             time.sleep(start_delay)
         log(f'playing {info["message_count"]} messages on {len(publishers)} topic(s) at rate {rate:g}'
@@ -396,6 +455,13 @@ def play_bag(path: str | os.PathLike, rate: float = 1.0, remaps: dict[str, str] 
                 time.sleep(due - time.monotonic())
             publishers[topic].publish(bytes(raw))
             count += 1
+            if pace is not None:
+                pace.wait(count)
+                lag = time.monotonic() - due
+                if lag > 0:  # the node was slower than the bag: the rest of the bag starts later
+                    t0_wall += lag
+                    if clock is not None:
+                        clock.start(t0_wall, t0_bag)
         if profile.reliability == rclpy.qos.ReliabilityPolicy.RELIABLE:
             for pub in publishers.values():
                 pub.wait_for_all_acked(Duration(seconds=5))

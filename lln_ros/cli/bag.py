@@ -5,6 +5,7 @@
     lln-bag info BAG [--json]
     lln-bag play BAG [--rate R] [--topic-remap A:=B ...] [--qos reliable|best_effort]
                      [--wait-subscribers N --wait-timeout S] [--clock [HZ]]
+                     [--pace TOPIC [--pace-timeout S]]
 """
 from __future__ import annotations
 
@@ -67,6 +68,12 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument('--clock', type=_positive, nargs='?', const=40.0, default=0.0, metavar='HZ',
                     help='publish the bag time on /clock (rosgraph_msgs/Clock) at HZ (default 40 when '
                          'given), for nodes started with -p use_sim_time:=true (as ros2 bag play --clock)')
+    pl.add_argument('--pace', metavar='TOPIC', default='',
+                    help='lossless replay into a slower node: after each message wait for one message on '
+                         'TOPIC (e.g. the extractor\'s landmarks), at most --pace-timeout s; the recorded '
+                         'timing stays the fastest pace')
+    pl.add_argument('--pace-timeout', type=_positive, default=10.0, metavar='S',
+                    help='with --pace: give up waiting for one output after S seconds and go on (default 10)')
     pl.add_argument('--quiet', action='store_true', help='print nothing but errors')
     return p
 
@@ -99,7 +106,7 @@ def run(args) -> int:
         bag.play_bag(args.bag, rate=args.rate, remaps=bag.parse_remaps(args.topic_remap), qos=args.qos,
                      qos_depth=args.qos_depth, wait_subscribers=args.wait_subscribers,
                      wait_timeout=args.wait_timeout, topics=args.topics, start_delay=args.start_delay,
-                     log=log, clock_hz=args.clock)
+                     log=log, clock_hz=args.clock, pace_topic=args.pace, pace_timeout=args.pace_timeout)
     return 0
 
 
