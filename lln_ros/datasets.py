@@ -215,7 +215,7 @@ def _read_rows(path: Path, width: int, what: str) -> list[list[str]]:
     return rows
 
 
-def poses(root, max_deg: float = 15.0, max_m: float = 0.3, min_gap_s: float = 2.0,
+def poses(root, max_deg: float = 15.0, max_m: float = 0.3, min_gap_s: float = 2.0, step: int = 1,
           name: str | None = None) -> Dataset:
     """A sequence with camera poses (the TUM RGB-D layout): DIR/rgb.txt (`timestamp file`),
     DIR/groundtruth.txt (`timestamp tx ty tz qx qy qz qw`, metres, any rate). Each frame takes the
@@ -223,11 +223,12 @@ def poses(root, max_deg: float = 15.0, max_m: float = 0.3, min_gap_s: float = 2.
     c is the same place as frame r when their relative rotation is at most max_deg degrees and their
     camera centres at most max_m metres apart. Every frame is a query and a reference (the loop
     protocol): query r may be answered only with frames at least min_gap_s seconds older, so the
-    frames just before it, which see the same thing because no time has passed, are excluded."""
+    frames just before it, which see the same thing because no time has passed, are excluded.
+    step > 1 keeps every step-th frame (a 30 Hz camera repeats itself; 3 gives 10 Hz)."""
     root = Path(root)
-    if not (max_deg > 0 and max_m > 0 and min_gap_s >= 0):
-        raise DatasetError(f'poses: need MAX_DEG > 0, MAX_M > 0 and MIN_GAP_S >= 0, got '
-                           f'{max_deg}, {max_m}, {min_gap_s}')
+    if not (max_deg > 0 and max_m > 0 and min_gap_s >= 0 and step >= 1 and float(step).is_integer()):
+        raise DatasetError(f'poses: need MAX_DEG > 0, MAX_M > 0, MIN_GAP_S >= 0 and a whole STEP >= 1, got '
+                           f'{max_deg}, {max_m}, {min_gap_s}, {step}')
     try:
         frames = [(float(t), root / f) for t, f in _read_rows(root / 'rgb.txt', 2, 'timestamp file')]
         gt = np.array([[float(v) for v in r] for r in
@@ -240,8 +241,9 @@ def poses(root, max_deg: float = 15.0, max_m: float = 0.3, min_gap_s: float = 2.
     right = np.clip(np.searchsorted(gt[:, 0], t), 0, len(gt) - 1)  # nearest pose: one of two neighbours
     left = np.maximum(right - 1, 0)
     j = np.where(np.abs(gt[left, 0] - t) <= np.abs(gt[right, 0] - t), left, right)
-    keep = np.abs(gt[j, 0] - t) <= POSE_MAX_DT
-    if not keep.any():
+    has_pose = np.abs(gt[j, 0] - t) <= POSE_MAX_DT
+    keep = has_pose & (np.arange(len(t)) % int(step) == 0)
+    if not has_pose.any():
         raise DatasetError(f'{root}: no frame has a pose within {POSE_MAX_DT} s (do rgb.txt and '
                            f'groundtruth.txt use the same clock?)')
     paths = [f[1] for f, k in zip(frames, keep) if k]
@@ -257,7 +259,8 @@ def poses(root, max_deg: float = 15.0, max_m: float = 0.3, min_gap_s: float = 2.
     stats = read_checked(paths)
     return Dataset(name or root.name, paths, paths, (angle <= max_deg) & (dist <= max_m) & candidates,
                    candidates, {'max_deg': float(max_deg), 'max_m': float(max_m), 'min_gap_s': float(min_gap_s),
-                                'frames_without_pose': int((~keep).sum()), 'ref_sizes': [s[:2] for s in stats],
+                                'frames_without_pose': int((~has_pose).sum()), 'step': int(step),
+                                'ref_sizes': [s[:2] for s in stats],
                                 'query_sizes': [s[:2] for s in stats]})
 
 
@@ -272,8 +275,8 @@ def gardenspoint(root, ref: str = 'day_right', query: str = 'night_right', tol: 
 
 def parse_spec(spec: str, frac=None) -> Dataset:
     """A dataset from a command-line SPEC: vprbench:DIR | aligned:DIR_REF,DIR_QUERY[,TOL] |
-    loop:DIR,GT_FILE | gardenspoint:DIR[,REF,QUERY] | poses:DIR[,MAX_DEG,MAX_M,MIN_GAP_S] (TUM RGB-D
-    layout, defaults 15 deg, 0.3 m, 2 s). frac (start, end) applies to aligned data."""
+    loop:DIR,GT_FILE | gardenspoint:DIR[,REF,QUERY] | poses:DIR[,MAX_DEG,MAX_M,MIN_GAP_S[,STEP]] (TUM RGB-D
+    layout, defaults 15 deg, 0.3 m, 2 s, every frame). frac (start, end) applies to aligned data."""
     kind, _, rest = spec.partition(':')
     args = [a for a in rest.split(',') if a] if rest else []
     if kind == 'aligned' and len(args) == 3 and not args[2].strip().isdigit():
@@ -288,12 +291,12 @@ def parse_spec(spec: str, frac=None) -> Dataset:
         return loop(args[0], args[1])
     if kind == 'gardenspoint' and len(args) in (1, 3):
         return gardenspoint(*args)
-    if kind == 'poses' and 1 <= len(args) <= 4:
+    if kind == 'poses' and 1 <= len(args) <= 5:
         try:
             tolerances = [float(a) for a in args[1:]]
         except ValueError:
-            raise DatasetError(f'{spec!r}: MAX_DEG, MAX_M and MIN_GAP_S must be numbers') from None
+            raise DatasetError(f'{spec!r}: MAX_DEG, MAX_M, MIN_GAP_S and STEP must be numbers') from None
         return poses(args[0], *tolerances)
     raise DatasetError(f'cannot parse dataset {spec!r}; use vprbench:DIR, aligned:DIR_REF,DIR_QUERY[,TOL], '
-                       'loop:DIR,GT_FILE, gardenspoint:DIR[,REF,QUERY] or poses:DIR[,MAX_DEG,MAX_M,MIN_GAP_S]')
+                       'loop:DIR,GT_FILE, gardenspoint:DIR[,REF,QUERY] or poses:DIR[,MAX_DEG,MAX_M,MIN_GAP_S[,STEP]]')
 

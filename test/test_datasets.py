@@ -151,6 +151,9 @@ def test_pose_sequence_same_place_from_rotation_distance_and_time_gap(tmp_path):
     near = datasets.parse_spec(f'poses:{tmp_path},15,0.3,0')  # no gap: every older frame, never itself
     assert near.candidates[1, 0] and not near.candidates.diagonal().any() and not near.candidates[0].any()
     assert near.info['min_gap_s'] == 0 and near.info['frames_without_pose'] == 0
+    every_other = datasets.parse_spec(f'poses:{tmp_path},15,0.3,2,2')  # frames 0, 2, 4
+    assert [p.name for p in every_other.query_paths] == [ds.query_paths[i].name for i in (0, 2, 4)]
+    assert not every_other.gt.any() and every_other.candidates[2].tolist() == [True, True, False]
 
 
 def test_pose_sequence_bad_input(tmp_path):
@@ -159,6 +162,8 @@ def test_pose_sequence_bad_input(tmp_path):
         datasets.parse_spec(f'poses:{tmp_path},fifteen')
     with pytest.raises(DatasetError, match='MAX_DEG > 0'):
         datasets.parse_spec(f'poses:{tmp_path},0')
+    with pytest.raises(DatasetError, match='whole STEP'):
+        datasets.parse_spec(f'poses:{tmp_path},15,0.3,2,1.5')
     (tmp_path / 'groundtruth.txt').write_text('1000 0 0 0 0 0 0 1\n')  # another clock
     with pytest.raises(DatasetError, match='same clock'):
         datasets.parse_spec(f'poses:{tmp_path}')
