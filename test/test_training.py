@@ -175,7 +175,10 @@ def test_training_is_deterministic_resumable_and_ships_metadata(traverses, tmp_p
     for k, v in t_full.head.state_dict().items():
         assert torch.equal(v, t_resumed.head.state_dict()[k]), f'resume differs: {k}'
     head, meta = load_checkpoint(str(tmp_path / 'a' / 'best.pt'), 'efficientnet_lite0', 'stage6', 192)
-    assert meta['trained'] and meta['command'] == 'test' and meta['train_data'] == pairs.name
+    assert meta['command'] == 'test' and meta['train_data'] == pairs.name
+    # best.pt is the first epoch with the best validation score, the untrained head (epoch 0) included
+    scores = [h['val_p_at_100r'] for h in full['history']]
+    assert meta['epoch'] == scores.index(max(scores)) and meta['trained'] == (meta['epoch'] > 0)
     assert 0 <= meta['val_p_at_100r'] <= 1
     with pytest.raises(DatasetError, match='another training configuration'):
         training.Trainer(small_extractor(), pairs, ds, conf(epochs=3, lr=0.5, objective=objective),
