@@ -6,7 +6,7 @@ DATA ?= ../shared/data
 export LLN_DATA ?= $(abspath $(DATA))
 NORDLAND := aligned:$(DATA)/nordland_trimmed/summer,$(DATA)/nordland_trimmed/winter,1
 
-.PHONY: setup test main results train bench bench-map colcon clean
+.PHONY: setup test main results train loo bench bench-map colcon clean
 
 setup:
 	bash scripts/setup.sh
@@ -27,6 +27,11 @@ train: setup
 	$(VENV)/bin/lln-train --data $(NORDLAND) --range 0:0.6 --val $(NORDLAND) --val-range 0.6:0.7 \
 	  --out out/train --epochs 6 --tuples-per-epoch 0 $(ARGS)
 	cp out/train/best.pt lln_ros/weights/lln_efficientnet_lite0_stage6.pt
+
+# leave-one-dataset-out validation of training recipes (docs/generalisation.md; ~1 h on 2 idle cores)
+loo: setup
+	bash scripts/loo.sh $(ARGS)
+	$(PY) scripts/loo_md.py out/loo
 
 bench: setup
 	$(PY) bench/bench_core.py

@@ -9,7 +9,8 @@ Every reader returns a `Dataset`:
 
 Formats: aligned traverses (two folders, same index = same place, +-tol), VPR-Bench
 (DIR/query, DIR/ref, DIR/ground_truth_new.npy), a loop sequence (one folder, NxN ground-truth
-matrix), and the Gardens Point Walking archive layout. Everything is checked (folders, lengths,
+matrix), a sequence with camera poses (TUM RGB-D: same place from relative pose), and the Gardens
+Point Walking archive layout. Everything is checked (folders, lengths,
 ground-truth shape, every image decodes) before any long computation starts.
 """
 from __future__ import annotations
@@ -194,6 +195,75 @@ def loop(folder, gt_file, min_gap: int = 10, name: str | None = None) -> Dataset
                     'query_sizes': [s[:2] for s in stats]})
 
 
+POSE_MAX_DT = 0.05  # s: a frame whose nearest motion-capture pose is farther in time has no pose
+
+
+def _read_rows(path: Path, width: int, what: str) -> list[list[str]]:
+    """Whitespace-separated rows of a TUM text file (lines starting with # are comments)."""
+    if not path.is_file():
+        raise DatasetError(f'{what} not found: {path}')
+    rows = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        parts = line.split()
+        if not parts or parts[0].startswith('#'):
+            continue
+        if len(parts) < width:
+            raise DatasetError(f'{path}:{n}: expected {width} columns ({what}), got {line!r}')
+        rows.append(parts[:width])
+    if not rows:
+        raise DatasetError(f'{path} holds no {what} rows')
+    return rows
+
+
+def poses(root, max_deg: float = 15.0, max_m: float = 0.3, min_gap_s: float = 2.0, step: int = 1,
+          name: str | None = None) -> Dataset:
+    """A sequence with camera poses (the TUM RGB-D layout): DIR/rgb.txt (`timestamp file`),
+    DIR/groundtruth.txt (`timestamp tx ty tz qx qy qz qw`, metres, any rate). Each frame takes the
+    pose nearest in time (frames with none within POSE_MAX_DT are dropped, counted in info). Frame
+    c is the same place as frame r when their relative rotation is at most max_deg degrees and their
+    camera centres at most max_m metres apart. Every frame is a query and a reference (the loop
+    protocol): query r may be answered only with frames at least min_gap_s seconds older, so the
+    frames just before it, which see the same thing because no time has passed, are excluded.
+    step > 1 keeps every step-th frame (a 30 Hz camera repeats itself; 3 gives 10 Hz)."""
+    root = Path(root)
+    if not (max_deg > 0 and max_m > 0 and min_gap_s >= 0 and step >= 1 and float(step).is_integer()):
+        raise DatasetError(f'poses: need MAX_DEG > 0, MAX_M > 0, MIN_GAP_S >= 0 and a whole STEP >= 1, got '
+                           f'{max_deg}, {max_m}, {min_gap_s}, {step}')
+    try:
+        frames = [(float(t), root / f) for t, f in _read_rows(root / 'rgb.txt', 2, 'timestamp file')]
+        gt = np.array([[float(v) for v in r] for r in
+                       _read_rows(root / 'groundtruth.txt', 8, 'timestamp tx ty tz qx qy qz qw')])
+    except ValueError as e:
+        raise DatasetError(f'{root}: non-numeric timestamp or pose: {e}') from e
+    frames.sort(key=lambda f: f[0])
+    gt = gt[np.argsort(gt[:, 0], kind='stable')]
+    t = np.array([f[0] for f in frames])
+    right = np.clip(np.searchsorted(gt[:, 0], t), 0, len(gt) - 1)  # nearest pose: one of two neighbours
+    left = np.maximum(right - 1, 0)
+    j = np.where(np.abs(gt[left, 0] - t) <= np.abs(gt[right, 0] - t), left, right)
+    has_pose = np.abs(gt[j, 0] - t) <= POSE_MAX_DT
+    keep = has_pose & (np.arange(len(t)) % int(step) == 0)
+    if not has_pose.any():
+        raise DatasetError(f'{root}: no frame has a pose within {POSE_MAX_DT} s (do rgb.txt and '
+                           f'groundtruth.txt use the same clock?)')
+    paths = [f[1] for f, k in zip(frames, keep) if k]
+    missing = [p for p in paths if not p.is_file()]
+    if missing:
+        raise DatasetError(f'{len(missing)} frames listed in {root / "rgb.txt"} are missing, e.g. {missing[0]}')
+    t, pose = t[keep], gt[j[keep], 1:]
+    quat = pose[:, 3:] / np.maximum(np.linalg.norm(pose[:, 3:], axis=1, keepdims=True), 1e-12)
+    # relative rotation angle between unit quaternions: 2 acos |<q1, q2>|
+    angle = np.degrees(2 * np.arccos(np.clip(np.abs(quat @ quat.T), 0, 1)))
+    dist = np.linalg.norm(pose[:, None, :3] - pose[None, :, :3], axis=2)
+    candidates = (t[:, None] - t[None, :] >= float(min_gap_s)) & ~np.eye(len(t), dtype=bool)
+    stats = read_checked(paths)
+    return Dataset(name or root.name, paths, paths, (angle <= max_deg) & (dist <= max_m) & candidates,
+                   candidates, {'max_deg': float(max_deg), 'max_m': float(max_m), 'min_gap_s': float(min_gap_s),
+                                'frames_without_pose': int((~has_pose).sum()), 'step': int(step),
+                                'ref_sizes': [s[:2] for s in stats],
+                                'query_sizes': [s[:2] for s in stats]})
+
+
 def gardenspoint(root, ref: str = 'day_right', query: str = 'night_right', tol: int = 2) -> Dataset:
     """The public Gardens Point Walking archive (day_left/, day_right/, night_right/) as an aligned pair."""
     root = Path(root)
@@ -205,7 +275,8 @@ def gardenspoint(root, ref: str = 'day_right', query: str = 'night_right', tol: 
 
 def parse_spec(spec: str, frac=None) -> Dataset:
     """A dataset from a command-line SPEC: vprbench:DIR | aligned:DIR_REF,DIR_QUERY[,TOL] |
-    loop:DIR,GT_FILE | gardenspoint:DIR[,REF,QUERY]. frac (start, end) applies to aligned data."""
+    loop:DIR,GT_FILE | gardenspoint:DIR[,REF,QUERY] | poses:DIR[,MAX_DEG,MAX_M,MIN_GAP_S[,STEP]] (TUM RGB-D
+    layout, defaults 15 deg, 0.3 m, 2 s, every frame). frac (start, end) applies to aligned data."""
     kind, _, rest = spec.partition(':')
     args = [a for a in rest.split(',') if a] if rest else []
     if kind == 'aligned' and len(args) == 3 and not args[2].strip().isdigit():
@@ -220,6 +291,12 @@ def parse_spec(spec: str, frac=None) -> Dataset:
         return loop(args[0], args[1])
     if kind == 'gardenspoint' and len(args) in (1, 3):
         return gardenspoint(*args)
+    if kind == 'poses' and 1 <= len(args) <= 5:
+        try:
+            tolerances = [float(a) for a in args[1:]]
+        except ValueError:
+            raise DatasetError(f'{spec!r}: MAX_DEG, MAX_M, MIN_GAP_S and STEP must be numbers') from None
+        return poses(args[0], *tolerances)
     raise DatasetError(f'cannot parse dataset {spec!r}; use vprbench:DIR, aligned:DIR_REF,DIR_QUERY[,TOL], '
-                       'loop:DIR,GT_FILE or gardenspoint:DIR[,REF,QUERY]')
+                       'loop:DIR,GT_FILE, gardenspoint:DIR[,REF,QUERY] or poses:DIR[,MAX_DEG,MAX_M,MIN_GAP_S[,STEP]]')
 

@@ -24,6 +24,10 @@ default_conf = {
     'kernel_sizes': (1, 3, 5),  # multi-scale: robustness to viewpoint change and occlusion
     'channels': 64,             # per branch
     'seed': 0,                  # Xavier init is seeded so an untrained head is the same everywhere
+    # weight of log |f_ij| (the feature norm ACT ranks by) added to the logits. > 0 also starts the
+    # 1x1 fuse at zero, so the untrained head ranks exactly as ACT and training learns a correction
+    # to ACT's choice instead of a selection from scratch (see docs/generalisation.md)
+    'norm_prior': 0.0,
 }
 
 
@@ -44,13 +48,19 @@ class LLNHead(nn.Module):
             with torch.no_grad():
                 conv.weight.copy_(torch.rand(conv.weight.shape, generator=generator) * 2 * bound - bound)
                 conv.bias.zero_()
+        if conf['norm_prior']:
+            with torch.no_grad():
+                self.fuse.weight.zero_()
 
     def logits(self, features: torch.Tensor) -> torch.Tensor:
         """features (B, D, h, w) -> the 1x1 fuse output before its ReLU (B, h, w)."""
         # a nonlinearity between the branches and the 1x1 fuse; without it the parallel convs and
         # the fuse collapse into one linear 5x5 conv and the multi-scale design buys nothing
         x = torch.relu(torch.cat([b(features) for b in self.branches], dim=1))
-        return self.fuse(x)[:, 0]
+        out = self.fuse(x)[:, 0]
+        if self.conf['norm_prior']:
+            out = out + float(self.conf['norm_prior']) * torch.log(features.norm(dim=1) + 1e-6)
+        return out
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         """features (B, D, h, w) -> activation w (B, h, w) >= 0 (the paper's ReLU output)."""

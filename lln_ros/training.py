@@ -19,8 +19,14 @@ Candidates are what the test sees: the holistic top-K (prefilter_k) plus the pos
 
 The backbone is frozen, so its feature maps come from a FeatureCache and an epoch costs only the
 head. Training data is a `PairSet`: query and reference images with boolean positive / negative
-masks, made from any evaluation dataset (aligned traverses, VPR-Bench), place-labelled folders or
-the Retrieval-SfM-120k pickle, and combinable.
+masks, made from any evaluation dataset (aligned traverses, VPR-Bench, loop and pose sequences),
+place-labelled folders or the Retrieval-SfM-120k pickle, and combinable. Images of different
+shapes (Nordland 18x9 cells, 4:3 sequences 12x9, square thumbnails 9x9) train together: feature
+maps are zero-padded at the right and bottom to one grid, which leaves the head's logits of the real
+cells unchanged (its convs pad with zeros too), and padded cells are never selected or matched.
+
+Validation is a list of evaluation datasets; the kept head (best.pt) is the one with the best MEAN
+P@100%R over them, so no single set decides (the per-set figures are in history.json).
 """
 from __future__ import annotations
 
@@ -62,6 +68,7 @@ default_conf = {
     'tau': 0.05,               # rerank: softmax temperature on S~ (S~ is in [0, 1])
     'soft_temp': 1.0,          # rerank: width T of the soft top-n membership, in logit units
 }
+PAD_LOGIT = -1e4  # logit of a padded (not real) cell: never in the soft top-n
 OBJECTIVES = ('rerank', 'triplet')
 
 
@@ -159,6 +166,19 @@ def combine(sets: list[PairSet]) -> PairSet:
                    sum((s.ref_paths for s in sets), []), pos, neg)
 
 
+def pad_stack(feats: list, grid: tuple | None = None) -> tuple[torch.Tensor, np.ndarray]:
+    """Feature maps of any grid, list of (D, h_i, w_i) -> (M, D, H, W) zero-padded at the right and
+    bottom to grid (H, W) (default: the largest), and valid (M, H*W) bool: which flat cells are real."""
+    d = feats[0].shape[0]
+    h, w = grid or (max(f.shape[1] for f in feats), max(f.shape[2] for f in feats))
+    out = np.zeros((len(feats), d, h, w), feats[0].dtype)
+    valid = np.zeros((len(feats), h, w), bool)
+    for i, f in enumerate(feats):
+        out[i, :, :f.shape[1], :f.shape[2]] = f
+        valid[i, :f.shape[1], :f.shape[2]] = True
+    return torch.from_numpy(out), valid.reshape(len(feats), h * w)
+
+
 def embed(head: LLNHead, feats: torch.Tensor) -> torch.Tensor:
     """feats (B, D, h, w) -> F (B, D): LLN-weighted sum of L2-normalised local features, L2-normalised."""
     w = head(feats)                                                      # (B, h, w)
@@ -182,13 +202,17 @@ def soft_similarity(a_q: torch.Tensor, a_c: torch.Tensor, partner: torch.Tensor,
     return (a_q[:, None] * torch.gather(a_c, 2, partner) * value).sum(2) / n
 
 
-def match_tables(fq: np.ndarray, fc: np.ndarray, cells: np.ndarray, scale: float = 1.0):
+def match_tables(fq: np.ndarray, fc: np.ndarray, cells: np.ndarray, scale: float = 1.0,
+                 valid_q: np.ndarray | None = None, valid_c: np.ndarray | None = None):
     """Mutual matches of every cell of one query against C candidates, with their offset weights.
 
-    fq (N, D), fc (C, N, D) L2-normalised; cells (N, 2) (col, row). Returns partner (C, N) int
-    (0 where query cell i has no mutual partner) and value (C, N) float32 = w_ij * s_ij (0 there)."""
+    fq (N, D), fc (C, N, D) L2-normalised; cells (N, 2) (col, row); valid_q (N,), valid_c (C, N)
+    bool: real (not padded) cells, default all. Returns partner (C, N) int (0 where query cell i
+    has no mutual partner) and value (C, N) float32 = w_ij * s_ij (0 there)."""
     n = len(fq)
-    match, sims = cross_match(fq, fc, np.ones(n, bool), np.ones(fc.shape[:2], bool))
+    valid_q = np.ones(n, bool) if valid_q is None else valid_q
+    valid_c = np.ones(fc.shape[:2], bool) if valid_c is None else valid_c
+    match, sims = cross_match(fq, fc, valid_q, valid_c)
     matched = match >= 0
     offsets = cells[None] - cells[np.maximum(match, 0)]
     weight = np.where(matched, offset_weights(offsets, offset_mode(offsets, matched, sims), scale), 0.0)
@@ -211,10 +235,11 @@ def triplet_loss(fq: torch.Tensor, fp: torch.Tensor, fn: torch.Tensor, margin: f
 
 
 class Trainer:
-    """Train a head on a PairSet, validating on an evaluation Dataset every epoch.
+    """Train a head on a PairSet, validating on evaluation Datasets every epoch.
 
-    out_dir holds last.pt (everything needed to resume: head, optimiser, epoch, RNG state, history)
-    and best.pt (the best head by validation precision at 100% recall, as an lln_ros checkpoint).
+    val: a Dataset, a list of them, or None. out_dir holds last.pt (everything needed to resume:
+    head, optimiser, epoch, RNG state, history) and best.pt (the head with the best mean validation
+    precision at 100% recall over the val sets, as an lln_ros checkpoint).
     """
 
     def __init__(self, extractor, pairs: PairSet, val=None, conf: dict | None = None,
@@ -222,7 +247,11 @@ class Trainer:
         self.conf = conf = {**default_conf, **(conf or {})}
         self.extractor = extractor
         self.pairs = pairs
-        self.val = val
+        self.vals = [] if val is None else list(val) if isinstance(val, (list, tuple)) else [val]
+        self.val = self.vals or None  # truthiness: is there any validation
+        names = [v.name for v in self.vals]
+        if len(set(names)) != len(names):
+            raise DatasetError(f'validation datasets need distinct names (their scores are kept by name), got {names}')
         self.out = Path(out_dir)
         self.meta = meta or {}
         self.cache = FeatureCache(cache_dir, extractor)
@@ -247,12 +276,14 @@ class Trainer:
         q = self.cache.load(self.pairs.query_paths, size, progress='train features (queries)')
         r = q if self.pairs.ref_paths is self.pairs.query_paths else \
             self.cache.load(self.pairs.ref_paths, size, progress='train features (refs)')
-        self.fq, self.fr = torch.from_numpy(np.stack(q)), torch.from_numpy(np.stack(r))
-        if self.val is not None:
-            h = int(self.extractor.conf['input_height'])
-            self.val_q = self.cache.load(self.val.query_paths, h, progress='val features (queries)')
-            self.val_r = self.cache.load(self.val.ref_paths, h, progress='val features (refs)')
-            self.val_sizes = (self.val.info.get('query_sizes'), self.val.info.get('ref_sizes'))
+        # one grid for queries and refs (the triplet step batches them together)
+        grid = (max(f.shape[1] for f in q + r), max(f.shape[2] for f in q + r))
+        self.fq, self.q_valid = pad_stack(q, grid)
+        self.fr, self.r_valid = (self.fq, self.q_valid) if r is q else pad_stack(r, grid)
+        h = int(self.extractor.conf['input_height'])
+        self.val_feats = [(self.cache.load(v.query_paths, h, progress=f'val features {v.name} (queries)'),
+                           self.cache.load(v.ref_paths, h, progress=f'val features {v.name} (refs)'))
+                          for v in self.vals]
 
     @torch.no_grad()
     def embed_all(self, feats: torch.Tensor, batch: int = 256) -> torch.Tensor:
@@ -309,27 +340,27 @@ class Trainer:
     def prepare_rerank(self) -> None:
         """Candidates and match tables of every usable query, once (they do not depend on the head):
         cand (U, C) ref indices, positives first, -1 padding; n_pos (U,); partner, value (U, C, N)."""
-        if self.fq.shape[1:] != self.fr.shape[1:]:
-            raise DatasetError(f'rerank training needs one feature grid; queries have {tuple(self.fq.shape[2:])}, '
-                               f'refs {tuple(self.fr.shape[2:])}: use a fixed --train-size WxH')
         d, h, w = self.fq.shape[1:]
 
-        def local(f):  # (M, D, h, w) -> (M, N, D) L2-normalised cells
+        def local(f):  # (M, D, h, w) -> (M, N, D) L2-normalised cells (padded cells stay 0)
             x = f.float().numpy().reshape(len(f), d, h * w).transpose(0, 2, 1)
             return l2_normalize(x)
 
-        def holistic(f):  # the extractor's global descriptor: max pool, L2-normalised
-            return l2_normalize(f.float().amax((2, 3)).numpy())
+        def holistic(f, valid):  # the extractor's global descriptor: max pool over real cells, L2-normalised
+            x = f.float().numpy().reshape(len(f), d, h * w)
+            return l2_normalize(np.where(valid[:, None], x, -np.inf).max(2))
 
+        qv = self.q_valid[self.queries]
         lq, lr = local(self.fq[self.queries]), local(self.fr)
-        hol = holistic(self.fq[self.queries]) @ holistic(self.fr).T                    # (U, R)
+        hol = holistic(self.fq[self.queries], qv) @ holistic(self.fr, self.r_valid).T   # (U, R)
         cells = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 2)
         k = int(self.conf['val_prefilter_k'])
         rows = []
         for u, q in enumerate(tqdm(self.queries, desc='match tables', leave=False, unit='query')):
             top = np.argsort(-hol[u], kind='stable')[:k]
             cand = np.concatenate([np.flatnonzero(self.pairs.positive[q]), top[self.pairs.negative[q, top]]])
-            rows.append((cand, int(self.pairs.positive[q].sum())) + match_tables(lq[u], lr[cand], cells))
+            rows.append((cand, int(self.pairs.positive[q].sum()))
+                        + match_tables(lq[u], lr[cand], cells, valid_q=qv[u], valid_c=self.r_valid[cand]))
         c = max(len(r[0]) for r in rows)
         u, n = len(rows), h * w
         self.rr_cand = np.full((u, c), -1, np.int64)
@@ -341,13 +372,18 @@ class Trainer:
                 cand, partner, value
         self.rr_row = {int(q): i for i, q in enumerate(self.queries)}
 
+    def _logits(self, feats: torch.Tensor, valid: np.ndarray) -> torch.Tensor:
+        """(B, N) head logits, PAD_LOGIT at padded cells."""
+        return self.head.logits(feats.float()).flatten(1).masked_fill(~torch.from_numpy(valid), PAD_LOGIT)
+
     def soft_scores(self, rows: np.ndarray, cols: np.ndarray) -> torch.Tensor:
         """S~ (B, C') of query rows (B,) against their candidate columns cols (B, C') (-1 = none)."""
         n, temp = int(self.conf['val_top_n']), float(self.conf['soft_temp'])
         cand = np.where(cols >= 0, np.take_along_axis(self.rr_cand[rows], np.maximum(cols, 0), 1), 0)
         refs, inv = np.unique(cand, return_inverse=True)
-        a_q = soft_selection(self.head.logits(self.fq[self.queries[rows]].float()).flatten(1), n, temp)
-        a_r = soft_selection(self.head.logits(self.fr[refs].float()).flatten(1), n, temp)
+        q = self.queries[rows]
+        a_q = soft_selection(self._logits(self.fq[q], self.q_valid[q]), n, temp)
+        a_r = soft_selection(self._logits(self.fr[refs], self.r_valid[refs]), n, temp)
         a_c = a_r[torch.from_numpy(inv.reshape(cand.shape))]                          # (B, C', N)
         pick = (rows[:, None], np.maximum(cols, 0))
         partner = torch.from_numpy(self.rr_partner[pick].astype(np.int64))
@@ -382,18 +418,21 @@ class Trainer:
         return rerank_loss(scores, n_pos, torch.from_numpy(cols >= 0), float(self.conf['tau']))
 
     @torch.no_grad()
-    def validate(self) -> float:
-        """Precision at 100% recall of the LLN rerank on the validation dataset."""
-        if self.val is None:
-            return float('nan')
+    def validate(self) -> tuple[float, dict]:
+        """(mean, {val set name: P@100%R}) of the LLN rerank on every validation dataset."""
+        if not self.vals:
+            return float('nan'), {}
         self.head.eval()
         ex = copy.copy(self.extractor)
         ex.head = self.head
         ex.conf = {**self.extractor.conf, 'method': 'lln', 'top_n': self.conf['val_top_n']}
-        qs = [ex.from_features(f, s) for f, s in zip(self.val_q, self.val_sizes[0])]
-        rs = stack_landmarks([ex.from_features(f, s) for f, s in zip(self.val_r, self.val_sizes[1])])
-        ranked, _ = rank_all(qs, rs, self.conf['val_prefilter_k'], allowed=self.val.candidates)
-        return metrics.p_at_100r(ranked, self.val.gt)
+        per_set = {}
+        for v, (fq, fr) in zip(self.vals, self.val_feats):
+            qs = [ex.from_features(f, s) for f, s in zip(fq, v.info.get('query_sizes'))]
+            rs = stack_landmarks([ex.from_features(f, s) for f, s in zip(fr, v.info.get('ref_sizes'))])
+            ranked, _ = rank_all(qs, rs, self.conf['val_prefilter_k'], allowed=v.candidates)
+            per_set[v.name] = metrics.p_at_100r(ranked, v.gt)
+        return float(np.mean(list(per_set.values()))), per_set
 
     def fit(self, resume: bool = True) -> dict:
         self.out.mkdir(parents=True, exist_ok=True)
@@ -403,34 +442,39 @@ class Trainer:
         if self.conf['objective'] == 'rerank':
             self.prepare_rerank()
         if self.epoch == 0 and self.val is not None:
-            untrained = self.validate()
-            self.history.append({'epoch': 0, 'val_p_at_100r': untrained})
-            print(f'epoch 0 (untrained head): val P@100R {untrained:.3f}', flush=True)
+            untrained, per_set = self.validate()
+            self.history.append({'epoch': 0, 'val_p_at_100r': untrained, 'val_per_set': per_set})
+            print(f'epoch 0 (untrained head): val P@100R {untrained:.3f} {_fmt(per_set)}', flush=True)
+            # the untrained head competes too: a head that training only makes worse on the
+            # validation sets is not kept (with norm_prior > 0 the untrained head is ACT's selection)
+            self.best = untrained
+            self._save_best(per_set)
         while self.epoch < self.conf['epochs']:
             t0 = time.perf_counter()
             tuples = self.mine()
             loss = self.train_epoch(tuples)
             self.epoch += 1
-            score = self.validate()
-            row = {'epoch': self.epoch, 'loss': loss, 'val_p_at_100r': score,
+            score, per_set = self.validate()
+            row = {'epoch': self.epoch, 'loss': loss, 'val_p_at_100r': score, 'val_per_set': per_set,
                    'seconds': time.perf_counter() - t0}
             self.history.append(row)
             improved = self.val is None or score > self.best
             if improved:
                 self.best = score if self.val is not None else self.best
-                self._save_best()
+                self._save_best(per_set)
             self._save_last()  # after best.pt: an interruption never leaves last ahead of best
-            print(f'epoch {self.epoch}: loss {loss:.4f}, val P@100R {score:.3f}'
+            print(f'epoch {self.epoch}: loss {loss:.4f}, val P@100R {score:.3f} {_fmt(per_set)}'
                   f'{" (best)" if improved else ""}, {row["seconds"]:.0f} s', flush=True)
         return {'best_val_p_at_100r': self.best, 'history': self.history}
 
     # ------------------------------------------------------------------ files
 
-    def _save_best(self) -> None:
+    def _save_best(self, per_set: dict | None = None) -> None:
         bb = self.extractor.conf['backbone']
         save_checkpoint(str(self.out / 'best.pt'), self.head, bb['name'], self.extractor.backbone.layer,
-                        trained=True, epoch=self.epoch, val_p_at_100r=self.best, train_conf=_jsonable(self.conf),
-                        train_data=self.pairs.name, val_data=getattr(self.val, 'name', None), **self.meta)
+                        trained=self.epoch > 0, epoch=self.epoch, val_p_at_100r=self.best, train_conf=_jsonable(self.conf),
+                        train_data=self.pairs.name, val_data=[v.name for v in self.vals] or None,
+                        val_per_set=per_set or {}, **self.meta)
 
     def _save_last(self) -> None:
         state = {'head': self.head.state_dict(), 'optimizer': self.optimizer.state_dict(), 'epoch': self.epoch,
@@ -455,6 +499,10 @@ class Trainer:
         self.rng.bit_generator.state = state['rng']
         torch.set_rng_state(state['torch_rng'])
         print(f'resuming from {path} after epoch {self.epoch}', flush=True)
+
+
+def _fmt(per_set: dict) -> str:
+    return '(' + ', '.join(f'{k} {v:.3f}' for k, v in per_set.items()) + ')' if len(per_set) > 1 else ''
 
 
 def _jsonable(conf: dict) -> dict:

@@ -113,3 +113,73 @@ def test_bad_ground_truth_files_and_specs_are_dataset_errors(tmp_path):
         datasets.vprbench(tmp_path / 'vpr')
     with pytest.raises(DatasetError, match='whole number'):
         datasets.parse_spec(f'aligned:{seq},{seq},x')
+
+
+def write_pose_sequence(root, poses, times=None, rate=10.0):
+    """A TUM RGB-D layout: rgb/<t>.png, rgb.txt and groundtruth.txt (poses: (N, 7) tx ty tz qx qy qz qw)."""
+    write_images(root / 'rgb', len(poses))
+    frames = sorted((root / 'rgb').iterdir(), key=datasets.natural_key)
+    times = np.arange(len(poses)) / rate if times is None else np.asarray(times)
+    (root / 'rgb.txt').write_text('# color images\n# timestamp filename\n' + ''.join(
+        f'{t:.6f} rgb/{f.name}\n' for t, f in zip(times, frames)))
+    # poses at 10x the frame rate, each a little off the frame's time, as motion capture is
+    lines = ['# ground truth trajectory', '# timestamp tx ty tz qx qy qz qw']
+    for t, p in zip(times, poses):
+        for dt in (-0.004, 0.001, 0.006):  # the 0.001 one is nearest and carries the true pose
+            q = p if dt == 0.001 else [p[0] + 5, p[1], p[2], 0, 0, 0, 1]  # a wrong pose nearby in time
+            lines.append(f'{t + dt:.4f} ' + ' '.join(f'{v:.4f}' for v in q))
+    (root / 'groundtruth.txt').write_text('\n'.join(lines) + '\n')
+
+
+def yaw(deg):
+    return [0.0, 0.0, np.sin(np.radians(deg) / 2), np.cos(np.radians(deg) / 2)]
+
+
+def test_pose_sequence_same_place_from_rotation_distance_and_time_gap(tmp_path):
+    # frames 0..5: yaw 0, 40, 80, 12, 0 (1 m away), 50 deg, 1 s apart
+    poses = [[0, 0, 0] + yaw(0), [0, 0, 0] + yaw(40), [0, 0, 0] + yaw(80), [0.1, 0, 0] + yaw(12),
+             [1.0, 0, 0] + yaw(0), [0, 0, 0] + yaw(50)]
+    write_pose_sequence(tmp_path, poses, rate=1.0)
+    ds = datasets.parse_spec(f'poses:{tmp_path}')  # 15 deg, 0.3 m, 2 s
+    assert len(ds.query_paths) == 6 and ds.ref_paths == ds.query_paths
+    # frame 3 (12 deg, 0.1 m from frame 0, 3 s later) revisits 0; frame 4 is 1 m away: no;
+    # frame 5 (10 deg from frame 1, 4 s later) revisits 1
+    assert np.argwhere(ds.gt).tolist() == [[3, 0], [5, 1]]
+    assert ds.candidates[3].tolist() == [True, True, False, False, False, False]  # >= 2 s older only
+    loose = datasets.parse_spec(f'poses:{tmp_path},15,2,2')
+    assert np.argwhere(loose.gt).tolist() == [[3, 0], [4, 0], [5, 1]]
+    near = datasets.parse_spec(f'poses:{tmp_path},15,0.3,0')  # no gap: every older frame, never itself
+    assert near.candidates[1, 0] and not near.candidates.diagonal().any() and not near.candidates[0].any()
+    assert near.info['min_gap_s'] == 0 and near.info['frames_without_pose'] == 0
+    every_other = datasets.parse_spec(f'poses:{tmp_path},15,0.3,2,2')  # frames 0, 2, 4
+    assert [p.name for p in every_other.query_paths] == [ds.query_paths[i].name for i in (0, 2, 4)]
+    assert not every_other.gt.any() and every_other.candidates[2].tolist() == [True, True, False]
+
+
+def test_pose_sequence_bad_input(tmp_path):
+    write_pose_sequence(tmp_path, [[0, 0, 0] + yaw(0)] * 3)
+    with pytest.raises(DatasetError, match='numbers'):
+        datasets.parse_spec(f'poses:{tmp_path},fifteen')
+    with pytest.raises(DatasetError, match='MAX_DEG > 0'):
+        datasets.parse_spec(f'poses:{tmp_path},0')
+    with pytest.raises(DatasetError, match='whole STEP'):
+        datasets.parse_spec(f'poses:{tmp_path},15,0.3,2,1.5')
+    (tmp_path / 'groundtruth.txt').write_text('1000 0 0 0 0 0 0 1\n')  # another clock
+    with pytest.raises(DatasetError, match='same clock'):
+        datasets.parse_spec(f'poses:{tmp_path}')
+    (tmp_path / 'groundtruth.txt').write_text('0.0 0 0 0\n')
+    with pytest.raises(DatasetError, match='8 columns'):
+        datasets.parse_spec(f'poses:{tmp_path}')
+    (tmp_path / 'groundtruth.txt').unlink()
+    with pytest.raises(DatasetError, match='not found'):
+        datasets.parse_spec(f'poses:{tmp_path}')
+
+
+def test_real_pose_sequence():
+    root = shared_data('tum_fr1rpy')
+    ds = datasets.parse_spec(f'poses:{root}')
+    assert len(ds.query_paths) == 723 and ds.info['frames_without_pose'] == 0
+    assert ds.info['query_sizes'][0] == (640, 480)
+    # rotating in place: about two thirds of the frames see an earlier view again (>= 2 s before)
+    assert 400 < ds.queries_with_match < 560
+    assert not (ds.gt & ~ds.candidates).any()

@@ -176,7 +176,10 @@ def test_training_is_deterministic_resumable_and_ships_metadata(traverses, tmp_p
     for k, v in t_full.head.state_dict().items():
         assert torch.equal(v, t_resumed.head.state_dict()[k]), f'resume differs: {k}'
     head, meta = load_checkpoint(str(tmp_path / 'a' / 'best.pt'), 'efficientnet_lite0', 'stage6', 192)
-    assert meta['trained'] and meta['command'] == 'test' and meta['train_data'] == pairs.name
+    assert meta['command'] == 'test' and meta['train_data'] == pairs.name
+    # best.pt is the first epoch with the best validation score, the untrained head (epoch 0) included
+    scores = [h['val_p_at_100r'] for h in full['history']]
+    assert meta['epoch'] == scores.index(max(scores)) and meta['trained'] == (meta['epoch'] > 0)
     assert 0 <= meta['val_p_at_100r'] <= 1
     with pytest.raises(DatasetError, match='another training configuration'):
         training.Trainer(small_extractor(), pairs, ds, conf(epochs=3, lr=0.5, objective=objective),
@@ -188,3 +191,62 @@ def test_cli_rejects_bad_data_before_work(tmp_path, capsys):
     (tmp_path / 'a').mkdir()
     assert main(['--data', f'aligned:{tmp_path / "a"},{tmp_path / "b"}', '--out', str(tmp_path / 'o')]) == 2
     assert 'lln-train: error:' in capsys.readouterr().err and not (tmp_path / 'o').exists()
+
+
+@pytest.fixture(scope='module')
+def square_traverses(tmp_path_factory, photo):
+    """Six places as square views (another grid than `traverses`), the second pass brighter."""
+    root = tmp_path_factory.mktemp('square')
+    for name, dx, gain in (('ref', 0, 1.0), ('query', 6, 1.2)):
+        (root / name).mkdir()
+        for i in range(6):
+            x = 30 + i * 40 + dx
+            view = np.clip(photo[150:246, x:x + 96] * gain, 0, 255).astype(np.uint8)
+            cv2.imwrite(str(root / name / f'{i}.png'), cv2.cvtColor(view, cv2.COLOR_RGB2BGR))
+    return root
+
+
+def test_padding_keeps_the_logits_of_real_cells():
+    """Zero padding at the right and bottom is what the head's convs already see past the border."""
+    g = torch.Generator().manual_seed(0)
+    small, big = torch.randn(12, 3, 2, generator=g).abs(), torch.randn(12, 3, 4, generator=g).abs()
+    feats, valid = training.pad_stack([small.numpy(), big.numpy()])
+    assert feats.shape == (2, 12, 3, 4) and valid.reshape(2, 3, 4)[0].tolist() == [[True, True, False, False]] * 3
+    for prior in (0.0, 0.5):
+        head = LLNHead(12, {'channels': 4, 'norm_prior': prior})
+        with torch.no_grad():
+            torch.testing.assert_close(head.logits(feats)[0, :, :2], head.logits(small[None])[0])
+
+
+def test_norm_prior_starts_at_act():
+    """norm_prior > 0: the untrained head ranks cells exactly by feature norm (ACT's selection)."""
+    feats = torch.randn(2, 16, 5, 7, generator=torch.Generator().manual_seed(1))
+    head = LLNHead(16, {'channels': 4, 'norm_prior': 1.0})
+    with torch.no_grad():
+        order = head.logits(feats).flatten(1).argsort(1)
+    assert torch.equal(order, feats.norm(dim=1).flatten(1).argsort(1))
+
+
+@pytest.mark.parametrize('objective', ['rerank', 'triplet'])
+def test_datasets_of_different_grids_train_together_and_best_is_the_validation_mean(
+        traverses, square_traverses, tmp_path, objective):
+    wide = datasets.aligned(traverses / 'ref', traverses / 'query', tol=0, name='wide')         # 4x3 cells
+    square = datasets.aligned(square_traverses / 'ref', square_traverses / 'query', tol=0, name='square')  # 3x3
+    pairs = training.combine([training.pairs_from_dataset(wide, 1), training.pairs_from_dataset(square, 1)])
+    t = training.Trainer(small_extractor(), pairs, [wide, square],
+                         conf(epochs=2, objective=objective, val_prefilter_k=4, val_top_n=6,
+                              head={'channels': 8, 'norm_prior': 1.0} if objective == 'rerank' else {'channels': 8}),
+                         cache_dir=str(tmp_path / 'cache'), out_dir=str(tmp_path / 'out'))
+    result = t.fit()
+    assert t.fq.shape[2:] == (3, 4) and t.q_valid[-1].sum() == 9 and t.q_valid[0].all()
+    if objective == 'rerank':  # padded cells are never matched
+        assert (t.rr_value[:, :, ~t.q_valid[-1]][len(t.queries) - 1] == 0).all()
+    hist = result['history']
+    assert [h['epoch'] for h in hist] == [0, 1, 2]
+    for h in hist:
+        assert set(h['val_per_set']) == {wide.name, square.name}
+        assert h['val_p_at_100r'] == pytest.approx(np.mean(list(h['val_per_set'].values())))
+    best = max(hist, key=lambda h: h['val_p_at_100r'])  # the first of equals: later ones must beat it
+    _, meta = load_checkpoint(str(tmp_path / 'out' / 'best.pt'))
+    assert meta['epoch'] == best['epoch'] and meta['val_data'] == [wide.name, square.name]
+    assert meta['val_p_at_100r'] == pytest.approx(best['val_p_at_100r']) and meta['trained'] == (best['epoch'] > 0)

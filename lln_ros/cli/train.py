@@ -1,15 +1,17 @@
 """lln-train: train the LLN head on cached backbone features.
 
-    lln-train --data SPEC [--data SPEC ...] [--range START:END] [--val SPEC --val-range START:END]
-              --out DIR [--objective rerank|triplet] [--epochs 10] [--lr 1e-3] [--seed 0]
+    lln-train --data SPEC [--data SPEC ...] [--range START:END] [--val SPEC ...] [--val-range START:END]
+              --out DIR [--objective rerank|triplet] [--epochs 10] [--lr 1e-3] [--norm-prior 0] [--seed 0]
 
 --objective rerank (default) trains on a differentiable form of the test-time reranking score;
 triplet is the paper's loss on the LLN-weighted embedding (the paper's recipe:
 --objective triplet --train-size 352x352 --lr 1e-4). See lln_ros/training.py.
 
-SPEC: any lln-eval dataset (aligned:REF,QUERY[,TOL], vprbench:DIR, loop:DIR,GT, gardenspoint:DIR),
-or places:DIR (DIR/<place>/*.jpg), or sfm:PICKLE,IMS_ROOT (Retrieval-SfM-120k layout). The best
-head by validation precision at 100% recall is DIR/best.pt; DIR/last.pt resumes an interrupted run.
+SPEC: any lln-eval dataset (aligned:REF,QUERY[,TOL], vprbench:DIR, loop:DIR,GT, gardenspoint:DIR,
+poses:DIR[,MAX_DEG,MAX_M,MIN_GAP_S]), or places:DIR (DIR/<place>/*.jpg), or sfm:PICKLE,IMS_ROOT
+(Retrieval-SfM-120k layout). Datasets of different image shapes mix. --val is repeatable: the head
+with the best MEAN validation precision at 100% recall over all --val sets is DIR/best.pt;
+DIR/last.pt resumes an interrupted run.
 """
 from __future__ import annotations
 
@@ -24,9 +26,10 @@ from .common import run_cli
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog='lln-train', description=__doc__.strip().splitlines()[0])
     p.add_argument('--data', action='append', required=True, metavar='SPEC', help='training data (repeatable)')
-    p.add_argument('--range', help='START:END fractions of aligned --data to train on')
-    p.add_argument('--val', metavar='SPEC', help='validation dataset (an lln-eval SPEC)')
-    p.add_argument('--val-range', help='START:END fractions of an aligned --val')
+    p.add_argument('--range', help='START:END fractions of every aligned --data to train on')
+    p.add_argument('--val', action='append', metavar='SPEC',
+                   help='validation dataset (an lln-eval SPEC; repeatable: best.pt is best on the mean)')
+    p.add_argument('--val-range', help='START:END fractions of every aligned --val')
     p.add_argument('--out', required=True, help='output folder (best.pt, last.pt, history.json)')
     p.add_argument('--objective', choices=('rerank', 'triplet'), default='rerank',
                    help='rerank: the test-time score (default) | triplet: the paper\'s embedding loss')
@@ -43,6 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="training input height H (aspect kept, as at test time; default 288), or WxH "
                         "to squash (the paper's 352x352)")
     p.add_argument('--neg-margin', type=int, default=10, help='route data: frames beside a match are not negatives')
+    p.add_argument('--norm-prior', type=float, default=0.0,
+                   help="weight of log feature norm (ACT's score) in the head's logits; > 0 starts the head "
+                        "at ACT's selection (default 0: the plain LLN head)")
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--backbone', default='efficientnet_lite0')
     p.add_argument('--layer', default='')
@@ -61,7 +67,18 @@ def load_pairs(spec: str, frac, neg_margin: int):
     if kind == 'sfm':
         pickle_path, _, ims = rest.partition(',')
         return training.pairs_from_sfm(pickle_path, ims)
-    return training.pairs_from_dataset(datasets.parse_spec(spec, frac), neg_margin)
+    return training.pairs_from_dataset(load_dataset(spec, frac), neg_margin)
+
+
+def load_dataset(spec: str, frac):
+    """A Dataset; frac (--range / --val-range) applies to aligned specs only and is kept in its name,
+    so the checkpoint metadata says which part of a route was trained or validated on."""
+    from .. import datasets
+    use = frac if spec.startswith('aligned:') else None
+    ds = datasets.parse_spec(spec, use)
+    if use:
+        ds.name = f'{ds.name}[{use[0]:g}:{use[1]:g}]'
+    return ds
 
 
 def run(args) -> dict:
@@ -73,10 +90,12 @@ def run(args) -> dict:
             'val_top_n': args.top_n, 'epochs': args.epochs, 'lr': args.lr, 'batch_size': args.batch_size, 'negatives': args.negatives,
             'margin': args.margin, 'tuples_per_epoch': args.tuples_per_epoch, 'train_size': train_size,
             'neg_margin': args.neg_margin, 'seed': args.seed}
+    if args.norm_prior:
+        conf['head'] = {'norm_prior': args.norm_prior}
     # every dataset is read and checked before any feature is computed
     frac, val_frac = datasets.parse_range(args.range), datasets.parse_range(args.val_range)
     pairs = training.combine([load_pairs(s, frac, args.neg_margin) for s in args.data])
-    val = datasets.parse_spec(args.val, val_frac) if args.val else None
+    val = [load_dataset(v, val_frac) for v in args.val or []]
     extractor = Extractor({'backbone': {'name': args.backbone, 'layer': args.layer,
                                         'weights_path': args.backbone_weights}, 'num_threads': args.threads})
     command = 'lln-train ' + ' '.join(shlex.quote(a) for a in sys.argv[1:])
