@@ -68,6 +68,7 @@ the landmark reranking of ``query`` runs outside the lock.
 """
 from __future__ import annotations
 
+import abc
 import contextlib
 import json
 import logging
@@ -82,9 +83,11 @@ from dataclasses import dataclass, field
 import faiss
 import numpy as np
 
+from . import landmark_index
 from .errors import DescriptorError, MapError
+from .landmark_index import LandmarkIndex, check_prefilter
 from .landmarks import LandmarkSet, stack_landmarks
-from .retrieval import Candidate, pair_regions, rerank
+from .retrieval import Candidate, default_conf as retrieval_conf, pair_regions, rerank
 
 log = logging.getLogger(__name__)
 
@@ -281,7 +284,7 @@ class GlobalIndex:
         return sorted(out)
 
 
-class MapStore:
+class MapStore(abc.ABC):
     """The map interface; ``MapStore(uri, ...)`` / ``MapStore.open(uri, ...)`` returns the backend the
     URI names (see backend_for): SQLiteMapStore (default) or MilvusMapStore. Both keep this API:
 
@@ -309,7 +312,121 @@ class MapStore:
              conf: dict | None = None) -> 'MapStore':
         return cls(path, model=model, create=create, verify=verify, conf=conf)
 
+    # ------------------------------------------------------------------ what a backend provides
+    # (state every backend keeps: path, conf, _lock (RLock), _model (dict | None), _ids (sorted
+    # keyframe ids), _landmarks (LandmarkIndex | None); each public call takes _lock)
+
+    @abc.abstractmethod
+    def _ready(self) -> None:
+        """Raise MapError when closed; refresh in-memory state another writer made stale."""
+
+    @abc.abstractmethod
+    def _fetch(self, ids) -> dict[int, LandmarkSet]:
+        """The stored sets of these keyframe ids (meta: keyframe_id, stamp), by id."""
+
+    @abc.abstractmethod
+    def _holistic(self, lset: LandmarkSet, k: int, below: int | None) -> tuple[np.ndarray, np.ndarray, dict]:
+        """The holistic first stage: (cosines (K,), ids (K,), their sets by id), top k by the global
+        descriptor among keyframes with id < below (all when None)."""
+
+    @abc.abstractmethod
+    def add_many(self, sets: list[LandmarkSet], stamps, ids=None) -> list[int]: ...
+
+    @abc.abstractmethod
+    def use_model(self, model: dict) -> None: ...
+
+    @abc.abstractmethod
+    def get(self, keyframe_id: int) -> LandmarkSet: ...
+
+    @abc.abstractmethod
+    def delete(self, keyframe_ids) -> int: ...
+
+    @abc.abstractmethod
+    def clear(self) -> int: ...
+
+    @abc.abstractmethod
+    def info(self) -> dict: ...
+
+    @abc.abstractmethod
+    def save(self) -> None: ...
+
+    @abc.abstractmethod
+    def compact(self) -> dict: ...
+
+    @abc.abstractmethod
+    def check(self, limit: int = 20) -> list[str]: ...
+
+    @abc.abstractmethod
+    def close(self) -> None: ...
+
     # ------------------------------------------------------------------ shared by the backends
+
+    def query(self, lset: LandmarkSet, prefilter_k: int = retrieval_conf['prefilter_k'], k: int = 5,
+              min_score: float | None = None, exclude_recent: int = 0, method_rerank: bool = True,
+              scale: float = 1.0, prefilter: str | None = None) -> list[MapCandidate]:
+        """The best k keyframes for a query landmark set, best first: first stage -> fetch -> rerank.
+
+        prefilter (default retrieval.default_conf['prefilter']): 'landmarks' = the top prefilter_k
+        keyframes of the landmark index (landmark_index.score_hits), 'holistic' = the top
+        prefilter_k by global-descriptor cosine, 'exhaustive' (or prefilter_k 0) = every allowed
+        keyframe. The exclude_recent most recently added keyframes are never answers. The
+        candidates are reranked by the landmark similarity S (method_rerank=False: the first-stage
+        ranking alone, its score as `score`), those below min_score dropped.
+        """
+        prefilter, prefilter_k = check_prefilter(prefilter or retrieval_conf['prefilter'], prefilter_k)
+        k, exclude_recent = self._query_args(lset, k, exclude_recent, method_rerank)
+        with self._lock:
+            self._ready()
+            if self._model is None or not self._ids:
+                return []
+            given = {'descriptor_space': lset.descriptor_space or self._model['descriptor_space'],
+                     'descriptor_dim': lset.dim}
+            if not self._same_space(given):
+                raise self._mismatch(given, 'a query')
+            if exclude_recent >= len(self._ids):
+                return []
+            cutoff = self._ids[-exclude_recent] if exclude_recent else None
+            first = None
+            if prefilter == 'exhaustive':
+                hol, ids, sets = self._every_keyframe(lset, exclude_recent)
+            elif prefilter == 'holistic':
+                hol, ids, sets = self._holistic(lset, min(prefilter_k, len(self._ids)), cutoff)
+            else:
+                if self._landmarks is None:
+                    raise MapError(f'map {self.path} has no landmark index')
+                ids, first = self._landmarks.shortlist(lset, prefilter_k, below=cutoff, scale=scale)
+                sets = {}
+                if len(ids) < prefilter_k:
+                    _, hol_ids, sets = self._holistic(lset, min(prefilter_k, len(self._ids)), cutoff)
+                    ids, first = landmark_index.fill(ids, first, hol_ids, prefilter_k)
+                sets.update(self._fetch([i for i in ids if int(i) not in sets]))
+                self._check_fetched(ids, sets)
+                hol = self._cosines(lset, ids, sets)
+        # the numeric work runs outside the lock
+        return self._answer(lset, ids, hol, sets, k, min_score, method_rerank, scale, first)
+
+    @staticmethod
+    def _cosines(lset: LandmarkSet, ids, sets: dict) -> np.ndarray:
+        if not len(ids):
+            return np.zeros(0, np.float32)
+        return np.stack([sets[int(i)].global_descriptor for i in ids]).astype(np.float32) @ \
+            np.asarray(lset.global_descriptor, np.float32)
+
+    # the landmark index (lln_ros/landmark_index.py) kept in step with the stored keyframes
+
+    def _new_landmark_index(self) -> LandmarkIndex:
+        return LandmarkIndex(int(self._model['descriptor_dim']), self.conf)
+
+    def _landmark_problems(self, stored: dict) -> list[str]:
+        """Disagreements between the landmark index and stored {keyframe id: n}."""
+        if self._landmarks is None:
+            return [f'no landmark index but {len(stored)} keyframes'] if stored else []
+        held = self._landmarks.keyframe_counts()
+        wrong = sorted(i for i in set(held) | set(stored) if held.get(i) != stored.get(i))
+        if not wrong:
+            return []
+        return [f'landmark index disagrees with the stored keyframes on {len(wrong)} keyframes (e.g. '
+                + ', '.join(f'{i}: {held.get(i, 0)} indexed, {stored.get(i, 0)} stored' for i in wrong[:5]) + ')']
 
     path: str = ''
     _model: dict | None = None
@@ -346,14 +463,13 @@ class MapStore:
         return {'descriptor_space': lset.descriptor_space, 'descriptor_dim': lset.dim}
 
     @staticmethod
-    def _query_args(lset: LandmarkSet, prefilter_k, k, exclude_recent, method_rerank) -> tuple[int, int, int]:
-        if int(prefilter_k) < 0 or int(k) < 1 or int(exclude_recent) < 0:
-            raise ValueError(f'need prefilter_k >= 0 (0 = every keyframe), k >= 1, exclude_recent >= 0; '
-                             f'got {prefilter_k}, {k}, {exclude_recent}')
+    def _query_args(lset: LandmarkSet, k, exclude_recent, method_rerank) -> tuple[int, int]:
+        if int(k) < 1 or int(exclude_recent) < 0:
+            raise ValueError(f'need k >= 1, exclude_recent >= 0; got {k}, {exclude_recent}')
         lset.validate()
         if method_rerank and len(lset) == 0:
             raise DescriptorError('query landmark set has no landmarks; cannot rerank')
-        return int(prefilter_k), int(k), int(exclude_recent)
+        return int(k), int(exclude_recent)
 
     def _every_keyframe(self, lset: LandmarkSet, exclude_recent: int) -> tuple[np.ndarray, np.ndarray, dict]:
         """The exhaustive prefilter (prefilter_k = 0): every allowed keyframe in holistic order, as
@@ -374,14 +490,19 @@ class MapStore:
             raise MapError(f'map {self.path}: keyframes {missing[:10]} are in the index but not in the store')
 
     def _answer(self, lset: LandmarkSet, ids: np.ndarray, hol: np.ndarray, sets: dict, k: int,
-                min_score: float | None, method_rerank: bool, scale: float) -> list[MapCandidate]:
-        """Rerank the prefiltered keyframes (ids (K,), holistic cosines (K,), their sets by id)."""
+                min_score: float | None, method_rerank: bool, scale: float,
+                first: np.ndarray | None = None) -> list[MapCandidate]:
+        """Rerank the first stage's keyframes (ids (K,), holistic cosines (K,), their sets by id;
+        first (K,): the landmark first-stage scores, None = holistic order)."""
         self._check_fetched(ids, sets)
+        if not len(ids):
+            return []
         if method_rerank:
             batch = stack_landmarks([sets[int(i)] for i in ids])
             ranked = rerank(lset, batch, ids, hol, scale, limit=k)  # sorted: min_score drops a tail
         else:
-            ranked = [Candidate(int(i), float(h), float(h)) for i, h in zip(ids, hol)]
+            first = hol if first is None else first
+            ranked = [Candidate(int(i), float(f), float(h)) for i, f, h in zip(ids, first, hol)]
         out = []
         for c in ranked:
             if min_score is not None and c.score < min_score:
@@ -462,6 +583,7 @@ class SQLiteMapStore(MapStore):
     """
 
     default_conf = {
+        **landmark_index.default_conf,
         'index_threshold': 50_000,  # keyframes; above this the global index is IVF, below exact
         'ivf_lists': 0,             # IVF cells; 0 = sqrt(keyframes) (at most keyframes / 39) at (re)build
         'ivf_nprobe': 16,           # IVF cells visited per query (recall vs speed: bench/bench_map.py)
@@ -479,6 +601,10 @@ class SQLiteMapStore(MapStore):
         self._conn: sqlite3.Connection | None = None
         self._model: dict | None = None
         self._index = None
+        self._landmarks: LandmarkIndex | None = None
+        self._landmarks_dirty = False
+        self._unindexed: set[int] = set()  # corrupt keyframes the landmark index cannot hold
+        self.landmark_path = self.path + '.landmarks'
         self._ids: list[int] = []
         self._data_version = None
         if model is not None:
@@ -542,7 +668,8 @@ class SQLiteMapStore(MapStore):
                 from . import __version__
                 conn.executemany('INSERT INTO meta (key, value) VALUES (?, ?)', [
                     ('format', FORMAT), ('schema_version', str(SCHEMA_VERSION)),
-                    ('created', str(int(time.time()))), ('created_by', f'lln_ros {__version__}')])
+                    ('created', str(int(time.time()))), ('created_by', f'lln_ros {__version__}'),
+                    ('map_uuid', uuid.uuid4().hex)])
                 conn.execute('COMMIT')
             finally:
                 conn.close()
@@ -658,6 +785,7 @@ class SQLiteMapStore(MapStore):
         count = c.execute('SELECT count(*) FROM keyframes').fetchone()[0]
         self._ids = []
         self._index = None
+        self._landmarks = None
         if self._model is None:
             if count:
                 raise MapError(f'map {self.path} is damaged: {count} keyframes but no model record')
@@ -682,6 +810,122 @@ class SQLiteMapStore(MapStore):
         problems = self._faiss_problems()
         if problems:
             raise MapError(f'map {self.path}: in-memory index disagrees with the file: {"; ".join(problems)}')
+        self._load_landmarks()
+
+    # ------------------------------------------------------------------ the landmark index
+    # Exact (below conf['landmark_index_threshold'] landmarks): rebuilt from the landmarks table at
+    # every open, like the global index. IVF-PQ (above): trained once, persisted in
+    # `<map>.landmarks` by save() and close(), loaded at open and reconciled with the keyframes
+    # table (keyframes added after the last save are added, deleted ones removed), rebuilt from
+    # SQLite when the file is missing, corrupt or from another map (meta map_uuid).
+
+    def _stored_counts(self) -> dict[int, int]:
+        """{keyframe id: n} the landmark index must hold (corrupt keyframes it cannot hold excluded)."""
+        return {int(i): int(n) for i, n in self._conn.execute('SELECT id, n FROM keyframes')
+                if int(i) not in self._unindexed}
+
+    def _landmark_rows(self, ids=None, every: int = 1):
+        """Landmarks of the given keyframes (None = all; every: only ids divisible by it) in chunks:
+        (keyframe ids (m,), cells (m, 2), descriptors (m, D) float32)."""
+        dim = int(self._model['descriptor_dim'])
+        if ids is None:
+            chunks = [None]
+        else:
+            ids = sorted(int(i) for i in ids)
+            chunks = [ids[i:i + _SQL_CHUNK] for i in range(0, len(ids), _SQL_CHUNK)]
+        for chunk in chunks:
+            where = f'WHERE k.id IN ({",".join("?" * len(chunk))})' if chunk is not None else \
+                (f'WHERE k.id % {int(every)} = 0' if every > 1 else '')
+            with self._read_errors():   # the join: orphan landmark rows are check()'s business, not the index's
+                cursor = self._conn.execute('SELECT k.id, l.cells, l.descriptors FROM keyframes k JOIN landmarks l '
+                                            f'ON l.keyframe_id = k.id {where} ORDER BY k.id', chunk or ())
+                while rows := cursor.fetchmany(512):
+                    kf, cells, desc = [], [], []
+                    for kid, c, d in rows:
+                        n = len(c) // 4
+                        if len(c) != 4 * n or len(d) != 2 * n * dim:
+                            # not indexed, and named: check() reports it, a query that fetches it raises
+                            log.error('map %s is corrupt: keyframe %d landmark blobs are %d + %d bytes (D=%d)',
+                                      self.path, kid, len(c), len(d), dim)
+                            self._unindexed.add(int(kid))
+                            continue
+                        if n == 0:
+                            continue
+                        kf.append(np.full(n, kid, np.int64))
+                        cells.append(np.frombuffer(c, '<i2').reshape(n, 2))
+                        desc.append(np.frombuffer(d, '<f2').reshape(n, dim))
+                    if kf:
+                        yield np.concatenate(kf), np.concatenate(cells), np.concatenate(desc).astype(np.float32)
+
+    def _map_uuid(self, create: bool = False) -> str | None:
+        uid = self._meta().get('map_uuid')
+        if uid is None and create:
+            uid = uuid.uuid4().hex
+            self._write(lambda c: c.execute("INSERT OR IGNORE INTO meta (key, value) VALUES ('map_uuid', ?)", (uid,)))
+            uid = self._meta()['map_uuid']
+        return uid
+
+    def _load_landmarks(self) -> None:
+        self._unindexed: set[int] = set()
+        stored = self._stored_counts()
+        total = sum(stored.values())
+        index, why = None, 'missing'
+        if total > self.conf['landmark_index_threshold'] and os.path.exists(self.landmark_path):
+            try:
+                index, header = LandmarkIndex.read(self.landmark_path, int(self._model['descriptor_dim']), self.conf)
+                if header.get('map_uuid') != self._map_uuid():
+                    index, why = None, 'from another map'
+            except MapError as e:
+                index, why = None, str(e)
+        if index is not None:
+            held = index.keyframe_counts()
+            stale = [i for i, c in held.items() if stored.get(i) != c]
+            missing = [i for i, n in stored.items() if held.get(i) != n]
+            index.remove_keyframes(stale)
+            for kf, cells, desc in self._landmark_rows(missing):
+                index.add(desc, kf, cells)
+            self._landmarks_dirty = bool(stale or missing)
+            if stale or missing:
+                log.info('map %s: landmark index caught up (%d keyframes added, %d removed)',
+                         self.path, len(missing), len(stale))
+        else:
+            if total > self.conf['landmark_index_threshold']:
+                log.warning('map %s: landmark index %s (%s); rebuilding it from the map (%d landmarks)',
+                            self.path, self.landmark_path, why, total)
+            index = self._build_landmarks(total, len(stored))
+            self._landmarks_dirty = index.kind != 'exact'
+        self._landmarks = index
+        problems = self._landmark_problems(self._stored_counts())
+        if problems:
+            raise MapError(f'map {self.path}: {"; ".join(problems)}')
+        if index.kind == 'exact':
+            self._drop_landmark_file()
+
+    def _build_landmarks(self, total: int, keyframes: int) -> LandmarkIndex:
+        index = self._new_landmark_index()
+        if total > self.conf['landmark_index_threshold']:
+            # train on a sample of keyframes, then stream every landmark in: never all of them as float32
+            every = max(1, int(total // max(1, self.conf['landmark_train_points'])))
+            sample = np.concatenate([d for _, _, d in self._landmark_rows(every=every)])
+            index.index = index._compressed(sample)
+            del sample
+        for kf, cells, desc in self._landmark_rows():
+            index.index.add_with_ids(desc, landmark_index.encode_ids(kf, cells))
+        return index
+
+    def _persist_landmarks(self) -> None:
+        if self._landmarks is None or self._landmarks.kind == 'exact' or not self._landmarks_dirty:
+            return
+        self._landmarks.write(self.landmark_path, {'map_uuid': self._map_uuid(create=True)})
+        self._landmarks_dirty = False
+
+    def _drop_landmark_file(self) -> None:
+        try:
+            os.remove(self.landmark_path)
+        except FileNotFoundError:
+            pass
+        except OSError as e:
+            log.warning('map %s: cannot remove %s: %s', self.path, self.landmark_path, e)
 
     def _faiss_problems(self) -> list[str]:
         ids = [r[0] for r in self._conn.execute('SELECT id FROM keyframes ORDER BY id')]
@@ -713,6 +957,7 @@ class SQLiteMapStore(MapStore):
             self._write(lambda c: self._record_model(c, model))
             self._model = model
             self._index = GlobalIndex(model['descriptor_dim'], self.conf)
+            self._landmarks = self._new_landmark_index()
         elif not self._same_space(model):
             raise self._mismatch(model, 'the extractor')
         elif model != self._model:
@@ -845,41 +1090,19 @@ class SQLiteMapStore(MapStore):
             if new_model:
                 self._model = given
                 self._index = GlobalIndex(given['descriptor_dim'], self.conf)
+                self._landmarks = self._new_landmark_index()
             self._index.add(np.stack([s.global_descriptor for s in sets]).astype(np.float32),
                             np.asarray(new_ids, np.int64))
+            self._landmarks.add_sets(new_ids, sets)
+            self._landmarks_dirty = True
             self._ids.extend(new_ids)
             if ids is not None:
                 self._ids.sort()
             return new_ids
 
-    def query(self, lset: LandmarkSet, prefilter_k: int = 30, k: int = 5, min_score: float | None = None,
-              exclude_recent: int = 0, method_rerank: bool = True, scale: float = 1.0) -> list[MapCandidate]:
-        """The best k keyframes for a query landmark set, best first.
-
-        Holistic top prefilter_k by cosine among the allowed keyframes (the exclude_recent most
-        recently added keyframes are never answers; prefilter_k 0 = all of them, bypassing the
-        index), reranked by the landmark similarity S (method_rerank=False: the holistic ranking
-        alone), those below min_score dropped.
-        """
-        prefilter_k, k, exclude_recent = self._query_args(lset, prefilter_k, k, exclude_recent, method_rerank)
-        with self._lock:
-            self._ready()
-            if self._model is None or not self._ids:
-                return []
-            given = {'descriptor_space': lset.descriptor_space or self._model['descriptor_space'],
-                     'descriptor_dim': lset.dim}
-            if not self._same_space(given):
-                raise self._mismatch(given, 'a query')
-            if exclude_recent >= len(self._ids):
-                return []
-            cutoff = self._ids[-exclude_recent] if exclude_recent else None
-            if prefilter_k:
-                hol, ids = self._index.search(lset.global_descriptor, min(prefilter_k, len(self._ids)), below=cutoff)
-                sets = self._fetch(ids)
-            else:
-                hol, ids, sets = self._every_keyframe(lset, exclude_recent)
-        # the numeric work runs outside the lock
-        return self._answer(lset, ids, hol, sets, k, min_score, method_rerank, scale)
+    def _holistic(self, lset: LandmarkSet, k: int, below: int | None) -> tuple[np.ndarray, np.ndarray, dict]:
+        hol, ids = self._index.search(lset.global_descriptor, k, below=below)
+        return hol, ids, self._fetch(ids)
 
     # keypoints for verification (reloc.py): an optional table, created on first use, so maps
     # without it stay valid and readable; rows go with their keyframe (ON DELETE CASCADE)
@@ -938,6 +1161,8 @@ class SQLiteMapStore(MapStore):
             removed, self._ids = len(self._ids), []
             if self._index is not None:
                 self._index.reset()
+                self._landmarks.reset()
+            self._drop_landmark_file()
             return removed
 
     def delete(self, keyframe_ids) -> int:
@@ -959,6 +1184,8 @@ class SQLiteMapStore(MapStore):
             gone = set(present)
             self._ids = [i for i in self._ids if i not in gone]
             self._index.remove(present)
+            self._landmarks.remove_keyframes(present)
+            self._landmarks_dirty = True
             return len(present)
 
     def compact(self) -> dict:
@@ -988,6 +1215,10 @@ class SQLiteMapStore(MapStore):
                     'descriptor_dim': self._model and int(self._model['descriptor_dim']),
                     'schema_version': int(meta['schema_version']), 'backend': 'sqlite',
                     'index': self._index.kind if self._index is not None else None,
+                    'landmark_index': self._landmarks.kind if self._landmarks is not None else None,
+                    'landmarks': self._landmarks.ntotal if self._landmarks is not None else 0,
+                    'landmark_index_bytes': (os.path.getsize(self.landmark_path)
+                                             if os.path.exists(self.landmark_path) else 0),
                     'first_id': self._ids[0] if self._ids else None,
                     'last_id': self._ids[-1] if self._ids else None,
                     'file_bytes': db_bytes + wal_bytes, 'db_bytes': db_bytes, 'wal_bytes': wal_bytes,
@@ -998,6 +1229,7 @@ class SQLiteMapStore(MapStore):
         add is durable on return); it keeps the WAL small and the .db file self-contained."""
         with self._lock:
             self._ready()
+            self._persist_landmarks()
             try:
                 busy, _, _ = self._conn.execute('PRAGMA wal_checkpoint(TRUNCATE)').fetchone()
             except sqlite3.DatabaseError as e:
@@ -1058,6 +1290,7 @@ class SQLiteMapStore(MapStore):
                     'SELECT keyframe_id FROM landmarks WHERE keyframe_id NOT IN (SELECT id FROM keyframes)')]
                 add(orphans, lambda i: f'landmarks row {i} has no keyframe')
                 problems.extend(self._faiss_problems())
+                problems.extend(self._landmark_problems(self._stored_counts()))
             except sqlite3.DatabaseError as e:
                 problems.append(f'SQLite error while checking: {e}')
         return problems
@@ -1067,10 +1300,15 @@ class SQLiteMapStore(MapStore):
         with self._lock:
             if self._conn is not None:
                 try:
+                    try:
+                        self._persist_landmarks()
+                    except MapError as e:  # the file is rebuilt from SQLite at the next open
+                        log.warning('%s', e)
                     self._conn.close()
                 finally:
                     self._conn = None
                     self._index = None
+                    self._landmarks = None
                     self._ids = []
 
     def __repr__(self) -> str:

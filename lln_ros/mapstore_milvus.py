@@ -37,6 +37,7 @@ from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
+from . import landmark_index
 from .errors import MapError
 from .landmarks import LandmarkSet
 from .mapstore import FORMAT, MapCandidate, MapStore
@@ -72,6 +73,7 @@ class MilvusMapStore(MapStore):
     """A map in Milvus collections (see the module docstring); MapStore's API and error behaviour."""
 
     default_conf = {
+        **landmark_index.default_conf,
         'index_type': 'FLAT',   # global-descriptor index; on a cluster e.g. 'HNSW' or 'AUTOINDEX'
         'timeout': 30.0,        # seconds per Milvus call
     }
@@ -89,6 +91,7 @@ class MilvusMapStore(MapStore):
         self._lock = threading.RLock()
         self._model = None
         self._ids: list[int] = []
+        self._landmarks = None
         self._next_id = 1
         names = {k: f"{where['map']}_{k}" for k in ('meta', 'keyframes', 'landmarks')}
         self._meta_c, self._kf_c, self._lm_c = names['meta'], names['keyframes'], names['landmarks']
@@ -220,6 +223,7 @@ class MilvusMapStore(MapStore):
         self._ids.sort()
         if self._ids and self._ids[-1] >= self._next_id:
             raise MapError(f'map {self.path} is damaged: keyframe {self._ids[-1]} but next_id {self._next_id}')
+        self._load_landmarks()
 
     # ------------------------------------------------------------------ model
 
@@ -234,6 +238,7 @@ class MilvusMapStore(MapStore):
                                 'descriptor_space': model['descriptor_space'],
                                 'descriptor_dim': str(model['descriptor_dim'])})
                 self._model = model
+                self._landmarks = self._new_landmark_index()
             elif not self._same_space(model):
                 raise self._mismatch(model, 'the extractor')
 
@@ -334,33 +339,27 @@ class MilvusMapStore(MapStore):
             self._next_id = next_id
             self._ids.extend(new_ids)
             self._ids.sort()
+            self._landmarks.add_sets(new_ids, sets)
             return new_ids
 
-    def query(self, lset: LandmarkSet, prefilter_k: int = 30, k: int = 5, min_score: float | None = None,
-              exclude_recent: int = 0, method_rerank: bool = True, scale: float = 1.0) -> list[MapCandidate]:
-        """As SQLiteMapStore.query: holistic top prefilter_k in Milvus (0 = every keyframe), reranked here."""
-        prefilter_k, k, exclude_recent = self._query_args(lset, prefilter_k, k, exclude_recent, method_rerank)
-        with self._lock, self._errors('query'):
-            self._ready()
-            if self._model is None or not self._ids:
-                return []
-            given = {'descriptor_space': lset.descriptor_space or self._model['descriptor_space'],
-                     'descriptor_dim': lset.dim}
-            if not self._same_space(given):
-                raise self._mismatch(given, 'a query')
-            if exclude_recent >= len(self._ids):
-                return []
-            if prefilter_k:
-                where = f'id < {self._ids[-exclude_recent]}' if exclude_recent else ''
-                hits = self._client.search(self._kf_c, data=[np.asarray(lset.global_descriptor, np.float32).tolist()],
-                                           anns_field='global_descriptor', limit=prefilter_k, filter=where,
-                                           search_params={'metric_type': 'IP'}, output_fields=['*'])[0]
-                ids = np.array([int(h['id']) for h in hits], np.int64)
-                hol = np.array([float(h['distance']) for h in hits], np.float32)
-                sets = self._fetch(ids, [{**h['entity'], 'id': h['id']} for h in hits])
-            else:
-                hol, ids, sets = self._every_keyframe(lset, exclude_recent)
-        return self._answer(lset, ids, hol, sets, k, min_score, method_rerank, scale)
+    def _holistic(self, lset: LandmarkSet, k: int, below: int | None) -> tuple[np.ndarray, np.ndarray, dict]:
+        """The holistic first stage in Milvus (its keyframe rows come back with the hits)."""
+        with self._errors('query'):
+            where = f'id < {int(below)}' if below is not None else ''
+            hits = self._client.search(self._kf_c, data=[np.asarray(lset.global_descriptor, np.float32).tolist()],
+                                       anns_field='global_descriptor', limit=k, filter=where,
+                                       search_params={'metric_type': 'IP'}, output_fields=['*'])[0]
+            ids = np.array([int(h['id']) for h in hits], np.int64)
+            hol = np.array([float(h['distance']) for h in hits], np.float32)
+            return hol, ids, self._fetch(ids, [{**h['entity'], 'id': h['id']} for h in hits])
+
+    def _load_landmarks(self) -> None:
+        """The landmark index is local (FAISS), built from the stored keyframes at every open."""
+        self._landmarks = self._new_landmark_index()
+        for start in range(0, len(self._ids), 512):
+            chunk = self._ids[start:start + 512]
+            sets = self._fetch(chunk)
+            self._landmarks.add_sets(list(sets), list(sets.values()))
 
     def get(self, keyframe_id: int) -> LandmarkSet:
         with self._lock, self._errors('get'):
@@ -380,6 +379,7 @@ class MilvusMapStore(MapStore):
                 self._client.delete(self._lm_c, filter=f'keyframe_id in {present}')
                 gone = set(present)
                 self._ids = [i for i in self._ids if i not in gone]
+                self._landmarks.remove_keyframes(present)
             return len(present)
 
     def clear(self) -> int:
@@ -389,6 +389,8 @@ class MilvusMapStore(MapStore):
                 self._client.delete(self._kf_c, filter='id >= 0')
                 self._client.delete(self._lm_c, filter='keyframe_id >= 0')
             removed, self._ids = len(self._ids), []
+            if self._landmarks is not None:
+                self._landmarks.reset()
             return removed
 
     def info(self) -> dict:
@@ -399,6 +401,8 @@ class MilvusMapStore(MapStore):
                     'descriptor_space': self._model and self._model['descriptor_space'],
                     'descriptor_dim': self._model and int(self._model['descriptor_dim']),
                     'schema_version': int(meta['schema_version']), 'index': self.conf['index_type'],
+                    'landmark_index': self._landmarks.kind if self._landmarks is not None else None,
+                    'landmarks': self._landmarks.ntotal if self._landmarks is not None else 0,
                     'first_id': self._ids[0] if self._ids else None,
                     'last_id': self._ids[-1] if self._ids else None,
                     'created': int(meta.get('created', 0)), 'created_by': meta.get('created_by', '')}
@@ -452,6 +456,7 @@ class MilvusMapStore(MapStore):
                 problems.extend(bad[:limit])
                 if len(bad) > limit:
                     problems.append(f'... and {len(bad) - limit} more like that')
+                problems.extend(self._landmark_problems(n_of))
             except MapError as e:
                 problems.append(str(e))
             except Exception as e:  # MilvusException and friends: the check reports, it does not raise
@@ -465,6 +470,7 @@ class MilvusMapStore(MapStore):
                     self._client.close()
                 finally:
                     self._client = None
+                    self._landmarks = None
                     self._ids = []
 
     def __repr__(self) -> str:
