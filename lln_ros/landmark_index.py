@@ -61,6 +61,7 @@ default_conf = {
     'landmark_ivf_lists': 0,                # 0 = 4 * sqrt(landmarks), between 64 and 4096, at (re)build
     'landmark_nprobe': 16,                  # IVF cells visited per query landmark
     'landmark_pq_m': 0,                     # PQ sub-quantisers; 0 = D / 4 (8 bits each: D/4 bytes)
+    'landmark_pq_bits': 8,                  # bits per sub-quantiser code
     'landmark_train_points': 100_000,       # sample the IVF-PQ is trained on
 }
 
@@ -185,7 +186,8 @@ class LandmarkIndex:
         m = int(self.conf['landmark_pq_m']) or max(1, self.dim // 4)
         if self.dim % m:
             raise ValueError(f'landmark_pq_m {m} must divide the descriptor size {self.dim}')
-        index = faiss.IndexIVFPQ(faiss.IndexFlatIP(self.dim), self.dim, lists, m, 8, faiss.METRIC_INNER_PRODUCT)
+        index = faiss.IndexIVFPQ(faiss.IndexFlatIP(self.dim), self.dim, lists, m, int(self.conf['landmark_pq_bits']),
+                                 faiss.METRIC_INNER_PRODUCT)
         index.cp.max_points_per_centroid = 64
         rng = np.random.default_rng(0)
         sample = x if n <= self.conf['landmark_train_points'] else \

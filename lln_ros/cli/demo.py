@@ -1,7 +1,8 @@
 """lln-demo: build a map from one traverse and query it with another through the ROS 2 nodes.
 
     lln-demo --out DIR [--dataset SPEC] [--range START:END] [--download] [--rate HZ]
-             [--method lln|act|rand|all|holistic] [--top-n 50] [--prefilter-k 30]
+             [--method lln|act|rand|all|holistic] [--top-n 50] [--prefilter landmarks|holistic|exhaustive]
+             [--prefilter-k 30]
              [--offline | --no-offline] [--check]
 
 Without --dataset: the Nordland test split (summer = map, winter = queries, +-1 frame, the last 30%
@@ -25,7 +26,7 @@ What it does:
      DIR/results_online.md, DIR/answers_online.csv (top-1 per query), DIR/rankings.npz (every ranking),
      DIR/pr_online.png and DIR/matches_online_*.png;
   5. with --offline (the default) runs the offline evaluator (lln-eval's code) on the same dataset with
-     the same method, top-n and prefilter-k into DIR/offline/, and prints online vs offline.
+     the same method, top-n, prefilter and prefilter-k into DIR/offline/, and prints online vs offline.
 
 Why two extractors: the wiring is static, exactly the `-r` remaps a user writes, and each traverse
 is counted by its own extractor's /diagnostics; re-routing one extractor between the phases would mean
@@ -143,8 +144,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help='landmark selection of the extractor (lln, act, rand, all) or holistic (the matcher '
                         'ranks by the global descriptor alone); default lln')
     p.add_argument('--top-n', type=int, default=50, help='landmarks per image (default 50)')
-    p.add_argument('--prefilter-k', type=int, default=30,
-                   help='holistic candidates reranked (default 30; 0 = every map frame)')
+    from ..landmark_index import PREFILTERS
+    from ..retrieval import default_conf as retrieval_conf
+    p.add_argument('--prefilter', default=retrieval_conf['prefilter'], choices=PREFILTERS,
+                   help=f"first stage of the matcher and the offline run (default {retrieval_conf['prefilter']})")
+    p.add_argument('--prefilter-k', type=int, default=retrieval_conf['prefilter_k'],
+                   help=f"first-stage candidates reranked (default {retrieval_conf['prefilter_k']}; 0 = every map frame)")
     p.add_argument('--weights', default='', help="LLN head checkpoint (default '': the shipped head)")
     p.add_argument('--threads', type=int, default=1,
                    help='torch threads per extractor and offline, BLAS threads per node (default 1)')
@@ -659,7 +664,7 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
             extractor_params += ['-p', f'weights:={Path(args.weights).expanduser().resolve()}']
         procs.append(NodeProcess('matcher', exes['matcher'], [
             '-p', f'map_path:={(out / "map.db").resolve()}', '-p', 'mode:=localization',
-            '-p', f'prefilter_k:={args.prefilter_k}', '-p', f'k:={k}',
+            '-p', f'prefilter:={args.prefilter}', '-p', f'prefilter_k:={args.prefilter_k}', '-p', f'k:={k}',
             '-p', f'method:={"holistic" if args.method == "holistic" else "lln"}',
             '-p', 'min_score:=-1.0e9', *common], env, logs / 'matcher.log', out))
         procs.append(NodeProcess('extractor (map)', exes['extractor'], [
@@ -960,13 +965,14 @@ def run_offline(ds, spec: str, args, out: Path, log) -> dict:
     ext_method = 'lln' if args.method == 'holistic' else args.method
     extractor = Extractor({'top_n': args.top_n, 'method': ext_method, 'num_threads': args.threads,
                            'weights': str(Path(args.weights).expanduser().resolve()) if args.weights else ''})
-    conf = {'methods': [args.method], 'top_n': args.top_n, 'prefilter_k': args.prefilter_k, 'scale': 1.0,
+    conf = {'methods': [args.method], 'top_n': args.top_n, 'prefilter': args.prefilter,
+            'prefilter_k': args.prefilter_k, 'scale': 1.0,
             'timing_images': 3, 'timing_queries': 5, 'timing_repeats': 1, 'examples': args.examples,
             'heatmap_images': 4, 'cache_dir': args.cache or str(out / 'cache' / 'features'),
             'plots': True, 'progress': not args.quiet}
     t = time.monotonic()
     command = (f'lln-eval --dataset {shlex.quote(spec)} --methods {args.method} --top-n {args.top_n} '
-               f'--prefilter-k {args.prefilter_k} --out {shlex.quote(str(out / "offline"))}')
+               f'--prefilter {args.prefilter} --prefilter-k {args.prefilter_k} --out {shlex.quote(str(out / "offline"))}')
     run = evaluate([ds], extractor, conf, None, out / 'offline', specs=[spec], command=command, log=log)
     name = next(iter(run.datasets))
     row = next(iter(run.datasets[name].rankings))
@@ -1146,8 +1152,8 @@ def markdown_report(report: dict, online: dict, offline: dict | None, comparison
              f'{d["refs"]} map frames (keyframes), {d["queries"]} queries ({d["queries_with_match"]} with a '
              f'true match).', '',
              f'Through the nodes ({p["executables"]}): two extractors (method `{p["method"]}`, top-n '
-             f'{p["top_n"]}, reliable image QoS) and the matcher in localization mode (prefilter_k '
-             f'{p["prefilter_k"]}, k {p["k"]}), ROS_DOMAIN_ID {p["domain_id"]} on localhost; playback '
+             f'{p["top_n"]}, reliable image QoS) and the matcher in localization mode (prefilter '
+             f'{p.get("prefilter", "holistic")}, prefilter_k {p["prefilter_k"]}, k {p["k"]}), ROS_DOMAIN_ID {p["domain_id"]} on localhost; playback '
              f'{p["playback"]}.', '',
              table(online, offline, comparison, markdown=True), '']
     if comparison:
@@ -1262,7 +1268,8 @@ def run(args, argv, log) -> int:
         'dataset': {'name': name, 'spec': spec, 'range': rng, 'chosen': why, 'refs': len(ds.ref_paths),
                     'queries': len(ds.query_paths), 'queries_with_match': ds.queries_with_match,
                     'info': {k: v for k, v in ds.info.items() if not k.endswith('_sizes')}},
-        'parameters': {'method': args.method, 'top_n': args.top_n, 'prefilter_k': args.prefilter_k,
+        'parameters': {'method': args.method, 'top_n': args.top_n, 'prefilter': args.prefilter,
+                       'prefilter_k': args.prefilter_k,
                        'k': online_run['k'], 'threads': args.threads, 'weights': args.weights,
                        'playback': online_run['play']['mode'], 'domain_id': online_run['domain_id'],
                        'executables': where, 'node_commands': online_run['commands'],

@@ -1,7 +1,8 @@
 """lln-eval: every place-recognition method on every dataset, with the paper's protocol and pictures.
 
     lln-eval --dataset SPEC [--dataset SPEC ...] --out DIR [--methods holistic,lln,act,rand,all]
-             [--top-n 50] [--prefilter-k 30|0] [--range START:END] [--sequence L]
+             [--top-n 50] [--prefilter landmarks|holistic|exhaustive] [--prefilter-k 30|0]
+             [--range START:END] [--sequence L]
              [--weights [LABEL=]CKPT ...] [--label NAME ...] [--heads LABEL=CKPT,LABEL=,...]
              [--backbone NAME] [--layer LAYER] [--cache DIR] [--download [--download-url URL]]
 
@@ -34,6 +35,8 @@ class UsageError(Exception):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from ..landmark_index import PREFILTERS
+    from ..retrieval import default_conf as retrieval_conf
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.strip().splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog='\n'.join(__doc__.strip().splitlines()[1:]))
@@ -42,9 +45,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help='comma-separated subset of holistic,lln,act,rand,all,sad,seqslam '
                         '(default: holistic,lln,act,rand,all)')
     p.add_argument('--top-n', type=int, default=50, help='landmarks per image for lln/act/rand (default 50)')
-    p.add_argument('--prefilter-k', type=int, default=30,
-                   help='holistic candidates every local method reranks (default 30, the paper\'s; '
-                        '0 = every reference, an exhaustive rerank)')
+    p.add_argument('--prefilter', default=retrieval_conf['prefilter'], choices=PREFILTERS,
+                   help=f"first stage every local method's rerank starts from: landmarks (each query landmark's "
+                        f"nearest map landmarks, voted per reference), holistic (global cosine, the paper's) or "
+                        f"exhaustive (every reference) (default {retrieval_conf['prefilter']})")
+    p.add_argument('--prefilter-k', type=int, default=retrieval_conf['prefilter_k'],
+                   help=f"first-stage candidates every local method reranks (default {retrieval_conf['prefilter_k']}; "
+                        '0 = every reference, an exhaustive rerank, whatever --prefilter says)')
     p.add_argument('--scale', type=float, default=1.0, help='offset-weight width in grid cells (default 1)')
     p.add_argument('--sequence', type=int, default=0, metavar='L',
                    help='add an X+seq row per holistic/local method: sequence search over L queries '
@@ -177,7 +184,8 @@ def run(args, argv) -> dict:
     if args.check:
         return {'checked': [ds.name for ds in dsets]}
 
-    conf = {'methods': methods, 'top_n': args.top_n, 'prefilter_k': args.prefilter_k, 'scale': args.scale,
+    conf = {'methods': methods, 'top_n': args.top_n, 'prefilter': args.prefilter, 'prefilter_k': args.prefilter_k,
+            'scale': args.scale,
             'sequence': args.sequence,
             'timing_images': args.timing_images, 'timing_queries': args.timing_queries,
             'timing_repeats': args.timing_repeats,

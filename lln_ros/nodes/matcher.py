@@ -35,7 +35,9 @@ from std_srvs.srv import Trigger
 
 from .. import msgs
 from ..errors import LLNError
+from ..landmark_index import check_prefilter
 from ..mapstore import MapStore
+from ..retrieval import default_conf as retrieval_conf
 from ..sequence import KeyframeSequence
 from .common import MODEL_QOS, Health, declare, run_node, start_diagnostics, subscription_qos
 
@@ -43,8 +45,10 @@ PARAMETERS = {
     'map_path': ('~/.ros/lln_ros/map.db', 'map URI: SQLite file path (created if missing), '
                  'milvus-lite:///path.db or milvus://host:port[/db][?map=name]'),
     'mode': ('localization', 'localization: answer queries only | mapping: answer, then store each query'),
-    'prefilter_k': (30, 'holistic candidates reranked by the landmark similarity; 0 = every keyframe '
-                        '(exhaustive: no holistic cap on recall, cost grows with the map)'),
+    'prefilter': (retrieval_conf['prefilter'], 'first stage: landmarks (every query landmark against every map '
+                  'landmark, voted per keyframe) | holistic (global descriptor cosine) | exhaustive (every keyframe)'),
+    'prefilter_k': (retrieval_conf['prefilter_k'], 'first-stage candidates reranked by the landmark similarity; '
+                    '0 = every keyframe (exhaustive, whatever prefilter says; cost grows with the map)'),
     'k': (5, 'candidates published per query'),
     'min_score': (0.0, 'candidates scoring below this are not published'),
     'exclude_recent': (10, 'mapping mode: the newest N keyframes are never answers'),
@@ -81,8 +85,7 @@ class MatcherNode(Node):
             raise ValueError(f"mode must be 'localization' or 'mapping', got {p['mode']!r}")
         if p['method'] not in ('lln', 'holistic'):
             raise ValueError(f"method must be 'lln' or 'holistic', got {p['method']!r}")
-        if p['prefilter_k'] < 0:
-            raise ValueError(f"prefilter_k must be 0 (every keyframe) or positive, got {p['prefilter_k']}")
+        check_prefilter(p['prefilter'], p['prefilter_k'])
         if p['sequence_length'] < 0:
             raise ValueError(f"sequence_length must be 0 (off) or positive, got {p['sequence_length']}")
         self.sequence = KeyframeSequence({'length': p['sequence_length'], 'max_gap_s': p['sequence_max_gap']}) \
@@ -220,7 +223,8 @@ class MatcherNode(Node):
                                      k=(p['prefilter_k'] or max(len(self.store), 1)) if sequence else p['k'],
                                      min_score=None if sequence else p['min_score'],
                                      exclude_recent=p['exclude_recent'] if mapping else 0,
-                                     method_rerank=p['method'] == 'lln', scale=p['offset_scale'])
+                                     method_rerank=p['method'] == 'lln', scale=p['offset_scale'],
+                                     prefilter=p['prefilter'] if p['method'] == 'lln' else 'holistic')
             inliers = {}
             if self.reloc is not None:
                 found, inliers = self.verify(lset, kps, found)
