@@ -7,22 +7,24 @@
 One map grows through every size in --sizes (plus the in-between steps of the plot). Synthetic
 landmark sets with the default model's shapes: n=50 unit descriptors of D=192 (efficientnet_lite0/
 stage6), a 12x9 grid at 384x288. Queries are noisy views of stored keyframes (
-a perturbation of norm 0.3 added to each unit vector, renormalised), answered as the matcher answers them: holistic top 30, reranked
-by the landmark similarity S, k=5.
+a perturbation of norm 0.3 added to each unit vector, renormalised), answered as the matcher answers them: first stage
+top 30, reranked by the landmark similarity S, k=5 -- with every first stage of --prefilters on the same
+queries of the same run (landmarks = the shipped default, holistic = the paper's).
 
 At each table size:
   insert/s (bulk)   add_many of 1000 keyframes per transaction, while growing the map
   insert/s (online) add() one keyframe per transaction (fsync each), 100 of them, as the node does
-  p50 / p99 ms      query latency, 200 queries, warm (in the growing process)
+  p50 / p99 ms      query latency per first stage, 200 queries, warm (in the growing process)
   exhaustive p50    prefilter_k 0 (every keyframe fetched and reranked, what Nordland-like routes
                     need, see docs/results.md), 20 queries, maps up to --exhaustive-max keyframes
   top-1             the query's source keyframe ranked first (sanity: the map answers)
   recall@30         IVF holistic top 30 vs exact brute force (1 by construction while exact)
   cold start s      MapStore.open in a fresh process: verify=True (quick_check reads the file) and
                     verify=False; the page cache is warm (the file was just written)
-  RSS MB            resident memory of that fresh process after open + 50 queries, and the part
-                    of it that is the global index (N x D x 4 bytes)
-  KB/keyframe       .db + WAL bytes after a checkpoint, per keyframe
+  RSS MB            resident memory of that fresh process after open + 50 queries (default first
+                    stage), and the part of it that is the global index (N x D x 4 bytes)
+  lm index          the landmark index: exact (rebuilt at open) or ivfpq (persisted in <map>.landmarks)
+  KB/keyframe       .db + WAL + <map>.landmarks bytes after a checkpoint, per keyframe
 """
 from __future__ import annotations
 
@@ -112,7 +114,7 @@ store.close()
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def query_stats(store, rng, count: int, exhaustive: int = 0) -> dict:
+def query_stats(store, rng, count: int, exhaustive: int = 0, prefilters=('landmarks', 'holistic')) -> dict:
     """Latency, top-1 and holistic recall@30 vs brute force over `count` noisy revisits; with
     exhaustive > 0, the median latency of that many prefilter_k 0 queries too."""
     ids = np.asarray(store.ids())
@@ -121,27 +123,34 @@ def query_stats(store, rng, count: int, exhaustive: int = 0) -> dict:
     globals_ = None
     if hasattr(store, '_index') and store._index is not None and store._index.kind != 'exact':
         globals_ = store._index.index  # recall: compare against exact search on the same vectors
-    times, top1, recall = [], 0, []
+    times = {pf: [] for pf in prefilters}
+    top1 = {pf: 0 for pf in prefilters}
+    recall = []
     for i in picks:
         q = synthetic_set(rng, truth[int(i)])
-        t = time.perf_counter()
-        found = store.query(q, prefilter_k=30, k=5)
-        times.append(time.perf_counter() - t)
-        top1 += bool(found) and found[0].keyframe_id == int(ids[i])
+        for pf in prefilters:  # interleaved, so load from other processes hits every first stage alike
+            t = time.perf_counter()
+            found = store.query(q, prefilter_k=30, k=5, prefilter=pf)
+            times[pf].append(time.perf_counter() - t)
+            top1[pf] += bool(found) and found[0].keyframe_id == int(ids[i])
         if globals_ is not None and len(recall) < 100:
             approx = set(store._index.search(q.global_descriptor, 30)[1].tolist())
             exact = _exact_top(store, q.global_descriptor, 30)
             recall.append(len(approx & exact) / len(exact))
-    ms = np.array(times) * 1000
     every = []
     for i in picks[:exhaustive]:
         q = synthetic_set(rng, truth[int(i)])
         t = time.perf_counter()
         store.query(q, prefilter_k=0, k=5)
         every.append(time.perf_counter() - t)
-    return {'p50_ms': float(np.percentile(ms, 50)), 'p99_ms': float(np.percentile(ms, 99)),
-            'top1': top1 / count, 'recall30': float(np.mean(recall)) if recall else None,
-            'exhaustive_p50_ms': float(np.median(every)) * 1000 if every else None}
+    out = {'recall30': float(np.mean(recall)) if recall else None,
+           'exhaustive_p50_ms': float(np.median(every)) * 1000 if every else None}
+    for n, pf in enumerate(prefilters):
+        ms = np.array(times[pf]) * 1000
+        pre = '' if n == 0 else f'{pf}_'   # the first (the default) keeps the plain keys
+        out.update({f'{pre}p50_ms': float(np.percentile(ms, 50)), f'{pre}p99_ms': float(np.percentile(ms, 99)),
+                    f'{pre}top1': top1[pf] / count})
+    return out
 
 
 def _exact_top(store, q: np.ndarray, k: int) -> set:
@@ -164,7 +173,7 @@ def bytes_on_disk(uri: str) -> int:
     path = Path(uri.split('://', 1)[-1].split('?')[0]) if '://' in uri else Path(uri)
     if path.is_dir():
         return sum(f.stat().st_size for f in path.rglob('*') if f.is_file())
-    return sum(Path(str(path) + s).stat().st_size for s in ('', '-wal') if Path(str(path) + s).exists())
+    return sum(Path(str(path) + s).stat().st_size for s in ('', '-wal', '.landmarks') if Path(str(path) + s).exists())
 
 
 def main(argv=None) -> int:
@@ -179,8 +188,11 @@ def main(argv=None) -> int:
                     help='SQLite backend: keyframes above which the global index is IVF (default: the store\'s)')
     ap.add_argument('--exhaustive-max', type=int, default=10_000,
                     help='largest map also timed with prefilter_k 0 (every keyframe reranked)')
+    ap.add_argument('--prefilters', default='landmarks,holistic',
+                    help='first stages timed on the same queries; the first is the p50/p99/top-1 columns')
     ap.add_argument('--json', action='store_true')
     args = ap.parse_args(argv)
+    prefilters = [p for p in args.prefilters.split(',') if p]
     sizes = sorted(int(s) for s in args.sizes.split(','))
     steps = sorted(set(sizes) | {s for s in PLOT_STEPS if s <= sizes[-1]})
     work = Path(args.dir)
@@ -201,7 +213,7 @@ def main(argv=None) -> int:
             bulk_time += time.perf_counter() - t
             bulk_count += batch
         stats = query_stats(store, rng, args.queries if step in sizes else 50,
-                            20 if step in sizes and step <= args.exhaustive_max else 0)
+                            20 if step in sizes and step <= args.exhaustive_max else 0, prefilters)
         curve.append({'keyframes': step, **stats})
         print(f'{step:>7} keyframes: p50 {stats["p50_ms"]:.1f} ms, p99 {stats["p99_ms"]:.1f} ms', file=sys.stderr)
         if step not in sizes:
@@ -221,7 +233,7 @@ def main(argv=None) -> int:
                      **stats, 'cold_start_s': cold['open_s'], 'cold_start_noverify_s': cold_fast['open_s'],
                      'rss_mb': cold['rss_mb'], 'rss_growth_mb': cold['rss_mb'] - cold['rss_before_mb'],
                      'index_mb': step * DIM * 4 / 2**20, 'kb_per_keyframe': disk / step / 1000,
-                     'index': store.info().get('index')})
+                     'index': store.info().get('index'), 'landmark_index': store.info().get('landmark_index')})
     store.close()
     info = {'backend': args.backend, 'threads': args.threads, 'n': N_LANDMARKS, 'D': DIM, 'machine': platform.processor() or platform.machine(),
             'cpus': os.cpu_count(), 'load': os.getloadavg(),
@@ -231,8 +243,10 @@ def main(argv=None) -> int:
     else:
         print(f"backend {args.backend}, n={N_LANDMARKS}, D={DIM}, {info['cpus']} CPUs, "
               f"load {', '.join(f'{v:.2f}' for v in info['load'])}")
-        head = ('keyframes', 'index', 'ins/s bulk', 'ins/s online', 'p50 ms', 'p99 ms', 'exhaustive p50 ms',
-                'top-1', 'recall@30',
+        others = prefilters[1:]
+        head = ('keyframes', 'index', 'lm index', 'ins/s bulk', 'ins/s online', f'{prefilters[0]} p50 ms',
+                f'{prefilters[0]} p99 ms', *[f'{pf} {what}' for pf in others for what in ('p50 ms', 'p99 ms')],
+                'exhaustive p50 ms', f'{prefilters[0]} top-1', *[f'{pf} top-1' for pf in others], 'recall@30',
                 'cold s', 'cold s (no verify)', 'RSS MB', 'RSS growth MB', 'index MB', 'KB/kf')
         print('| ' + ' | '.join(head) + ' |')
         print('|' + '---|' * len(head))
@@ -240,8 +254,11 @@ def main(argv=None) -> int:
             every = f"{r['exhaustive_p50_ms']:.0f}" if r['exhaustive_p50_ms'] is not None else '-'
             recall = f"{r['recall30']:.2f}" if r['recall30'] is not None else (
                 '1 (exact)' if r['index'] == 'exact' else 'n/a')
-            print(f"| {r['keyframes']:,} | {r['index']} | {r['insert_bulk_per_s']:.0f} | {r['insert_online_per_s']:.0f} "
-                  f"| {r['p50_ms']:.1f} | {r['p99_ms']:.1f} | {every} | {r['top1']:.2f} | {recall} "
+            extra = ''.join(f"| {r[f'{pf}_p50_ms']:.1f} | {r[f'{pf}_p99_ms']:.1f} " for pf in others)
+            extra_top = ''.join(f"| {r[f'{pf}_top1']:.2f} " for pf in others)
+            print(f"| {r['keyframes']:,} | {r['index']} | {r['landmark_index']} | {r['insert_bulk_per_s']:.0f} "
+                  f"| {r['insert_online_per_s']:.0f} "
+                  f"| {r['p50_ms']:.1f} | {r['p99_ms']:.1f} {extra}| {every} | {r['top1']:.2f} {extra_top}| {recall} "
                   f"| {r['cold_start_s']:.2f} | {r['cold_start_noverify_s']:.2f} | {r['rss_mb']:.0f} "
                   f"| {r['rss_growth_mb']:.0f} | {r['index_mb']:.0f} | {r['kb_per_keyframe']:.1f} |")
     if args.plot:

@@ -30,8 +30,10 @@ keyframe c" is ids < c << 24 (exclude_recent). Grids up to 4096 x 4096 cells, ke
 Index type: exact (IndexIDMap2(IndexFlatIP)) up to conf['landmark_index_threshold'] landmarks;
 above it IVF-PQ (IndexIVFPQ, conf['landmark_pq_m'] sub-quantisers of 8 bits = D/4 bytes per
 landmark, trained on a sample of the map's own descriptors, conf['landmark_nprobe'] cells probed).
-Exact inner products over 500k landmarks (10k keyframes) cost ~100 ms per query on this machine;
-IVF-PQ keeps a 100k-keyframe map (5M landmarks) at ~250 MB. Recall against exact search is
+Exact inner products are ~130 ms of CPU per query (50 query landmarks) at 50k landmarks on this
+machine, so only small maps stay exact; IVF-PQ keeps a 100k-keyframe map (5M landmarks) at ~280 MB
+and scans nprobe/lists of it. An IVF-PQ grown past conf['landmark_retrain_factor'] x the landmarks
+it was trained on is rebuilt by its owner (the map store) from the stored descriptors. Recall against exact search is
 measured by bench/bench_landmark_index.py on real descriptors.
 """
 from __future__ import annotations
@@ -55,10 +57,11 @@ MAGIC = b'LLNLMIDX1\n'
 
 default_conf = {
     'landmark_knn': 20,                     # map landmarks each query landmark retrieves
-    'landmark_tau': 0.5,                    # cosine below which a hit does not vote
+    'landmark_tau': 0.35,                   # cosine below which a hit does not vote
     'landmark_alpha': 3.0,                  # selectivity exponent of a hit's vote
-    'landmark_index_threshold': 100_000,    # landmarks (~2,000 keyframes at n=50); IVF-PQ above
-    'landmark_ivf_lists': 0,                # 0 = 4 * sqrt(landmarks), between 64 and 4096, at (re)build
+    'landmark_index_threshold': 20_000,     # landmarks (~400 keyframes at n=50); IVF-PQ above
+    'landmark_retrain_factor': 8,           # an IVF-PQ grown past this x its training size is rebuilt
+    'landmark_ivf_lists': 0,                # 0 = sqrt(landmarks), between 64 and 4096 (<= landmarks / 39)
     'landmark_nprobe': 16,                  # IVF cells visited per query landmark
     'landmark_pq_m': 0,                     # PQ sub-quantisers; 0 = D / 4 (8 bits each: D/4 bytes)
     'landmark_pq_bits': 8,                  # bits per sub-quantiser code
@@ -164,6 +167,7 @@ class LandmarkIndex:
         self.dim = int(dim)
         self.conf = {**default_conf, **(conf or {})}
         self.index = self._exact()
+        self.trained_on = 0   # landmarks the IVF-PQ was trained on (0: exact)
 
     def _exact(self):
         return faiss.IndexIDMap2(faiss.IndexFlatIP(self.dim))
@@ -180,9 +184,10 @@ class LandmarkIndex:
         return self.ntotal
 
     # ------------------------------------------------------------------ building
-    def _compressed(self, x: np.ndarray):
-        n = len(x)
-        lists = int(self.conf['landmark_ivf_lists']) or int(np.clip(4 * np.sqrt(n), 64, 4096))
+    def _compressed(self, x: np.ndarray, total: int | None = None):
+        """An empty IVF-PQ trained on x (N, D) (a sample of it), sized for `total` landmarks (N)."""
+        n = int(total or len(x))
+        lists = int(self.conf['landmark_ivf_lists']) or int(max(1, min(np.clip(np.sqrt(n), 64, 4096), n // 39)))
         m = int(self.conf['landmark_pq_m']) or max(1, self.dim // 4)
         if self.dim % m:
             raise ValueError(f'landmark_pq_m {m} must divide the descriptor size {self.dim}')
@@ -190,11 +195,17 @@ class LandmarkIndex:
                                  faiss.METRIC_INNER_PRODUCT)
         index.cp.max_points_per_centroid = 64
         rng = np.random.default_rng(0)
-        sample = x if n <= self.conf['landmark_train_points'] else \
-            x[np.sort(rng.choice(n, int(self.conf['landmark_train_points']), replace=False))]
+        sample = x if len(x) <= self.conf['landmark_train_points'] else \
+            x[np.sort(rng.choice(len(x), int(self.conf['landmark_train_points']), replace=False))]
         index.train(np.ascontiguousarray(sample, np.float32))
         index.nprobe = int(self.conf['landmark_nprobe'])
+        self.trained_on = n
         return index
+
+    def needs_rebuild(self) -> bool:
+        """An IVF-PQ trained on far fewer landmarks than it now holds (its cells are overfull and
+        every query scans more): the owner rebuilds it from the stored descriptors."""
+        return self.kind == 'ivfpq' and self.ntotal > self.conf['landmark_retrain_factor'] * max(self.trained_on, 1)
 
     def build(self, x: np.ndarray, ids: np.ndarray) -> None:
         """Replace the contents with x (N, D) float32 under landmark ids (N,), choosing the type."""
@@ -278,7 +289,7 @@ class LandmarkIndex:
         """Serialise to path atomically (temporary file, fsync, rename): MAGIC, a JSON header
         (`header` plus D, landmark count and the CRC-32 of the FAISS bytes), the FAISS index."""
         blob = faiss.serialize_index(self.index)
-        head = json.dumps({**header, 'dim': self.dim, 'landmarks': self.ntotal,
+        head = json.dumps({**header, 'dim': self.dim, 'landmarks': self.ntotal, 'trained_on': self.trained_on,
                            'crc32': zlib.crc32(blob)}).encode()
         tmp = f'{path}.tmp-{os.getpid()}'
         try:
@@ -322,4 +333,5 @@ class LandmarkIndex:
         if isinstance(index, faiss.IndexIVF):
             index.nprobe = int(out.conf['landmark_nprobe'])
         out.index = index
+        out.trained_on = int(header.get('trained_on', index.ntotal))
         return out, header

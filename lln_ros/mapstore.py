@@ -907,7 +907,7 @@ class SQLiteMapStore(MapStore):
             # train on a sample of keyframes, then stream every landmark in: never all of them as float32
             every = max(1, int(total // max(1, self.conf['landmark_train_points'])))
             sample = np.concatenate([d for _, _, d in self._landmark_rows(every=every)])
-            index.index = index._compressed(sample)
+            index.index = index._compressed(sample, total)
             del sample
         for kf, cells, desc in self._landmark_rows():
             index.index.add_with_ids(desc, landmark_index.encode_ids(kf, cells))
@@ -1095,6 +1095,12 @@ class SQLiteMapStore(MapStore):
                             np.asarray(new_ids, np.int64))
             self._landmarks.add_sets(new_ids, sets)
             self._landmarks_dirty = True
+            if self._landmarks.needs_rebuild():
+                t = time.perf_counter()
+                stored = self._stored_counts()
+                self._landmarks = self._build_landmarks(sum(stored.values()), len(stored))
+                log.info('map %s: landmark index retrained for %d landmarks (%.1f s)', self.path,
+                         self._landmarks.ntotal, time.perf_counter() - t)
             self._ids.extend(new_ids)
             if ids is not None:
                 self._ids.sort()

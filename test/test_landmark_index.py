@@ -154,12 +154,13 @@ def _holistic_misses_found(qs, refs, gt, allowed, k):
 
 
 def test_rtabmap_landmark_first_stage_finds_revisits(extractor):
-    """rtabmap_loop (real office walk): the landmark top-5 holds a true revisit for at least as many
-    loop queries as the holistic top-5, including some the holistic top-5 misses."""
+    """rtabmap_loop (real office walk, 44 loop queries): the landmark top-2 holds a true revisit for
+    more loop queries than the holistic top-2 (measured: 42 vs 41 of 44, the one more is a revisit
+    the holistic top-2 misses; both hold 43 at K = 3)."""
     ds, sets = _rtabmap_sets(extractor)
-    lm, hol, found, lost = _holistic_misses_found(sets, sets, ds.gt, ds.candidates, 5)
-    assert recall_at_k(lm, ds.gt, 5) >= recall_at_k(hol, ds.gt, 5)
-    assert found >= 1 and found >= lost, (found, lost)
+    lm, hol, found, lost = _holistic_misses_found(sets, sets, ds.gt, ds.candidates, 2)
+    assert recall_at_k(lm, ds.gt, 2) > recall_at_k(hol, ds.gt, 2)
+    assert found >= 1 and found > lost, (found, lost)
 
 
 def test_nordland_slice_landmark_first_stage_beats_holistic(extractor):
