@@ -8,7 +8,7 @@ One map grows through every size in --sizes (plus the in-between steps of the pl
 landmark sets with the default model's shapes: n=50 unit descriptors of D=192 (efficientnet_lite0/
 stage6), a 12x9 grid at 384x288. Queries are noisy views of stored keyframes (
 a perturbation of norm 0.3 added to each unit vector, renormalised), answered as the matcher answers them: first stage
-top 30, reranked by the landmark similarity S, k=5 -- with every first stage of --prefilters on the same
+top prefilter_k (the shipped default, 100), reranked by the landmark similarity S, k=5 -- with every first stage of --prefilters on the same
 queries of the same run (landmarks = the shipped default, holistic = the paper's).
 
 At each table size:
@@ -101,7 +101,7 @@ store = MapStore.open({uri!r}, create=False, verify={verify}, conf={conf!r})
 opened = time.perf_counter() - t
 ids = store.ids()
 for i in rng.choice(len(ids), {queries}):
-    store.query(synthetic_set(rng, store.get(int(ids[i]))), prefilter_k=30, k=5)
+    store.query(synthetic_set(rng, store.get(int(ids[i]))), k=5)
 print(json.dumps({{'open_s': opened, 'rss_before_mb': before, 'rss_mb': rss_mb()}}))
 store.close()
 '''
@@ -130,7 +130,7 @@ def query_stats(store, rng, count: int, exhaustive: int = 0, prefilters=('landma
         q = synthetic_set(rng, truth[int(i)])
         for pf in prefilters:  # interleaved, so load from other processes hits every first stage alike
             t = time.perf_counter()
-            found = store.query(q, prefilter_k=30, k=5, prefilter=pf)
+            found = store.query(q, k=5, prefilter=pf)  # the shipped prefilter_k
             times[pf].append(time.perf_counter() - t)
             top1[pf] += bool(found) and found[0].keyframe_id == int(ids[i])
         if globals_ is not None and len(recall) < 100:

@@ -25,7 +25,7 @@ from .similarity import match_batch
 
 default_conf = {
     'prefilter': 'landmarks',  # first stage: landmarks | holistic | exhaustive (the one default of all paths)
-    'prefilter_k': 30,         # first-stage candidates reranked by S (the paper's 30); 0 = every map entry
+    'prefilter_k': 100,        # first-stage candidates reranked by S (the paper's holistic: 30); 0 = every map entry
     'scale': 1.0,              # offset-weight Gaussian width, in grid cells
     **landmark_index.default_conf,
 }

@@ -37,10 +37,10 @@ from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
-from . import landmark_index
-from .errors import MapError
-from .landmarks import LandmarkSet
-from .mapstore import FORMAT, MapCandidate, MapStore
+from .. import landmark_index
+from ..errors import MapError
+from ..landmarks import LandmarkSet
+from .base import FORMAT, MapStore
 
 log = logging.getLogger(__name__)
 
@@ -152,7 +152,7 @@ class MilvusMapStore(MapStore):
         index = self._client.prepare_index_params()
         index.add_index('unused', index_type='FLAT', metric_type='L2')
         self._client.create_collection(self._meta_c, schema=schema, index_params=index)
-        from . import __version__
+        from .. import __version__
         self._put_meta({'format': FORMAT, 'schema_version': str(SCHEMA_VERSION),
                         'created': str(int(time.time())), 'created_by': f'lln_ros {__version__}',
                         'next_id': '1'})
