@@ -238,8 +238,13 @@ class LandmarkIndex:
 
     def remove_keyframes(self, keyframe_ids) -> int:
         """Drop every landmark of these keyframes; returns how many landmarks went."""
+        kids = sorted({int(i) for i in keyframe_ids})
+        if len(kids) > 4:   # one pass over the index for many keyframes, not one per keyframe
+            held = self.landmark_ids()
+            drop = np.ascontiguousarray(held[np.isin(decode_ids(held)[0], kids)])
+            return int(self.index.remove_ids(drop)) if len(drop) else 0
         removed = 0
-        for kid in sorted({int(i) for i in keyframe_ids}):
+        for kid in kids:
             removed += int(self.index.remove_ids(faiss.IDSelectorRange(kid << _KF_SHIFT, (kid + 1) << _KF_SHIFT)))
         return removed
 
