@@ -31,12 +31,15 @@ from dataclasses import dataclass, field
 
 from . import limits as limits_mod
 from .errors import DescriptorError, LLNError, MapError
+from .landmark_index import check_prefilter
 from .limits import LimitError, check_landmark_set, validate_model
+from .retrieval import default_conf as retrieval_conf
 from .sequence import KeyframeSequence
 
 default_conf = {
     'mode': 'localization',    # localization: answer queries only | mapping: answer, then store each query
-    'prefilter_k': 30,         # holistic candidates reranked by S; 0 = every keyframe
+    'prefilter': retrieval_conf['prefilter'],      # first stage: landmarks | holistic | exhaustive
+    'prefilter_k': retrieval_conf['prefilter_k'],  # first-stage candidates reranked by S; 0 = every keyframe
     'k': 5,                    # candidates answered per query
     'min_score': 0.0,          # candidates below this are not answered
     'exclude_recent': 10,      # mapping mode: the newest N keyframes are never answers
@@ -147,6 +150,7 @@ class Localizer:
             raise ValueError(f"method must be 'lln' or 'holistic', got {conf['method']!r}")
         if conf['prefilter_k'] < 0:
             raise ValueError(f"prefilter_k must be 0 (every keyframe) or positive, got {conf['prefilter_k']}")
+        check_prefilter(conf['prefilter'], conf['prefilter_k'])
         if conf['sequence_length'] < 0:
             raise ValueError(f"sequence_length must be 0 (off) or positive, got {conf['sequence_length']}")
         return conf
@@ -308,7 +312,7 @@ class Localizer:
         c = self.conf
         kps = self._take_keypoints(stamp_ns, lset)
         sequence = self.sequence is not None  # the sequence search needs every reranked candidate
-        found = self.store.query(lset, prefilter_k=c['prefilter_k'],
+        found = self.store.query(lset, prefilter=c['prefilter'], prefilter_k=c['prefilter_k'],
                                  k=(c['prefilter_k'] or max(len(self.store), 1)) if sequence else c['k'],
                                  min_score=None if sequence else c['min_score'],
                                  exclude_recent=c['exclude_recent'] if self.mapping else 0,

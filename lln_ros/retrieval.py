@@ -1,9 +1,14 @@
-"""Two-stage retrieval: holistic top-K by cosine (FAISS), then rerank by the landmark similarity S.
+"""Two-stage retrieval: a first stage proposes K map entries, the landmark similarity S reranks them.
 
     db = LandmarkDatabase()
     db.add(map_sets)                                   # list of LandmarkSet
-    candidates = db.retrieve(query_set, prefilter_k=30)
+    candidates = db.retrieve(query_set, prefilter_k=30)                          # landmarks first stage
+    candidates = db.retrieve(query_set, prefilter_k=30, prefilter='holistic')    # the paper's
     candidates[0].index, .score, .holistic_score, .pairs
+
+First stages (`prefilter`): 'landmarks' (the default: every query landmark's kNN among all map
+landmarks, scored by landmark_index.score_hits), 'holistic' (global-descriptor cosine, the paper's),
+'exhaustive' (every map entry; also what prefilter_k 0 means, whatever `prefilter` says).
 """
 from __future__ import annotations
 
@@ -12,13 +17,17 @@ from dataclasses import dataclass, field
 import faiss
 import numpy as np
 
+from . import landmark_index
 from .errors import DescriptorError
+from .landmark_index import LandmarkIndex, check_prefilter
 from .landmarks import LandmarkBatch, LandmarkSet, stack_landmarks
 from .similarity import match_batch
 
 default_conf = {
-    'prefilter_k': 30,  # holistic candidates reranked by S (the paper's 30); 0 = every map entry
-    'scale': 1.0,       # offset-weight Gaussian width, in grid cells
+    'prefilter': 'landmarks',  # first stage: landmarks | holistic | exhaustive (the one default of all paths)
+    'prefilter_k': 100,        # first-stage candidates reranked by S (the paper's holistic: 30); 0 = every map entry
+    'scale': 1.0,              # offset-weight Gaussian width, in grid cells
+    **landmark_index.default_conf,
 }
 
 
@@ -43,30 +52,83 @@ def rerank(query: LandmarkSet, batch: LandmarkBatch, indices: np.ndarray, holist
                       tuple(int(v) for v in result.offsets[k]), result.pairs(k)) for k in order]
 
 
-def rank_all(queries: list[LandmarkSet], refs: LandmarkBatch, prefilter_k: int = 30,
-             allowed: np.ndarray | None = None, rerank_local: bool = True,
-             scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def batch_index(refs: LandmarkBatch, conf: dict | None = None) -> LandmarkIndex:
+    """The landmark index of a stacked map: every valid landmark, keyed by its set's position."""
+    k, n, d = refs.descriptors.shape
+    index = LandmarkIndex(d, {**default_conf, **(conf or {})})
+    owner = np.broadcast_to(np.arange(k)[:, None], (k, n))[refs.valid]
+    index.add(refs.descriptors[refs.valid], owner, refs.cells[refs.valid])
+    return index
+
+
+def _prefix(row: np.ndarray) -> int | None:
+    """m when the allowed row is exactly refs [0, m) (the loop protocol), else None."""
+    m = int(row.sum())
+    return m if row[:m].all() else None
+
+
+def first_stage(queries: list[LandmarkSet], refs: LandmarkBatch, k: int, prefilter: str = 'landmarks',
+                allowed: np.ndarray | None = None, conf: dict | None = None,
+                scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """The K candidates of each query before the rerank: ranked (Q, K) ref indices, best first, and
+    their first-stage scores (Q, K) (holistic cosine, or landmark_index.score_hits); rows with
+    fewer candidates are padded with -1 / -inf. 'exhaustive' = every allowed ref in holistic order."""
+    conf = {**default_conf, **(conf or {})}
+    n_q, r = len(queries), len(refs)
+    k = min(int(k), r)
+    ranked = np.full((n_q, k), -1, np.int64)
+    scores = np.full((n_q, k), -np.inf, np.float32)
+    if prefilter in ('holistic', 'exhaustive'):
+        hol = np.stack([q.global_descriptor for q in queries]).astype(np.float32) @ refs.globals.T   # (Q, R)
+        if allowed is not None:
+            hol = np.where(allowed, hol, -np.inf)
+        top = np.argsort(-hol, axis=1, kind='stable')[:, :k]                                         # (Q, K)
+        top_s = np.take_along_axis(hol, top, axis=1)
+        ok = np.isfinite(top_s)
+        ranked[ok], scores[ok] = top[ok], top_s[ok]
+        return ranked, scores
+    if prefilter != 'landmarks':
+        raise ValueError(f'unknown prefilter {prefilter!r}')
+    index = batch_index(refs, conf)
+    hol_rank, _ = first_stage(queries, refs, k, 'holistic', allowed)   # tops up short landmark lists
+    for i, q in enumerate(queries):
+        below = None
+        if allowed is not None:
+            below = _prefix(allowed[i])
+            if below == 0:
+                continue
+        ids, s = index.shortlist(q, k if below is not None or allowed is None else r, below, scale)
+        if allowed is not None and below is None:   # not a prefix: filter the hits afterwards
+            keep = allowed[i, ids]
+            ids, s = ids[keep][:k], s[keep][:k]
+        ids, s = landmark_index.fill(ids, s, hol_rank[i][hol_rank[i] >= 0], k)
+        ranked[i, :len(ids)], scores[i, :len(ids)] = ids, s
+    return ranked, scores
+
+
+def rank_all(queries: list[LandmarkSet], refs: LandmarkBatch, prefilter_k: int = default_conf['prefilter_k'],
+             allowed: np.ndarray | None = None, rerank_local: bool = True, scale: float = 1.0,
+             prefilter: str = default_conf['prefilter'], conf: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Offline retrieval of many queries against a stacked map (evaluation and validation).
 
     refs: LandmarkBatch of R map sets; allowed (Q, R) bool: which refs each query may be answered
-    with (None = all); prefilter_k 0 = every ref (exhaustive rerank, K = R). Returns ranked (Q, K) ref indices, best first, and their scores (Q, K): S
-    after the holistic top-K prefilter (or the holistic cosine when rerank_local is False).
-    Rows with fewer than K allowed refs are padded with index -1 and score -inf.
+    with (None = all); prefilter: the first stage (module doc), its top prefilter_k (0 = every ref:
+    exhaustive, K = R). Returns ranked (Q, K) ref indices, best first, and their scores (Q, K): S
+    after the first stage (the first-stage score when rerank_local is False).
+    Rows with fewer than K candidates are padded with index -1 and score -inf.
     """
-    k = min(int(prefilter_k), len(refs)) if int(prefilter_k) > 0 else len(refs)
-    hol = np.stack([q.global_descriptor for q in queries]).astype(np.float32) @ refs.globals.T   # (Q, R)
-    if allowed is not None:
-        hol = np.where(allowed, hol, -np.inf)
-    top = np.argsort(-hol, axis=1, kind='stable')[:, :k]                                         # (Q, K)
-    top_hol = np.take_along_axis(hol, top, axis=1)
-    ranked = np.full((len(queries), k), -1, np.int64)
-    scores = np.full((len(queries), k), -np.inf, np.float32)
+    prefilter, prefilter_k = check_prefilter(prefilter, prefilter_k)
+    k = min(prefilter_k, len(refs)) if prefilter_k else len(refs)
+    top, top_s = first_stage(queries, refs, k, prefilter, allowed, conf, scale)
+    if not rerank_local:
+        return top, top_s
+    ranked = np.full_like(top, -1)
+    scores = np.full(top.shape, -np.inf, np.float32)
     for i, q in enumerate(queries):
-        ok = np.isfinite(top_hol[i])
-        idx = top[i][ok]
+        idx = top[i][top[i] >= 0]
         if not len(idx):
             continue
-        s = match_batch(q, refs.take(idx), scale).scores if rerank_local else top_hol[i][ok]
+        s = match_batch(q, refs.take(idx), scale).scores
         order = np.argsort(-s, kind='stable')
         ranked[i, :len(idx)], scores[i, :len(idx)] = idx[order], s[order]
     return ranked, scores
@@ -90,12 +152,15 @@ def pair_regions(query: LandmarkSet, keyframe: LandmarkSet, pairs: dict) -> dict
 
 
 class LandmarkDatabase:
-    """An in-memory map of landmark sets with a FAISS inner-product index of the global descriptors."""
+    """An in-memory map of landmark sets: a FAISS inner-product index of the global descriptors and
+    a LandmarkIndex of every landmark (the first stages), keyed by position in `sets`."""
 
     def __init__(self, conf: dict | None = None):
         self.conf = {**default_conf, **(conf or {})}
+        check_prefilter(self.conf['prefilter'], self.conf['prefilter_k'])
         self.sets: list[LandmarkSet] = []
         self.index: faiss.Index | None = None
+        self.landmarks: LandmarkIndex | None = None
         self.descriptor_space: str | None = None
 
     def __len__(self) -> int:
@@ -107,11 +172,13 @@ class LandmarkDatabase:
             if self.descriptor_space is None:
                 self.descriptor_space = s.descriptor_space
                 self.index = faiss.IndexFlatIP(s.dim)
+                self.landmarks = LandmarkIndex(s.dim, self.conf)
             elif s.descriptor_space != self.descriptor_space or s.dim != self.index.d:
                 raise DescriptorError(f'map holds {self.descriptor_space!r} descriptors (D={self.index.d}); '
                                       f'refusing {s.descriptor_space!r} (D={s.dim})')
         if sets:
             self.index.add(np.stack([s.global_descriptor for s in sets]).astype(np.float32))
+            self.landmarks.add_sets(range(len(self.sets), len(self.sets) + len(sets)), sets)
             self.sets.extend(sets)
 
     def holistic(self, query: LandmarkSet, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -125,13 +192,25 @@ class LandmarkDatabase:
         return idx[0][keep], scores[0][keep]
 
     def retrieve(self, query: LandmarkSet, prefilter_k: int | None = None,
-                 rerank_local: bool = True) -> list[Candidate]:
-        """Holistic top-K reranked by S (rerank_local=False: the holistic ranking alone); K = 0:
-        every map entry."""
-        k = int(self.conf['prefilter_k'] if prefilter_k is None else prefilter_k) or len(self.sets)
-        idx, hol = self.holistic(query, k)
+                 rerank_local: bool = True, prefilter: str | None = None) -> list[Candidate]:
+        """The first stage's top K reranked by S (rerank_local=False: the first-stage ranking
+        alone, its score as `score`); K = 0: every map entry."""
+        prefilter, k = check_prefilter(prefilter or self.conf['prefilter'],
+                                       self.conf['prefilter_k'] if prefilter_k is None else prefilter_k)
+        if not self.sets:
+            return []
+        self._check_query(query)
+        k = k or len(self.sets)
+        if prefilter == 'landmarks':
+            idx, first = self.landmarks.shortlist(query, k, scale=self.conf['scale'])
+            idx, first = landmark_index.fill(idx, first, self.holistic(query, k)[0], k)
+            hol = np.stack([self.sets[i].global_descriptor for i in idx]).astype(np.float32) @ \
+                query.global_descriptor.astype(np.float32) if len(idx) else np.zeros(0, np.float32)
+        else:
+            idx, hol = self.holistic(query, k)
+            first = hol
         if not rerank_local:
-            return [Candidate(int(i), float(h), float(h)) for i, h in zip(idx, hol)]
+            return [Candidate(int(i), float(f), float(h)) for i, f, h in zip(idx, first, hol)]
         if len(idx) == 0:
             return []
         batch = stack_landmarks([self.sets[i] for i in idx])

@@ -2,7 +2,8 @@
 # Regenerate docs/results.md and its figures (docs/results/): every method, the shipped (trained)
 # head against an untrained one, sequence rows and relocalization, on the Nordland test split (the
 # last 30% of the route, never trained on) and on rtabmap_loop, with the paper's holistic top-30
-# prefilter; then Nordland again with exhaustive matching. Needs ../shared/data (or LLN_DATA).
+# prefilter; then Nordland again with exhaustive matching; then both with the shipped default first stage
+# (landmarks). Needs ../shared/data (or LLN_DATA).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DATA=${LLN_DATA:-../shared/data}
@@ -17,7 +18,7 @@ rm -rf docs/results
   --dataset "aligned:$DATA/nordland_trimmed/summer,$DATA/nordland_trimmed/winter,1" --range 0.7:1 \
   --dataset "loop:$DATA/rtabmap_loop,$DATA/rtabmap_loop/samples_GT.bmp" \
   --methods holistic,lln,act,rand,all,sad,seqslam --sequence 10 \
-  --heads trained=shipped,untrained= --reloc \
+  --heads trained=shipped,untrained= --reloc --prefilter holistic --prefilter-k 30 \
   --cache "$CACHE" --out docs/results "$@"
 # the same Nordland queries with every reference scored (no holistic prefilter): what the holistic
 # top-30 costs each reranker, and lln+seq against seqslam, which also compares every map frame
@@ -26,5 +27,11 @@ rm -rf docs/results
   --methods holistic,lln,act,rand,all,sad,seqslam --sequence 10 --prefilter-k 0 \
   --heads trained=shipped,untrained= \
   --cache "$CACHE" --out docs/results/exhaustive "$@"
-.venv/bin/python scripts/results_md.py docs/results.md docs/results docs/results/exhaustive
+# the shipped defaults (the landmark first stage, issue #14): what a user of the matcher gets
+.venv/bin/lln-eval \
+  --dataset "aligned:$DATA/nordland_trimmed/summer,$DATA/nordland_trimmed/winter,1" --range 0.7:1 \
+  --dataset "loop:$DATA/rtabmap_loop,$DATA/rtabmap_loop/samples_GT.bmp" \
+  --methods holistic,lln,act,rand,all --sequence 10 --heads trained=shipped \
+  --cache "$CACHE" --out docs/results/landmarks "$@"
+.venv/bin/python scripts/results_md.py docs/results.md docs/results docs/results/exhaustive docs/results/landmarks
 echo "results: wrote docs/results.md"

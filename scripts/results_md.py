@@ -1,7 +1,7 @@
 """docs/results.md from lln-eval output folders: the issues' targets checked against the measured
 figures (computed here, never typed in), then lln-eval's own tables with links to its figures.
 
-    python scripts/results_md.py docs/results.md docs/results [docs/results/exhaustive]
+    python scripts/results_md.py docs/results.md docs/results [docs/results/exhaustive [docs/results/landmarks]]
 
 The first folder is the paper's protocol (holistic top-30 prefilter, Nordland test split and
 rtabmap_loop); the optional second is Nordland with every reference scored (--prefilter-k 0).
@@ -103,7 +103,7 @@ def body_of(src: Path, dst: str, title: str) -> str:
     return re.sub(r'^# lln-eval results\n', f'## {title}\n', body, flags=re.M)
 
 
-def main(dst: str, src: str, exhaustive_src: str | None = None) -> None:
+def main(dst: str, src: str, exhaustive_src: str | None = None, default_src: str | None = None) -> None:
     src = Path(src)
     res = json.loads((src / 'results.json').read_text())
     body = body_of(src, dst, 'lln-eval output: the paper\'s protocol (holistic top-30 prefilter)')
@@ -112,6 +112,9 @@ def main(dst: str, src: str, exhaustive_src: str | None = None) -> None:
         exhaustive = json.loads((Path(exhaustive_src) / 'results.json').read_text())
         body += '\n' + body_of(Path(exhaustive_src), dst, 'lln-eval output: Nordland with every reference '
                                                           'scored (--prefilter-k 0)')
+    if default_src:
+        body += '\n' + body_of(Path(default_src), dst, 'lln-eval output: the shipped defaults (landmark first '
+                                                        'stage, `--prefilter landmarks`)')
     k = int(res['parameters']['prefilter_k'])
     cpu = next((line.split(':', 1)[1].strip() for line in open('/proc/cpuinfo') if line.startswith('model name')),
                platform.processor()) if Path('/proc/cpuinfo').exists() else platform.processor()
@@ -142,4 +145,4 @@ def main(dst: str, src: str, exhaustive_src: str | None = None) -> None:
 
 
 if __name__ == '__main__':
-    main(*sys.argv[1:4])
+    main(*sys.argv[1:5])

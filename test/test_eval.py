@@ -20,6 +20,7 @@ from lln_ros.download import fetch_gardenspoint
 from lln_ros.eval import METHODS, REPORT_KEYS, Head, evaluate, parse_head
 from lln_ros.eval.methods import variant
 from lln_ros.landmarks import stack_landmarks
+from lln_ros.eval.report import markdown
 from lln_ros.lln import LLNHead, head_fingerprint, save_checkpoint
 from lln_ros.retrieval import rank_all
 
@@ -84,11 +85,30 @@ def other_head(extractor, tmp_path_factory):
 def tiny_run(tiny, extractor, other_head, tmp_path_factory):
     out = tmp_path_factory.mktemp('eval')
     ds = datasets.parse_spec(f'aligned:{tiny / "ref"},{tiny / "query"},0')
-    conf = {'top_n': 20, 'prefilter_k': 5, 'cache_dir': str(out / 'cache'), 'timing_images': 2,
-            'timing_queries': 4, 'examples': 1}
+    conf = {'top_n': 20, 'prefilter': 'holistic', 'prefilter_k': 5, 'cache_dir': str(out / 'cache'),
+            'timing_images': 2, 'timing_queries': 4, 'examples': 1}
     run = evaluate([ds], extractor, conf, [Head('other', str(other_head)), Head('untrained', None)],
                    out_dir=out / 'results', specs=['tiny'])
     return run, out / 'results', ds
+
+
+def test_landmark_first_stage_reported_for_every_prefilter(tiny_run, extractor):
+    """The default first stage (landmarks): every local method reranks its own landmark top-K, and
+    the dataset entry reports recall@K and ms/query of the holistic and landmark first stages."""
+    _, out, ds = tiny_run
+    run = evaluate([ds], extractor, {'methods': 'holistic,lln', 'top_n': 20, 'prefilter_k': 5, 'plots': False,
+                                     'cache_dir': str(out.parent / 'cache'), 'timing_images': 1,
+                                     'timing_queries': 1, 'timing_repeats': 1})
+    entry = run.results['datasets']['ref-vs-query']
+    assert run.results['parameters']['prefilter'] == 'landmarks'
+    stages = entry['first_stage']
+    assert set(stages) == {'holistic', 'landmarks'}
+    for st in stages.values():
+        assert set(st['recall_at']) == {'1', '5', '10'} and st['ms_per_query'] > 0   # 12 refs: K <= 12
+        assert 0 <= st['recall_at']['1'] <= st['recall_at']['5'] <= st['recall_at']['10'] <= 1
+    ranked, _ = run.datasets['ref-vs-query'].rankings['lln']
+    assert ranked.shape == (12, 5) and (ranked >= 0).all()
+    assert 'First stage (lln landmarks)' in markdown(run.results)
 
 
 def test_results_json_has_the_required_structure(tiny_run):

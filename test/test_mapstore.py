@@ -101,7 +101,7 @@ def test_k_min_score_and_holistic_only(map_path, rng):
         assert len(store.query(sets[3], k=2)) == 2
         only = store.query(sets[3], min_score=10.0)
         assert [c.keyframe_id for c in only] == [ids[3]]
-        hol = store.query(sets[3], prefilter_k=10, k=10, method_rerank=False)
+        hol = store.query(sets[3], prefilter_k=10, k=10, method_rerank=False, prefilter='holistic')
         assert len(hol) == 10 and hol[0].keyframe_id == ids[3]
         assert all(c.score == c.holistic_score and c.n_pairs == 0 for c in hol)
         assert [c.score for c in hol] == sorted((c.score for c in hol), reverse=True)
@@ -117,8 +117,8 @@ def test_exclude_recent(map_path, rng):
         query = make_set(rng)
         # the 5 most recent keyframes are near-copies of the query: holistically the best 5
         near = [store.add(make_set(rng, base=query, noise=0.02)) for _ in range(5)]
-        assert {c.keyframe_id for c in store.query(query, method_rerank=False, prefilter_k=5, k=5)} == set(near)
-        res = store.query(query, prefilter_k=3, k=3, exclude_recent=5, method_rerank=False)
+        assert {c.keyframe_id for c in store.query(query, method_rerank=False, prefilter='holistic', prefilter_k=5, k=5)} == set(near)
+        res = store.query(query, prefilter_k=3, k=3, exclude_recent=5, method_rerank=False, prefilter='holistic')
         assert len(res) == 3, 'FAISS must be asked for more than prefilter_k when recent ones are excluded'
         assert all(c.keyframe_id in ids for c in res)
         reranked = store.query(query, prefilter_k=3, k=3, exclude_recent=5)

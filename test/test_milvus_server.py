@@ -109,7 +109,7 @@ def write_schema1_map(uri: str, sets, stamps, model: dict) -> list[int]:
     from pymilvus import DataType, MilvusClient
 
     from lln_ros.mapstore import FORMAT
-    from lln_ros.mapstore_milvus import parse_uri
+    from lln_ros.mapstore.milvus import parse_uri
     where = parse_uri(uri)
     c = MilvusClient(uri=where['uri'], timeout=60)
     if where['db_name']:

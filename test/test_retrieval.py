@@ -37,7 +37,7 @@ def test_each_view_retrieves_itself_first(extractor, photo):
     ranked, scores = rank_all([sets[2]], batch, prefilter_k=0)
     assert ranked.shape == (1, len(sets)) and ranked[0, 0] == 2
     np.testing.assert_allclose(np.sort(scores[0]), np.sort(match_batch(sets[2], batch).scores), rtol=1e-6)
-    hol = db.retrieve(sets[3], rerank_local=False)
+    hol = db.retrieve(sets[3], rerank_local=False, prefilter='holistic')
     assert hol[0].index == 3 and hol[0].score == pytest.approx(1.0, abs=1e-5) and hol[0].pairs == {}
 
 

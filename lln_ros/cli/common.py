@@ -134,11 +134,18 @@ def runtime_conf(args) -> dict:
     return {'runtime': args.runtime} if getattr(args, 'runtime', None) else {}
 
 
-def add_prefilter_argument(p: argparse.ArgumentParser, what: str = 'holistic candidates reranked') -> None:
+def add_prefilter_argument(p: argparse.ArgumentParser, what: str = 'first-stage candidates reranked') -> None:
+    """--prefilter and --prefilter-k, defaults from retrieval.default_conf (one source)."""
+    from ..landmark_index import PREFILTERS
     from ..retrieval import default_conf as retrieval
 
-    k = retrieval['prefilter_k']
-    p.add_argument('--prefilter-k', type=int, default=k, help=f'{what} (default {k}; 0 = every map frame)')
+    first, k = retrieval['prefilter'], retrieval['prefilter_k']
+    p.add_argument('--prefilter', default=first, choices=PREFILTERS,
+                   help="first stage the rerank starts from: landmarks (each query landmark's nearest map "
+                        "landmarks, voted per reference), holistic (global cosine, the paper's) or exhaustive "
+                        f'(every reference) (default {first})')
+    p.add_argument('--prefilter-k', type=int, default=k,
+                   help=f'{what} (default {k}; 0 = every reference, an exhaustive rerank, whatever --prefilter says)')
 
 
 def add_scale_argument(p: argparse.ArgumentParser) -> None:

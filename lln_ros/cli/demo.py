@@ -1,7 +1,8 @@
 """lln-demo: build a map from one traverse and query it with another through the ROS 2 nodes.
 
     lln-demo --out DIR [--dataset SPEC] [--range START:END] [--download] [--rate HZ]
-             [--method lln|act|rand|all|holistic] [--top-n 50] [--prefilter-k 30]
+             [--method lln|act|rand|all|holistic] [--top-n 50] [--prefilter landmarks|holistic|exhaustive]
+             [--prefilter-k 100]
              [--offline | --no-offline] [--check]
 
 Without --dataset: the Nordland test split (summer = map, winter = queries, +-1 frame, the last 30%
@@ -26,7 +27,7 @@ What it does:
      DIR/results_online.md, DIR/answers_online.csv (top-1 per query), DIR/rankings.npz (every ranking),
      DIR/pr_online.png and DIR/matches_online_*.png;
   5. with --offline (the default) runs the offline evaluator (lln-eval's code) on the same dataset with
-     the same method, top-n and prefilter-k into DIR/offline/, and prints online vs offline.
+     the same method, top-n, prefilter and prefilter-k into DIR/offline/, and prints online vs offline.
 
 Why two extractors: the wiring is static, exactly the `-r` remaps a user writes, and each traverse
 is counted by its own extractor's /diagnostics; re-routing one extractor between the phases would mean
@@ -236,7 +237,7 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
             extractor_params += ['-p', f'runtime:={args.runtime}']
         procs.append(NodeProcess(exes['matcher'], [
             '-p', f'map_path:={(out / "map.db").resolve()}', '-p', 'mode:=localization',
-            '-p', f'prefilter_k:={args.prefilter_k}', '-p', f'k:={k}',
+            '-p', f'prefilter:={args.prefilter}', '-p', f'prefilter_k:={args.prefilter_k}', '-p', f'k:={k}',
             '-p', f'method:={"holistic" if args.method == "holistic" else "lln"}',
             '-p', 'min_score:=-1.0e9', *common], env, logs / 'matcher.log', 'matcher', out, new_session=True))
         procs.append(NodeProcess(exes['extractor'], [
@@ -413,7 +414,7 @@ def run(args, argv, log) -> int:
     offline, comparison, offline_error = None, None, None
     if args.offline:
         log(f'{PROG}: offline: the same dataset through lln_ros.eval (method {args.method}, top-n '
-            f'{args.top_n}, prefilter-k {args.prefilter_k}) into {out / "offline"}')
+            f'{args.top_n}, prefilter {args.prefilter}, prefilter-k {args.prefilter_k}) into {out / "offline"}')
         try:
             offline = run_offline(ds, spec, args, out, log)
         except (KeyboardInterrupt, MemoryError):
@@ -443,7 +444,8 @@ def run(args, argv, log) -> int:
         'dataset': {'name': name, 'spec': spec, 'range': rng, 'chosen': why, 'refs': len(ds.ref_paths),
                     'queries': len(ds.query_paths), 'queries_with_match': ds.queries_with_match,
                     'info': {k: v for k, v in ds.info.items() if not k.endswith('_sizes')}},
-        'parameters': {'method': args.method, 'top_n': args.top_n, 'prefilter_k': args.prefilter_k,
+        'parameters': {'method': args.method, 'top_n': args.top_n, 'prefilter': args.prefilter,
+                       'prefilter': args.prefilter, 'prefilter_k': args.prefilter_k,
                        'k': online_run['k'], 'threads': args.threads, 'weights': args.weights,
                        'playback': online_run['play']['mode'], 'domain_id': online_run['domain_id'],
                        'executables': where, 'node_commands': online_run['commands'],
@@ -464,7 +466,7 @@ def run(args, argv, log) -> int:
     (out / 'results_online.md').write_text(online_markdown(report, online, offline, comparison))
 
     print(f'\n{name}: {len(ds.ref_paths)} map frames, {len(ds.query_paths)} queries, method {args.method} '
-          f'(top-n {args.top_n}, prefilter-k {args.prefilter_k}), playback {online_run["play"]["mode"]}')
+          f'(top-n {args.top_n}, prefilter {args.prefilter}, prefilter-k {args.prefilter_k}), playback {online_run["play"]["mode"]}')
     print(online_console(online, offline, comparison))
     print(f'wrote {out / "results_online.json"}, {out / "results_online.md"}, {out / "pr_online.png"}, '
           f'{len(examples)} match pictures' + (f', {out / "offline"}/' if offline else '') +

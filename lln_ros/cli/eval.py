@@ -1,7 +1,8 @@
 """lln-eval: every place-recognition method on every dataset, with the paper's protocol and pictures.
 
     lln-eval --dataset SPEC [--dataset SPEC ...] --out DIR [--methods holistic,lln,act,rand,all]
-             [--top-n 50] [--prefilter-k 30|0] [--range START:END] [--sequence L]
+             [--top-n 50] [--prefilter landmarks|holistic|exhaustive] [--prefilter-k 30|0]
+             [--range START:END] [--sequence L]
              [--weights [LABEL=]CKPT ...] [--label NAME ...] [--heads LABEL=CKPT,LABEL=,...]
              [--backbone NAME] [--layer LAYER] [--cache DIR] [--download [--download-url URL]]
 
@@ -50,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--dataset', action='append', required=True, metavar='SPEC', help='dataset (repeatable)')
     p.add_argument('--methods', default=','.join(METHODS),
                    help=f'comma-separated subset of {",".join(ALL_METHODS)} (default: {",".join(METHODS)})')
-    add_prefilter_argument(p, "holistic candidates every local method reranks (the paper's 30)")
+    add_prefilter_argument(p, 'first-stage candidates every local method reranks')
     add_scale_argument(p)
     p.add_argument('--sequence', type=int, default=conf['sequence'], metavar='L',
                    help='add an X+seq row per holistic/local method: sequence search over L queries '
@@ -158,7 +159,8 @@ def run(args, argv) -> dict:
     if args.check:
         return {'checked': [ds.name for ds in dsets]}
 
-    conf = {'methods': methods, 'top_n': args.top_n, 'prefilter_k': args.prefilter_k, 'scale': args.scale,
+    conf = {'methods': methods, 'top_n': args.top_n, 'prefilter': args.prefilter, 'prefilter_k': args.prefilter_k,
+            'scale': args.scale,
             'sequence': args.sequence,
             'timing_images': args.timing_images, 'timing_queries': args.timing_queries,
             'timing_repeats': args.timing_repeats,

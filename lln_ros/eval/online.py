@@ -191,13 +191,14 @@ def run_offline(ds, spec: str, args, out: Path, log) -> dict:
     ext_method = 'lln' if args.method == 'holistic' else args.method
     extractor = Extractor({'top_n': args.top_n, 'method': ext_method, 'num_threads': args.threads,
                            **runtime_conf(args), 'weights': str(Path(args.weights).expanduser().resolve()) if args.weights else ''})
-    conf = {'methods': [args.method], 'top_n': args.top_n, 'prefilter_k': args.prefilter_k,
+    conf = {'methods': [args.method], 'top_n': args.top_n, 'prefilter': args.prefilter,
+            'prefilter_k': args.prefilter_k,
             'timing_images': 3, 'timing_queries': 5, 'timing_repeats': 1, 'examples': args.examples,
             'heatmap_images': 4, 'cache_dir': args.cache or str(out / 'cache' / 'features'),
             'plots': True, 'progress': not args.quiet}
     t = time.monotonic()
     command = (f'lln-eval --dataset {shlex.quote(spec)} --methods {args.method} --top-n {args.top_n} '
-               f'--prefilter-k {args.prefilter_k} --out {shlex.quote(str(out / "offline"))}')
+               f'--prefilter {args.prefilter} --prefilter-k {args.prefilter_k} --out {shlex.quote(str(out / "offline"))}')
     run = evaluate([ds], extractor, conf, None, out / 'offline', specs=[spec], command=command, log=log)
     name = next(iter(run.datasets))
     row = next(iter(run.datasets[name].rankings))

@@ -77,13 +77,17 @@ def markdown(results: dict) -> str:
     p = results.get('parameters', {})
     lines = ['# lln-eval results', '']
     prefiltered = p.get('prefilter_k', retrieval_defaults['prefilter_k'])  # an older results.json lacks it
+    # an older results.json has no 'prefilter': its first stage was holistic (or exhaustive with K 0)
+    first = p.get('prefilter', 'holistic' if prefiltered else 'exhaustive')
     if p.get('command'):
         lines += ['Regenerate with:', '', '```bash', p['command'], '```', '']
     lines += ['Percentages of the queries that have a true match; P@100%R = precision when every query is '
               'answered (= top-1 accuracy, the paper\'s headline), R@100%P = largest recall at precision 1, '
               'AUC-PR = area under the precision-recall curve of a threshold on the top-1 score. ' +
-              ('Every local method reranks the same holistic top-K.' if prefiltered else
-               'Every local method scores every reference (prefilter_k 0: exhaustive, no holistic prefilter).'), '']
+              {'holistic': 'Every local method reranks the same holistic top-K.',
+               'landmarks': 'Every local method reranks the top-K of the landmark first stage, run on its own '
+                            'landmarks (prefilter landmarks).',
+               'exhaustive': 'Every local method scores every reference (exhaustive, no first stage).'}[first], '']
     for name, d in results['datasets'].items():
         lines += [f'## {name}', '']
         facts = [f'{d["queries"]} queries ({d.get("queries_with_match", "?")} with a true match), '
@@ -114,10 +118,20 @@ def markdown(results: dict) -> str:
         if curve and k == 0:
             lines += ['', 'Exhaustive (prefilter_k 0): every reference is scored, so the holistic ranking '
                           f'caps nothing (holistic recall@30 = {pct(curve[min(30, len(curve)) - 1])}% for comparison).']
-        elif curve and k:
+        elif curve and k and first == 'holistic':
             at = curve[min(k, len(curve)) - 1]
             lines += ['', f'Holistic recall@{min(k, len(curve))} = {pct(at)}%: the ceiling of every reranking '
                           'method (a true match outside the holistic top-K cannot be recovered).']
+        stages = d.get('first_stage') or {}
+        if stages:
+            ks = [kk for kk in (1, 5, 10, 30, 100) if any(str(kk) in st['recall_at'] for st in stages.values())]
+            lines += ['', 'First stage (lln landmarks): recall@K of its own ranking = the ceiling of a rerank of '
+                          'its top K, and its cost per query.', '',
+                      '| first stage | ' + ' | '.join(f'R@{kk}' for kk in ks) + ' | ms/query |',
+                      '|---|' + '---:|' * (len(ks) + 1)]
+            for stage, st in stages.items():
+                lines.append(f'| {stage} | ' + ' | '.join(pct(st['recall_at'].get(str(kk))) for kk in ks) +
+                             f' | {ms(st.get("ms_per_query"))} |')
         t = d.get('timing', {})
         if t:
             lines += ['', f'Timing: extraction median over {t.get("images")} images, matching median over '
@@ -138,7 +152,8 @@ def markdown(results: dict) -> str:
         lines.append('')
     if p:
         lines += ['## Parameters', '']
-        for key in ('backbone', 'layer', 'descriptor_space', 'input_height', 'top_n', 'prefilter_k', 'scale',
+        for key in ('backbone', 'layer', 'descriptor_space', 'input_height', 'top_n', 'prefilter', 'prefilter_k',
+                    'scale',
                     'rand_seed', 'timing_images', 'timing_queries', 'timing_repeats', 'torch_threads',
                     'blas_threads', 'feature_cache', 'sequence', 'sequence_search', 'seqslam'):
             if key in p:
@@ -241,8 +256,8 @@ def online_markdown(report: dict, online: dict, offline: dict | None, comparison
              f'{d["refs"]} map frames (keyframes), {d["queries"]} queries ({d["queries_with_match"]} with a '
              f'true match).', '',
              f'Through the nodes ({p["executables"]}): two extractors (method `{p["method"]}`, top-n '
-             f'{p["top_n"]}, reliable image QoS) and the matcher in localization mode (prefilter_k '
-             f'{p["prefilter_k"]}, k {p["k"]}), ROS_DOMAIN_ID {p["domain_id"]} on localhost; playback '
+             f'{p["top_n"]}, reliable image QoS) and the matcher in localization mode (prefilter '
+             f'{p.get("prefilter", "holistic")}, prefilter_k {p["prefilter_k"]}, k {p["k"]}), ROS_DOMAIN_ID {p["domain_id"]} on localhost; playback '
              f'{p["playback"]}.', '',
              table(online, offline, comparison, as_markdown=True), '']
     if comparison:

@@ -53,8 +53,9 @@ from ..extractor import default_conf as extractor_defaults
 from ..features import FeatureCache
 from ..landmarks import LandmarkSet, l2_normalize, stack_landmarks
 from ..lln import head_fingerprint
+from ..landmark_index import check_prefilter
+from ..retrieval import batch_index, first_stage, rank_all
 from ..retrieval import default_conf as retrieval_defaults
-from ..retrieval import rank_all
 from ..sequence import check_conf as sequence_conf
 from ..sequence import default_conf as sequence_defaults
 from ..sequence import sad_conf
@@ -81,6 +82,7 @@ default_conf = {
     'methods': METHODS,
     'top_n': extractor_defaults['top_n'],
     # holistic candidates every local method reranks (the paper's 30; 0 = all)
+    'prefilter': retrieval_defaults['prefilter'],  # first stage: landmarks | holistic | exhaustive
     'prefilter_k': retrieval_defaults['prefilter_k'],
     'scale': retrieval_defaults['scale'],   # offset-weight width in grid cells (similarity)
     'sequence': 0,          # L > 0: an `X+seq` row per holistic/local row (sequence length L)
@@ -152,6 +154,7 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
     methods = parse_methods(conf['methods'])
     top_n, scale = int(conf['top_n']), float(conf['scale'])
     k = int(conf['prefilter_k']) or len(ds.ref_paths)  # 0: every reference
+    prefilter, _ = check_prefilter(conf['prefilter'], conf['prefilter_k'])
     height = int(extractor.conf['input_height'])
     space = extractor.descriptor_space
     seq_len = int(conf['sequence'])
@@ -175,8 +178,9 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
     hq = _holistic_sets(query_feats, query_sizes, space)
     hr = hq if same_images else _holistic_sets(ref_feats, ref_sizes, space)
     hr_batch = stack_landmarks(hr)
-    full, full_scores = rank_all(hq, hr_batch, len(hr), allowed=ds.candidates, rerank_local=False)
-    prefilter = full[:, :min(k, len(hr))]
+    full, full_scores = rank_all(hq, hr_batch, len(hr), allowed=ds.candidates, rerank_local=False,
+                                 prefilter='holistic')
+    prefilter_rows = full[:, :min(k, len(hr))]
     kmax = min(len(hr), max(2 * k, 50) if int(conf['prefilter_k']) else 100)
     curve = [metrics.recall_at_k(full, ds.gt, kk) for kk in range(1, kmax + 1)]
 
@@ -184,15 +188,15 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
                                        min(int(conf['timing_images']), len(ds.query_paths))).astype(int))
     timing_images = [load_image(str(ds.query_paths[i])) for i in timing_idx]
     # timed reranks: queries with the full K candidates (early loop frames have only a few)
-    counts = (prefilter >= 0).sum(axis=1)
+    counts = (prefilter_rows >= 0).sum(axis=1)
     answerable = [int(i) for i in np.flatnonzero(counts == counts.max())] if counts.max(initial=0) else []
     pick = np.unique(np.linspace(0, len(answerable) - 1, min(int(conf['timing_queries']), len(answerable)))
                      .astype(int)) if answerable else np.zeros(0, int)
-    timed = [(answerable[i], prefilter[answerable[i]]) for i in pick]
+    timed = [(answerable[i], prefilter_rows[answerable[i]]) for i in pick]
     reps = int(conf['timing_repeats'])
     front = SadFrontEnd(ds) if any(m in PEER_METHODS for m in methods) else None
 
-    rankings, rows_out, reloc = {}, {}, None
+    rankings, rows_out, reloc, stages = {}, {}, None, None
     extract_jobs, match_jobs = {}, {}
     for row, method, head in row_names(methods, heads):
         t0 = time.perf_counter()
@@ -212,11 +216,15 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
             qs = [v.from_features(f, s) for f, s in zip(query_feats, query_sizes)]
             rs = qs if same_images else [v.from_features(f, s) for f, s in zip(ref_feats, ref_sizes)]
             batch = stack_landmarks(rs)
-            ranked, scores = rank_all(qs, batch, k, allowed=ds.candidates, scale=scale)
+            ranked, scores = rank_all(qs, batch, k, allowed=ds.candidates, scale=scale, prefilter=prefilter)
             # the paper's protocol: the same holistic top-K for every local method, only reordered
-            same = all(set(a[a >= 0]) == set(b[b >= 0]) for a, b in zip(ranked, prefilter))
+            same = prefilter != 'holistic' or \
+                all(set(a[a >= 0]) == set(b[b >= 0]) for a, b in zip(ranked, prefilter_rows))
             if not same:
                 raise AssertionError(f'{row}: reranked candidates differ from the holistic top-{k}')
+            if method == 'lln' and stages is None:
+                stages = first_stage_report(qs, batch, ds, full, ranked if prefilter == 'exhaustive' else None,
+                                            scale, reps)
             extract_jobs[row] = [(extraction_job(v, im), 1) for im in timing_images]
             # keep only what the timed reranks need (the candidates of a few queries), not the map
             match_jobs[row] = [(functools.partial(match_batch, qs[q], batch.take(c[c >= 0]), scale),
@@ -278,6 +286,7 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
                    'torch_threads': torch.get_num_threads(),
                    'runtime': extractor.model_info.get('runtime', 'torch')},
         'recall_at_k_holistic': [finite(float(r)) for r in curve],
+        'first_stage': stages,
         'methods': rows_out,
     }
     if reloc is not None:
@@ -287,6 +296,35 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
         entry['figures'] = write_figures(run, ds, extractor, heads, conf, feats, ref_sizes, query_sizes,
                                          Path(out_dir))
     return run
+
+
+FIRST_STAGE_KS = (1, 5, 10, 30, 100)
+
+
+def first_stage_report(qs: list, batch, ds, holistic_full: np.ndarray, exhaustive: np.ndarray | None,
+                       scale: float, repeats: int) -> dict:
+    """Recall@K (FIRST_STAGE_KS) of each first stage's own ranking, i.e. the ceiling of a rerank of
+    its top K, and its cost per query (ms, best of `repeats` over the timed queries): holistic
+    (global cosine over every ref), landmarks (landmark_index search + score_hits) and, when the
+    run is exhaustive, S over every ref (its ranking `exhaustive`)."""
+    kmax = min(max(FIRST_STAGE_KS), len(batch))
+    lm, _ = first_stage(qs, batch, kmax, 'landmarks', ds.candidates, scale=scale)
+    out = {'holistic': holistic_full, 'landmarks': lm}
+    if exhaustive is not None:
+        out['exhaustive'] = exhaustive
+    report = {name: {'recall_at': {str(kk): finite(metrics.recall_at_k(r, ds.gt, kk))
+                                   for kk in FIRST_STAGE_KS if kk <= r.shape[1]}}
+              for name, r in out.items()}
+    pick = np.unique(np.linspace(0, len(qs) - 1, min(10, len(qs))).astype(int))
+    index = batch_index(batch)
+
+    def holistic_top(q):
+        return np.argsort(-(batch.globals @ q.global_descriptor))[:kmax]
+    jobs = {'holistic': [(functools.partial(holistic_top, qs[i]), 1) for i in pick],
+            'landmarks': [(functools.partial(index.shortlist, qs[i], kmax, None, scale), 1) for i in pick]}
+    for name, ms in interleaved_times(jobs, repeats).items():
+        report[name]['ms_per_query'] = finite(ms)
+    return report
 
 
 def evaluate(datasets: list, extractor, conf: dict | None = None, heads: list[Head] | None = None,
@@ -311,6 +349,7 @@ def evaluate(datasets: list, extractor, conf: dict | None = None, heads: list[He
             'sequence_search': {key: sequence_defaults[key] for key in ('v_min', 'v_max', 'v_steps')},
             'seqslam': {'length': int(conf['sequence']) or int(conf['seqslam_length']), **sad_conf},
             'top_n': int(conf['top_n']), 'prefilter_k': int(conf['prefilter_k']), 'scale': float(conf['scale']),
+            'prefilter': check_prefilter(conf['prefilter'], conf['prefilter_k'])[0],
             'input_height': int(extractor.conf['input_height']),
             'backbone': extractor.conf['backbone']['name'], 'layer': extractor.backbone.layer,
             'descriptor_space': extractor.descriptor_space, 'rand_seed': int(extractor.conf['rand_seed']),

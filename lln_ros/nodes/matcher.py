@@ -40,6 +40,7 @@ from std_srvs.srv import Trigger
 
 from .. import msgs
 from ..errors import LLNError
+from ..landmark_index import PREFILTERS
 from ..limits import default_conf as LIMITS
 from ..localizer import Localizer, open_map
 from ..localizer import default_conf as LOC
@@ -55,8 +56,11 @@ PARAMETERS = {
                       'milvus-lite:///path.db or milvus://host:port[/db][?map=name]'),
     'mode': Param(LOC['mode'], 'localization: answer queries only | mapping: answer, then store each query',
                   choices=('localization', 'mapping')),
-    'prefilter_k': Param(LOC['prefilter_k'], 'holistic candidates reranked by the landmark similarity; 0 = every '
-                         'keyframe (exhaustive: no holistic cap on recall, cost grows with the map)',
+    'prefilter': Param(LOC['prefilter'], 'first stage: landmarks (every query landmark against every map landmark, '
+                       'voted per keyframe) | holistic (global descriptor cosine) | exhaustive (every keyframe)',
+                       dynamic=True, choices=PREFILTERS),
+    'prefilter_k': Param(LOC['prefilter_k'], 'first-stage candidates reranked by the landmark similarity; 0 = every '
+                         'keyframe (exhaustive, whatever prefilter says; cost grows with the map)',
                          dynamic=True, range=(0, 1_000_000)),
     'k': Param(LOC['k'], 'candidates published per query', dynamic=True, range=(1, 10_000_000)),
     # no range: any threshold is meaningful (lln-demo passes -1e9 for "publish every candidate")
@@ -95,7 +99,7 @@ PARAMETERS = {
     'max_keypoints': Param(LIMITS['max_keypoints'], 'limit: rows per keypoints cloud (verify)', range=(1, 2**31 - 1)),
 }
 # the Localizer's own settings among them (updated in place at run time: it reads them per message)
-LOCALIZER_KEYS = ('mode', 'prefilter_k', 'k', 'min_score', 'exclude_recent', 'method', 'offset_scale',
+LOCALIZER_KEYS = ('mode', 'prefilter', 'prefilter_k', 'k', 'min_score', 'exclude_recent', 'method', 'offset_scale',
                   'max_query_age', 'verify', 'verify_min_inliers', 'verify_margin', 'sequence_length',
                   'sequence_max_gap')
 

@@ -37,9 +37,6 @@ Milvus acknowledged the insert; inserts go in batches of at most conf['insert_by
 refuses gRPC messages over 64 MB). Every pymilvus / gRPC error becomes a MapError naming the map.
 Ids are reserved in blocks of ID_BLOCK in the meta record, so an add costs one insert; a process
 that stops skips the rest of its block (ids are never reused, not always consecutive).
-
-Past the ~600 lines a module should have, because the schema 1 reader that the migration needs is
-here (the end of the file); it can go once no schema 1 map is left to migrate.
 """
 from __future__ import annotations
 
@@ -54,9 +51,10 @@ from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
-from .errors import DescriptorError, LLNError, MapError
-from .landmarks import LandmarkSet
-from .mapstore import FORMAT, MapCandidate, MapStore
+from .. import landmark_index
+from ..errors import DescriptorError, LLNError, MapError
+from ..landmarks import LandmarkSet
+from .base import FORMAT, MapStore
 
 log = logging.getLogger(__name__)
 
@@ -126,6 +124,7 @@ class MilvusMapStore(MapStore):
     """A map in Milvus collections (see the module docstring); MapStore's API and error behaviour."""
 
     default_conf = {
+        **landmark_index.default_conf,
         'index_type': 'FLAT',      # global-descriptor index; on a cluster e.g. 'HNSW' or 'AUTOINDEX'
         'timeout': 30.0,           # seconds per Milvus call
         'insert_bytes': 16 << 20,  # largest insert message; the 2.3 server refuses gRPC messages > 64 MB
@@ -148,6 +147,7 @@ class MilvusMapStore(MapStore):
         self._lock = threading.RLock()
         self._model = None
         self._ids: list[int] = []
+        self._landmarks = None   # the landmark first stage: a local FAISS index, built at open
         self._next_id = self._reserved = 1
         self._refreshed = time.monotonic()
         self._has_keypoints = False
@@ -255,7 +255,7 @@ class MilvusMapStore(MapStore):
     def _create_meta(self) -> None:
         self._create(self._meta_c, [('key', 'VARCHAR', {'is_primary': True, 'max_length': 64}),
                                     ('value', 'VARCHAR', {'max_length': 65535})], 'unused', 2)
-        from . import __version__
+        from .. import __version__
         self._put_meta({'format': FORMAT, 'schema_version': str(SCHEMA_VERSION),
                         'created': str(int(time.time())), 'created_by': f'lln_ros {__version__}',
                         'next_id': '1'})
@@ -326,6 +326,17 @@ class MilvusMapStore(MapStore):
         self._refreshed = time.monotonic()
         if self._ids and self._ids[-1] >= self._next_id:
             raise MapError(f'map {self.path} is damaged: keyframe {self._ids[-1]} but next_id {self._next_id}')
+        self._load_landmarks()
+
+    def _load_landmarks(self) -> None:
+        """The landmark index is local (FAISS), built from the stored keyframes at every open."""
+        self._landmarks = self._new_landmark_index()
+        self._index_landmarks(self._ids)
+
+    def _index_landmarks(self, ids) -> None:
+        for start in range(0, len(ids), 512):
+            sets = self._fetch(ids[start:start + 512])
+            self._landmarks.add_sets(list(sets), list(sets.values()))
 
     def _refresh(self) -> None:
         """See other processes' writes: new ids above ours, a rescan when the count disagrees."""
@@ -340,12 +351,20 @@ class MilvusMapStore(MapStore):
                     if not self._client.has_collection(self._fr_c):
                         return
                     self._client.load_collection(self._fr_c)
+                before = set(self._ids)
                 last = self._ids[-1] if self._ids else -1
                 new = self._client.query(self._fr_c, filter=f'id > {last}', output_fields=['id'], limit=_QUERY_ROWS)
                 self._ids.extend(sorted(int(r['id']) for r in new))
                 count = int(self._client.query(self._fr_c, filter='', output_fields=['count(*)'])[0]['count(*)'])
                 if count != len(self._ids) or len(new) == _QUERY_ROWS:
                     self._ids = self._scan_ids()
+                # another process's keyframes reach this process's landmark index too
+                now = set(self._ids)
+                if self._landmarks is None:
+                    self._load_landmarks()
+                elif now != before:
+                    self._landmarks.remove_keyframes(sorted(before - now))
+                    self._index_landmarks(sorted(now - before))
                 if self._ids and self._ids[-1] >= self._next_id:   # another process wrote
                     self._next_id = self._reserved = self._ids[-1] + 1
                 if not self._has_keypoints:
@@ -367,6 +386,7 @@ class MilvusMapStore(MapStore):
                                 'descriptor_space': model['descriptor_space'],
                                 'descriptor_dim': str(model['descriptor_dim'])})
                 self._model = model
+                self._landmarks = self._new_landmark_index()
             elif not self._same_space(model):
                 raise self._mismatch(model, 'the extractor')
 
@@ -460,37 +480,22 @@ class MilvusMapStore(MapStore):
                     size += nbytes
             if ids is not None:
                 self._ids.sort()
+            self._landmarks.add_sets(new_ids, sets)
             if self.conf['seal_rows'] and self._unsealed >= self.conf['seal_rows']:
                 self._client.flush(self._fr_c)
                 self._unsealed = 0
             return new_ids
 
-    def query(self, lset: LandmarkSet, prefilter_k: int = 30, k: int = 5, min_score: float | None = None,
-              exclude_recent: int = 0, method_rerank: bool = True, scale: float = 1.0) -> list[MapCandidate]:
-        """As SQLiteMapStore.query: holistic top prefilter_k by one Milvus search that also returns
-        their landmarks (0 = every keyframe), reranked here."""
-        prefilter_k, k, exclude_recent = self._query_args(lset, prefilter_k, k, exclude_recent, method_rerank)
-        with self._lock, self._errors('query'):
-            self._ready()
-            if self._model is None or not self._ids:
-                return []
-            given = {'descriptor_space': lset.descriptor_space or self._model['descriptor_space'],
-                     'descriptor_dim': lset.dim}
-            if not self._same_space(given):
-                raise self._mismatch(given, 'a query')
-            if exclude_recent >= len(self._ids):
-                return []
-            if prefilter_k:
-                where = f'id < {self._ids[-exclude_recent]}' if exclude_recent else ''
-                hits = self._client.search(self._fr_c, data=[np.asarray(lset.global_descriptor, np.float32).tolist()],
-                                           anns_field='global_descriptor', limit=min(prefilter_k, _QUERY_ROWS),
-                                           filter=where, search_params={'metric_type': 'IP'}, output_fields=['*'])[0]
-                ids = np.array([int(h['id']) for h in hits], np.int64)
-                hol = np.array([float(h['distance']) for h in hits], np.float32)
-                sets = self._fetch(ids, [{**h['entity'], 'id': h['id']} for h in hits])
-            else:
-                hol, ids, sets = self._every_keyframe(lset, exclude_recent)
-        return self._answer(lset, ids, hol, sets, k, min_score, method_rerank, scale)
+    def _holistic(self, lset: LandmarkSet, k: int, below: int | None) -> tuple[np.ndarray, np.ndarray, dict]:
+        """The holistic first stage: one Milvus search that also returns the hits' landmarks."""
+        with self._errors('query'):
+            where = f'id < {int(below)}' if below is not None else ''
+            hits = self._client.search(self._fr_c, data=[np.asarray(lset.global_descriptor, np.float32).tolist()],
+                                       anns_field='global_descriptor', limit=min(k, _QUERY_ROWS), filter=where,
+                                       search_params={'metric_type': 'IP'}, output_fields=['*'])[0]
+            ids = np.array([int(h['id']) for h in hits], np.int64)
+            hol = np.array([float(h['distance']) for h in hits], np.float32)
+            return hol, ids, self._fetch(ids, [{**h['entity'], 'id': h['id']} for h in hits])
 
     def get(self, keyframe_id: int) -> LandmarkSet:
         with self._lock, self._errors('get'):
@@ -557,6 +562,7 @@ class MilvusMapStore(MapStore):
                 self._delete_ids(present)
                 gone = set(present)
                 self._ids = [i for i in self._ids if i not in gone]
+                self._landmarks.remove_keyframes(present)
             return len(present)
 
     def clear(self) -> int:
@@ -564,6 +570,8 @@ class MilvusMapStore(MapStore):
             self._ready()
             self._delete_ids(list(self._ids))
             removed, self._ids = len(self._ids), []
+            if self._landmarks is not None:
+                self._landmarks.reset()
             return removed
 
     def info(self) -> dict:
@@ -574,6 +582,8 @@ class MilvusMapStore(MapStore):
                     'descriptor_space': self._model and self._model['descriptor_space'],
                     'descriptor_dim': self._model and int(self._model['descriptor_dim']),
                     'schema_version': int(meta['schema_version']), 'index': self.conf['index_type'],
+                    'landmark_index': self._landmarks.kind if self._landmarks is not None else None,
+                    'landmarks': self._landmarks.ntotal if self._landmarks is not None else 0,
                     'first_id': self._ids[0] if self._ids else None,
                     'last_id': self._ids[-1] if self._ids else None,
                     'created': int(meta.get('created', 0)), 'created_by': meta.get('created_by', '')}
@@ -607,12 +617,13 @@ class MilvusMapStore(MapStore):
                     problems.append(f'schema_version is {meta.get("schema_version")!r}, expected {SCHEMA_VERSION}')
                 if self._model is None:
                     return problems
-                found, bad = [], []
+                found, bad, n_of = [], [], {}
                 it = self._client.query_iterator(self._fr_c, batch_size=256, filter='id >= 0', output_fields=['*'])
                 try:
                     while rows := it.next():
                         for r in rows:
                             found.append(int(r['id']))
+                            n_of[int(r['id'])] = int(r['n'])
                             try:
                                 self._row_to_set(r)
                             except MapError as e:
@@ -629,6 +640,7 @@ class MilvusMapStore(MapStore):
                 problems.extend(bad[:limit])
                 if len(bad) > limit:
                     problems.append(f'... and {len(bad) - limit} more like that')
+                problems.extend(self._landmark_problems(n_of))
             except MapError as e:
                 problems.append(str(e))
             except Exception as e:  # MilvusException and friends: the check reports, it does not raise
@@ -642,6 +654,7 @@ class MilvusMapStore(MapStore):
                     self._client.close()
                 finally:
                     self._client = None
+                    self._landmarks = None
                     self._ids = []
 
     def __repr__(self) -> str:

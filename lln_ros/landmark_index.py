@@ -1,0 +1,342 @@
+"""The landmark-level first stage: a FAISS index over every stored landmark descriptor, and the one
+scoring of its hits that every path uses (offline rank_all / lln-eval, LandmarkDatabase, both map
+backends, the matcher node, lln-demo).
+
+    index = LandmarkIndex(dim=192, conf)
+    index.add(descriptors (N, D), keyframe_ids (N,), cells (N, 2))
+    ids, scores = index.shortlist(query_set, k=30, below=None)    # keyframe ids, first-stage scores
+
+Why: the holistic (global max-pool) top-K misses most Nordland revisits across seasons (recall@30
+0.30, docs/results.md), so the reranker never sees them. Landmark descriptors survive the season
+change much better, and matching each query landmark against every map landmark has no such cap.
+
+Scoring (score_hits) -- an approximation of the paper's S computed from the kNN hits only:
+  1. every query landmark i retrieves its `knn` nearest map landmarks by cosine s (FAISS);
+  2. burstiness: a query landmark votes at most once per keyframe (its best hit there), and a map
+     landmark takes at most one query landmark (its best); ASMK / DELF limit repeated structure
+     the same way, so one textured patch (rails, sky, snow) cannot outvote the rest of the image;
+  3. selectivity: a hit counts max(0, (s - tau) / (1 - tau))^alpha (ASMK's sigma_alpha with
+     threshold tau): CNN features are non-negative, so every pair has a positive cosine and plain
+     sums reward keyframes that are merely generic;
+  4. spatial consistency, as S does: the mode of the query-minus-map cell offsets of a keyframe's
+     hits (similarity.offset_mode) and Gaussian weights around it (similarity.offset_weights);
+  5. the keyframe's score is sum_i w_i * sigma(s_i); the top K go to the exact reranker.
+
+Landmark ids: FAISS holds one int64 per landmark, (keyframe_id << 24) | (row << 12) | col. The cell
+is unique within a keyframe (a landmark is one grid cell), so a hit says where it is without any
+side table, a keyframe's landmarks are one id range (delete = IDSelectorRange) and "older than
+keyframe c" is ids < c << 24 (exclude_recent). Grids up to 4096 x 4096 cells, keyframe ids < 2^39.
+
+Index type: exact (IndexIDMap2(IndexFlatIP)) up to conf['landmark_index_threshold'] landmarks;
+above it IVF-PQ (IndexIVFPQ, conf['landmark_pq_m'] sub-quantisers of 8 bits = D/4 bytes per
+landmark, trained on a sample of the map's own descriptors, conf['landmark_nprobe'] cells probed).
+Exact inner products are ~130 ms of CPU per query (50 query landmarks) at 50k landmarks on this
+machine, so only small maps stay exact; IVF-PQ keeps a 100k-keyframe map (5M landmarks) at ~280 MB
+and scans nprobe/lists of it. An IVF-PQ grown past conf['landmark_retrain_factor'] x the landmarks
+it was trained on is rebuilt by its owner (the map store) from the stored descriptors. Recall against exact search is
+measured by bench/bench_landmark_index.py on real descriptors.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import struct
+import zlib
+
+import faiss
+import numpy as np
+
+from .errors import MapError
+from .similarity import offset_mode, offset_weights
+
+log = logging.getLogger(__name__)
+
+PREFILTERS = ('landmarks', 'holistic', 'exhaustive')
+MAGIC = b'LLNLMIDX1\n'
+
+default_conf = {
+    'landmark_knn': 20,                     # map landmarks each query landmark retrieves
+    'landmark_tau': 0.35,                   # cosine below which a hit does not vote
+    'landmark_alpha': 3.0,                  # selectivity exponent of a hit's vote
+    'landmark_index_threshold': 20_000,     # landmarks (~400 keyframes at n=50); IVF-PQ above
+    'landmark_retrain_factor': 8,           # an IVF-PQ grown past this x its training size is rebuilt
+    'landmark_ivf_lists': 0,                # 0 = sqrt(landmarks), between 64 and 4096 (<= landmarks / 39)
+    'landmark_nprobe': 16,                  # IVF cells visited per query landmark
+    'landmark_pq_m': 0,                     # PQ sub-quantisers; 0 = D / 4 (8 bits each: D/4 bytes)
+    'landmark_pq_bits': 8,                  # bits per sub-quantiser code
+    'landmark_train_points': 100_000,       # sample the IVF-PQ is trained on
+}
+
+_CELL_BITS = 12
+_KF_SHIFT = 2 * _CELL_BITS
+_MAX_CELL = 1 << _CELL_BITS
+
+
+def check_prefilter(prefilter: str, prefilter_k: int) -> tuple[str, int]:
+    """(prefilter, K) after the backward-compatible rule: prefilter_k 0 means exhaustive whatever
+    `prefilter` says (older configs wrote `prefilter_k: 0` for "score every keyframe")."""
+    if prefilter not in PREFILTERS:
+        raise ValueError(f'prefilter must be one of {"|".join(PREFILTERS)}, got {prefilter!r}')
+    if int(prefilter_k) < 0:
+        raise ValueError(f'need prefilter_k >= 0 (0 = every keyframe), got {prefilter_k}')
+    return ('exhaustive' if int(prefilter_k) == 0 else prefilter), int(prefilter_k)
+
+
+def encode_ids(keyframe_ids: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """int64 landmark ids from keyframe ids (N,) and cells (N, 2) as (col, row)."""
+    kf = np.asarray(keyframe_ids, np.int64)
+    cells = np.asarray(cells, np.int64).reshape(-1, 2)
+    if len(cells) and (cells.min() < 0 or cells.max() >= _MAX_CELL):
+        raise ValueError(f'landmark cells must be in [0, {_MAX_CELL}) for the landmark index')
+    if len(kf) and (kf.min() < 0 or kf.max() >= 1 << (63 - _KF_SHIFT)):
+        raise ValueError('keyframe ids must be in [0, 2^39) for the landmark index')
+    return (kf << _KF_SHIFT) | (cells[:, 1] << _CELL_BITS) | cells[:, 0]
+
+
+def decode_ids(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(keyframe ids, cells (..., 2) as (col, row)) from landmark ids; -1 ids give keyframe -1."""
+    ids = np.asarray(ids, np.int64)
+    kf = np.where(ids >= 0, ids >> _KF_SHIFT, -1)
+    cells = np.stack([ids & (_MAX_CELL - 1), (ids >> _CELL_BITS) & (_MAX_CELL - 1)], axis=-1)
+    return kf, cells
+
+
+def score_hits(query_cells: np.ndarray, sims: np.ndarray, keyframes: np.ndarray, map_cells: np.ndarray,
+               conf: dict, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """First-stage score of every keyframe hit (see the module doc).
+
+    query_cells (n, 2) (col, row) of the query landmarks; sims (n, k) cosines of each one's k hits;
+    keyframes (n, k) keyframe id of each hit (-1 = no hit); map_cells (n, k, 2) cell of each hit.
+    Returns keyframe ids (M,) and scores (M,), best first (ties: the newer keyframe first, as an
+    online map prefers the latest view of a place)."""
+    conf = {**default_conf, **conf}
+    n, k = sims.shape
+    qi = np.repeat(np.arange(n), k)
+    kf, s = keyframes.reshape(-1), sims.reshape(-1).astype(np.float32)
+    mc = map_cells.reshape(-1, 2).astype(np.int64)
+    tau = float(conf['landmark_tau'])
+    keep = (kf >= 0) & (s > tau)
+    qi, kf, s, mc = qi[keep], kf[keep], s[keep], mc[keep]
+    if not len(kf):
+        return np.zeros(0, np.int64), np.zeros(0, np.float32)
+    # burstiness: best hit per (query landmark, keyframe), then per (keyframe, map landmark)
+    order = np.lexsort((-s, qi, kf))
+    qi, kf, s, mc = qi[order], kf[order], s[order], mc[order]
+    first = np.ones(len(kf), bool)
+    first[1:] = (kf[1:] != kf[:-1]) | (qi[1:] != qi[:-1])
+    qi, kf, s, mc = qi[first], kf[first], s[first], mc[first]
+    cell_code = mc[:, 1] * _MAX_CELL + mc[:, 0]
+    order = np.lexsort((-s, cell_code, kf))
+    qi, kf, s, mc, cell_code = qi[order], kf[order], s[order], mc[order], cell_code[order]
+    first = np.ones(len(kf), bool)
+    first[1:] = (kf[1:] != kf[:-1]) | (cell_code[1:] != cell_code[:-1])
+    qi, kf, s, mc = qi[first], kf[first], s[first], mc[first]
+    # one row per keyframe, one column per query landmark: the layout similarity's offset code uses
+    uniq, row = np.unique(kf, return_inverse=True)
+    m = len(uniq)
+    matched = np.zeros((m, n), bool)
+    pair_sims = np.zeros((m, n), np.float32)
+    offsets = np.zeros((m, n, 2), np.int64)
+    matched[row, qi] = True
+    pair_sims[row, qi] = s
+    offsets[row, qi] = np.asarray(query_cells, np.int64)[qi] - mc
+    mode = offset_mode(offsets, matched, pair_sims)
+    weight = np.where(matched, offset_weights(offsets, mode, scale), 0.0)
+    vote = np.where(matched, np.clip((pair_sims - tau) / (1.0 - tau), 0.0, None) ** float(conf['landmark_alpha']), 0.0)
+    scores = (weight * vote).sum(axis=1).astype(np.float32)
+    best = np.lexsort((-uniq, -scores))
+    return uniq[best], scores[best]
+
+
+def fill(ids: np.ndarray, scores: np.ndarray, holistic_ids: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The landmark shortlist (ids (M,), scores (M,)) topped up to k from the holistic ranking
+    (holistic_ids, best first), the added ones with first-stage score 0: when few landmarks clear
+    tau (a small map, or a query with little texture), the reranker still sees k candidates."""
+    if len(ids) >= k:
+        return ids[:k], scores[:k]
+    extra = np.asarray([i for i in holistic_ids if i not in set(ids.tolist())], np.int64)[:k - len(ids)]
+    return np.concatenate([ids, extra]).astype(np.int64), \
+        np.concatenate([scores, np.zeros(len(extra), np.float32)]).astype(np.float32)
+
+
+class LandmarkIndex:
+    """FAISS inner-product index of landmark descriptors (D,), ids as encode_ids (module doc)."""
+
+    def __init__(self, dim: int, conf: dict | None = None):
+        self.dim = int(dim)
+        self.conf = {**default_conf, **(conf or {})}
+        self.index = self._exact()
+        self.trained_on = 0   # landmarks the IVF-PQ was trained on (0: exact)
+
+    def _exact(self):
+        return faiss.IndexIDMap2(faiss.IndexFlatIP(self.dim))
+
+    @property
+    def kind(self) -> str:
+        return 'ivfpq' if isinstance(self.index, faiss.IndexIVF) else 'exact'
+
+    @property
+    def ntotal(self) -> int:
+        return int(self.index.ntotal)
+
+    def __len__(self) -> int:
+        return self.ntotal
+
+    # ------------------------------------------------------------------ building
+    def _compressed(self, x: np.ndarray, total: int | None = None):
+        """An empty IVF-PQ trained on x (N, D) (a sample of it), sized for `total` landmarks (N)."""
+        n = int(total or len(x))
+        lists = int(self.conf['landmark_ivf_lists']) or int(max(1, min(np.clip(np.sqrt(n), 64, 4096), n // 39)))
+        m = int(self.conf['landmark_pq_m']) or max(1, self.dim // 4)
+        if self.dim % m:
+            raise ValueError(f'landmark_pq_m {m} must divide the descriptor size {self.dim}')
+        index = faiss.IndexIVFPQ(faiss.IndexFlatIP(self.dim), self.dim, lists, m, int(self.conf['landmark_pq_bits']),
+                                 faiss.METRIC_INNER_PRODUCT)
+        index.cp.max_points_per_centroid = 64
+        rng = np.random.default_rng(0)
+        sample = x if len(x) <= self.conf['landmark_train_points'] else \
+            x[np.sort(rng.choice(len(x), int(self.conf['landmark_train_points']), replace=False))]
+        index.train(np.ascontiguousarray(sample, np.float32))
+        index.nprobe = int(self.conf['landmark_nprobe'])
+        self.trained_on = n
+        return index
+
+    def needs_rebuild(self) -> bool:
+        """An IVF-PQ trained on far fewer landmarks than it now holds (its cells are overfull and
+        every query scans more): the owner rebuilds it from the stored descriptors."""
+        return self.kind == 'ivfpq' and self.ntotal > self.conf['landmark_retrain_factor'] * max(self.trained_on, 1)
+
+    def build(self, x: np.ndarray, ids: np.ndarray) -> None:
+        """Replace the contents with x (N, D) float32 under landmark ids (N,), choosing the type."""
+        x = np.ascontiguousarray(x, np.float32).reshape(-1, self.dim)
+        ids = np.ascontiguousarray(ids, np.int64)
+        index = self._compressed(x) if len(ids) > self.conf['landmark_index_threshold'] else self._exact()
+        for start in range(0, len(ids), 200_000):
+            index.add_with_ids(x[start:start + 200_000], ids[start:start + 200_000])
+        self.index = index
+
+    def add(self, descriptors: np.ndarray, keyframe_ids: np.ndarray, cells: np.ndarray) -> None:
+        """Add landmarks: descriptors (N, D), their keyframe ids (N,) and cells (N, 2)."""
+        x = np.ascontiguousarray(descriptors, np.float32).reshape(-1, self.dim)
+        ids = encode_ids(keyframe_ids, cells)
+        if self.kind == 'exact' and self.ntotal + len(ids) > self.conf['landmark_index_threshold']:
+            old = self.index.index.reconstruct_n(0, self.ntotal) if self.ntotal else np.zeros((0, self.dim), np.float32)
+            old_ids = faiss.vector_to_array(self.index.id_map).astype(np.int64)
+            log.info('landmark index passed %d landmarks: training IVF-PQ', self.conf['landmark_index_threshold'])
+            self.build(np.concatenate([old, x]), np.concatenate([old_ids, ids]))
+            return
+        self.index.add_with_ids(x, ids)
+
+    def add_sets(self, keyframe_ids, sets) -> None:
+        """Add every landmark of the LandmarkSets `sets`, stored under `keyframe_ids`."""
+        if not len(sets):
+            return
+        desc = np.concatenate([np.asarray(s.descriptors, np.float32) for s in sets])
+        kf = np.concatenate([np.full(len(s), int(i), np.int64) for i, s in zip(keyframe_ids, sets)])
+        self.add(desc, kf, np.concatenate([np.asarray(s.cells).reshape(-1, 2) for s in sets]))
+
+    def remove_keyframes(self, keyframe_ids) -> int:
+        """Drop every landmark of these keyframes; returns how many landmarks went."""
+        kids = sorted({int(i) for i in keyframe_ids})
+        if len(kids) > 4:   # one pass over the index for many keyframes, not one per keyframe
+            held = self.landmark_ids()
+            drop = np.ascontiguousarray(held[np.isin(decode_ids(held)[0], kids)])
+            return int(self.index.remove_ids(drop)) if len(drop) else 0
+        removed = 0
+        for kid in kids:
+            removed += int(self.index.remove_ids(faiss.IDSelectorRange(kid << _KF_SHIFT, (kid + 1) << _KF_SHIFT)))
+        return removed
+
+    def reset(self) -> None:
+        self.index = self._exact()
+
+    # ------------------------------------------------------------------ reading
+    def landmark_ids(self) -> np.ndarray:
+        """Every landmark id held (unsorted), for the consistency check against the store."""
+        if self.kind == 'exact':
+            return faiss.vector_to_array(self.index.id_map).astype(np.int64)
+        lists = self.index.invlists
+        out = [faiss.rev_swig_ptr(lists.get_ids(c), lists.list_size(c)).copy()
+               for c in range(lists.nlist) if lists.list_size(c)]
+        return np.concatenate(out).astype(np.int64) if out else np.zeros(0, np.int64)
+
+    def keyframe_counts(self) -> dict[int, int]:
+        """{keyframe id: landmarks held}."""
+        kf, _ = decode_ids(self.landmark_ids())
+        ids, counts = np.unique(kf, return_counts=True)
+        return dict(zip(ids.tolist(), counts.tolist()))
+
+    def search(self, descriptors: np.ndarray, k: int, below: int | None = None):
+        """kNN of each query landmark: sims (n, k), keyframe ids (n, k) (-1 = none), cells (n, k, 2).
+        below: only keyframes with id < below (exclude_recent)."""
+        q = np.ascontiguousarray(descriptors, np.float32).reshape(-1, self.dim)
+        params = None
+        if below is not None:
+            sel = faiss.IDSelectorRange(0, int(below) << _KF_SHIFT)
+            params = (faiss.SearchParametersIVF(sel=sel, nprobe=self.index.nprobe)
+                      if self.kind == 'ivfpq' else faiss.SearchParameters(sel=sel))
+        sims, ids = self.index.search(q, int(k), params=params)
+        kf, cells = decode_ids(ids)
+        return sims, kf, cells
+
+    def shortlist(self, query, k: int, below: int | None = None, scale: float = 1.0):
+        """The first stage: the top k keyframe ids (K,) and their first-stage scores (K,) for a query
+        LandmarkSet; fewer when fewer keyframes were hit."""
+        if not self.ntotal or not len(query):
+            return np.zeros(0, np.int64), np.zeros(0, np.float32)
+        sims, kf, cells = self.search(query.descriptors, min(int(self.conf['landmark_knn']), self.ntotal), below)
+        ids, scores = score_hits(query.cells, sims, kf, cells, self.conf, scale)
+        return ids[:int(k)], scores[:int(k)]
+
+    # ------------------------------------------------------------------ persistence (IVF-PQ maps)
+    def write(self, path: str, header: dict) -> None:
+        """Serialise to path atomically (temporary file, fsync, rename): MAGIC, a JSON header
+        (`header` plus D, landmark count and the CRC-32 of the FAISS bytes), the FAISS index."""
+        blob = faiss.serialize_index(self.index)
+        head = json.dumps({**header, 'dim': self.dim, 'landmarks': self.ntotal, 'trained_on': self.trained_on,
+                           'crc32': zlib.crc32(blob)}).encode()
+        tmp = f'{path}.tmp-{os.getpid()}'
+        try:
+            with open(tmp, 'wb') as f:
+                f.write(MAGIC + struct.pack('<I', len(head)) + head)
+                f.write(memoryview(blob))
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except OSError as e:
+            raise MapError(f'cannot write landmark index {path}: {e}') from e
+        finally:
+            if os.path.exists(tmp):
+                os.remove(tmp)
+
+    @classmethod
+    def read(cls, path: str, dim: int, conf: dict | None = None) -> tuple['LandmarkIndex', dict]:
+        """(index, header) from a file `write` made; MapError naming the problem when it is
+        truncated, corrupt (CRC), of another descriptor size or not a landmark index at all."""
+        try:
+            with open(path, 'rb') as f:
+                data = f.read()
+        except OSError as e:
+            raise MapError(f'cannot read landmark index {path}: {e}') from e
+        try:
+            if data[:len(MAGIC)] != MAGIC:
+                raise ValueError('not an lln_ros landmark index (bad magic)')
+            (n,) = struct.unpack('<I', data[len(MAGIC):len(MAGIC) + 4])
+            header = json.loads(data[len(MAGIC) + 4:len(MAGIC) + 4 + n])
+            blob = np.frombuffer(data, np.uint8, offset=len(MAGIC) + 4 + n)
+            if zlib.crc32(blob) != header.get('crc32'):
+                raise ValueError(f'checksum mismatch ({len(blob)} bytes of index data: truncated or corrupt)')
+            index = faiss.deserialize_index(blob)
+        except (ValueError, struct.error, RuntimeError) as e:
+            raise MapError(f'landmark index {path} is unusable: {str(e).splitlines()[0][:200]}') from None
+        if index.d != int(dim) or not isinstance(index, (faiss.IndexIVFPQ, faiss.IndexIDMap2)) or \
+                index.ntotal != header.get('landmarks'):
+            raise MapError(f'landmark index {path} holds {type(index).__name__} of D={index.d} with '
+                           f'{index.ntotal} landmarks; expected D={dim} and {header.get("landmarks")}')
+        out = cls(dim, conf)
+        if isinstance(index, faiss.IndexIVF):
+            index.nprobe = int(out.conf['landmark_nprobe'])
+        out.index = index
+        out.trained_on = int(header.get('trained_on', index.ntotal))
+        return out, header

@@ -1,0 +1,521 @@
+"""The embedded map backend: one SQLite file plus in-memory FAISS indexes.
+
+Storage
+-------
+One SQLite file in WAL mode with ``synchronous=FULL``: ``add`` commits one transaction and fsyncs
+the WAL before it returns, so an acknowledged keyframe survives ``kill -9`` and power loss. New files
+are built under a temporary name and linked into place, so a file at the map path is always either a
+complete map or not ours (never half-created). Schema version 1::
+
+    meta       key TEXT PRIMARY KEY, value TEXT
+               format='lln_ros-map', schema_version='1', created (unix s), created_by,
+               model (JSON of Extractor.model_info, or {descriptor_space, descriptor_dim}; written on
+               first use), descriptor_space, descriptor_dim
+    keyframes  id INTEGER PRIMARY KEY AUTOINCREMENT   -- never reused, not even after clear()
+               stamp_sec INTEGER, stamp_nanosec INTEGER
+               image_w REAL, image_h REAL              -- original image pixels
+               grid_rows INTEGER, grid_cols INTEGER
+               cell_w REAL, cell_h REAL                -- one grid cell in original pixels
+               n INTEGER                               -- number of landmarks (>= 1)
+               global_descriptor BLOB                  -- float32 little-endian (D,)
+    landmarks  keyframe_id INTEGER PRIMARY KEY REFERENCES keyframes(id) ON DELETE CASCADE
+               cells BLOB        -- int16 LE (n, 2), (col, row)
+               centers BLOB      -- float32 LE (n, 2), (u, v) region centre in original pixels
+               scores BLOB       -- float32 LE (n,)
+               descriptors BLOB  -- float16 LE (n, D), L2-normalised (float16: ~1e-3 relative)
+    keypoints  (optional, created by the first add_keypoints; for the matcher's verify mode)
+               keyframe_id INTEGER PRIMARY KEY REFERENCES keyframes(id) ON DELETE CASCADE
+               n INTEGER, uv BLOB (float32 LE (n, 2), original pixels), descriptors BLOB (uint8 (n, B))
+               -- 40 bytes per ORB keypoint (B = 32): 20 KB per keyframe at 500 keypoints
+
+All landmarks of a keyframe are one row (a row per landmark would be ~50x more rows and far slower to
+insert and fetch). ``landmarks`` is its own table so the scan at open, which rebuilds the FAISS index,
+reads only the small ``keyframes`` rows; the large ``descriptors`` blob is the LAST column so the small
+blobs are read without touching its overflow pages. The activation map and ``LandmarkSet.meta`` are
+not stored.
+
+Bytes per keyframe at n=50 with the default model (D=192): blobs 768 (global) + 19,200
+(descriptors) + 200 (cells) + 400 (centers) + 200 (scores) = 20,768; measured 21.3 KB per keyframe in a
+1,000-keyframe .db file after a checkpoint. At D=320 the blobs are 34,080
+and the .db file measured ~34.7-34.9 KB per keyframe after a checkpoint (4 KiB pages; record
+headers, b-tree and overflow-page slack add ~2%). float32 descriptors would double the descriptor
+part.
+
+Migrations: ``MIGRATIONS[v]`` upgrades a map from schema v to v+1 inside one transaction at open.
+A map newer than this code is refused, never modified.
+
+In memory: a FAISS index over the global descriptors, keyed by keyframe id (GlobalIndex): exact
+(``IndexIDMap(IndexFlatIP(D))``) up to ``conf['index_threshold']`` keyframes (50,000), IVF above
+(``IndexIVFFlat``, trained on the map's own descriptors at open, ~1 s at 100k). It is rebuilt from
+SQLite at open and checked against it (count and ids); nothing but SQLite is ever written, so there
+is no second file to disagree with after a crash. Landmarks stay on disk; a query
+fetches the prefiltered keyframes' landmarks with one ``SELECT ... WHERE id IN (...)``. If another
+connection (another process) commits to the file, the next call notices (``PRAGMA data_version``)
+and rebuilds the index.
+
+Thread safety: every call takes one lock (the connection is shared, ``check_same_thread=False``);
+the landmark reranking of ``query`` runs outside the lock.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import sqlite3
+import threading
+import time
+
+import numpy as np
+
+from ..errors import DescriptorError, MapError
+from ..landmark_index import LandmarkIndex, default_conf as landmark_index_defaults
+from ..landmarks import LandmarkSet
+from .base import MapStore
+from .index import GlobalIndex
+from .sqlite_file import _KF_COLS, _KF_INSERT, _LM_COLS, _SQL_CHUNK, FORMAT, SCHEMA_VERSION, SQLiteFile
+from .sqlite_landmarks import SQLiteLandmarks
+from .uri import backend_for
+
+log = logging.getLogger(__name__)
+
+
+class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
+    """The embedded map: one SQLite file plus an in-memory FAISS index (see the module docstring).
+
+    SQLiteMapStore(path, model=None, create=True, verify=True, conf=None). verify: run SQLite's
+    quick_check at open (reads the whole file once; catches truncation and corruption before they
+    surface as bad answers). conf: see default_conf (when the FAISS index turns approximate).
+    """
+
+    default_conf = {
+        **landmark_index_defaults,
+        'index_threshold': 50_000,  # keyframes; above this the global index is IVF, below exact
+        'ivf_lists': 0,             # IVF cells; 0 = sqrt(keyframes) (at most keyframes / 39) at (re)build
+        'ivf_nprobe': 16,           # IVF cells visited per query (recall vs speed: bench/bench_map.py)
+    }
+
+    def __init__(self, path, model: dict | None = None, create: bool = True, verify: bool = True,
+                 conf: dict | None = None):
+        self.conf = {**self.default_conf, **(conf or {})}
+        kind, location = backend_for(path)
+        if kind != 'sqlite':
+            raise MapError(f'{path} is not an SQLite map URI')
+        path = location
+        self.path = os.path.abspath(os.path.expanduser(os.fspath(path)))
+        self._lock = threading.RLock()
+        self._conn: sqlite3.Connection | None = None
+        self._model: dict | None = None
+        self._index = None
+        self._landmarks: LandmarkIndex | None = None
+        self._landmarks_dirty = False
+        self._unindexed: set[int] = set()  # corrupt keyframes the landmark index cannot hold
+        self.landmark_path = self.path + '.landmarks'
+        self._ids: list[int] = []
+        self._quarantined: dict = {}
+        self._data_version = None
+        if model is not None:
+            model = self._check_model_dict(model)
+        if os.path.isdir(self.path):
+            raise MapError(f'map path {self.path} is a directory, not a map file')
+        if not os.path.exists(self.path):
+            if not create:
+                raise MapError(f'no map at {self.path} (create=False)')
+            self._create_file()
+        else:
+            self._check_file()
+        try:
+            self._conn = sqlite3.connect(self.path, timeout=10.0, isolation_level=None,
+                                         check_same_thread=False)
+        except sqlite3.Error as e:
+            raise MapError(f'cannot open map {self.path}: {e}') from e
+        try:
+            self._identify()          # read-only: never modify a file that is not ours
+            self._configure()
+            self._migrate()
+            if verify:
+                rows = [r[0] for r in self._conn.execute('PRAGMA quick_check(20)')]
+                if rows != ['ok']:
+                    raise MapError(f'map {self.path} is corrupt (SQLite quick_check): ' + '; '.join(rows))
+            self._load()
+            if model is not None:
+                self._adopt_model(model)
+        except sqlite3.OperationalError as e:     # locked, read-only, I/O error
+            self._conn.close()
+            self._conn = None
+            raise MapError(f'cannot open map {self.path}: {e}') from e
+        except sqlite3.DatabaseError as e:        # malformed, not a database
+            self._conn.close()
+            self._conn = None
+            raise MapError(f'map {self.path} is corrupt or truncated: {e}') from e
+        except BaseException:
+            self._conn.close()
+            self._conn = None
+            raise
+
+    # ------------------------------------------------------------------ model
+
+    def use_model(self, model: dict) -> None:
+        """Declare the model whose descriptors will arrive (e.g. the extractor's model_info):
+        recorded when the map has none yet, MapError when it is from another descriptor space."""
+        model = self._check_model_dict(model)
+        with self._lock:
+            self._ready()
+            self._adopt_model(model)
+
+    def _adopt_model(self, model: dict) -> None:
+        """Record the model on first use, or refuse one from another descriptor space."""
+        if self._model is None:
+            self._write(lambda c: self._record_model(c, model))
+            self._model = model
+            self._index = GlobalIndex(model['descriptor_dim'], self.conf)
+            self._landmarks = self._new_landmark_index()
+        elif not self._same_space(model):
+            raise self._mismatch(model, 'the extractor')
+        elif model != self._model:
+            log.info('map %s was built with %s; now used with %s (same descriptor space)',
+                     self.path, self._model, model)
+
+    @staticmethod
+    def _record_model(c: sqlite3.Connection, model: dict) -> None:
+        c.executemany('INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)', [
+            ('model', json.dumps(model, sort_keys=True, default=str)),
+            ('descriptor_space', model['descriptor_space']),
+            ('descriptor_dim', str(model['descriptor_dim']))])
+
+    # ------------------------------------------------------------------ plumbing
+
+    def _ready(self) -> None:
+        if self._conn is None:
+            raise MapError(f'map {self.path} is closed')
+        # another connection (process) committed: our FAISS index may be stale
+        with self._read_errors():
+            if self._conn.execute('PRAGMA data_version').fetchone()[0] != self._data_version:
+                log.info('map %s changed on disk; reloading', self.path)
+                self._load()
+
+    @contextlib.contextmanager
+    def _read_errors(self):
+        try:
+            yield
+        except sqlite3.DatabaseError as e:
+            raise MapError(f'cannot read map {self.path} (corrupt or truncated?): {e}') from e
+
+    def _write(self, fn):
+        """Run fn(conn) in one IMMEDIATE transaction; durable on return (WAL + synchronous=FULL)."""
+        c = self._conn
+        try:
+            c.execute('BEGIN IMMEDIATE')
+            try:
+                result = fn(c)
+                c.execute('COMMIT')
+            except BaseException:
+                if c.in_transaction:
+                    c.execute('ROLLBACK')
+                raise
+        except sqlite3.OperationalError as e:
+            raise MapError(f'cannot write map {self.path}: {e}') from e
+        except sqlite3.DatabaseError as e:
+            raise MapError(f'map {self.path} is corrupt: {e}') from e
+        return result
+
+    def _row_to_set(self, row) -> LandmarkSet:
+        (kid, sec, nsec, iw, ih, rows, cols, cw, ch, n, glob, cells, centers, scores, desc) = row
+        dim = int(self._model['descriptor_dim'])
+        sizes = {'global_descriptor': (glob, 4 * dim), 'cells': (cells, 4 * n), 'centers': (centers, 8 * n),
+                 'scores': (scores, 4 * n), 'descriptors': (desc, 2 * n * dim)}
+        for name, (blob, nbytes) in sizes.items():
+            if blob is None or len(blob) != nbytes:
+                raise MapError(f'map {self.path} is corrupt: keyframe {kid} {name} is '
+                               f'{None if blob is None else len(blob)} bytes, expected {nbytes} (n={n}, D={dim})')
+        return LandmarkSet(
+            global_descriptor=np.frombuffer(glob, '<f4').astype(np.float32),
+            descriptors=np.frombuffer(desc, '<f2').reshape(n, dim).astype(np.float32),
+            cells=np.frombuffer(cells, '<i2').reshape(n, 2).astype(np.int32),
+            centers=np.frombuffer(centers, '<f4').reshape(n, 2).astype(np.float32),
+            scores=np.frombuffer(scores, '<f4').astype(np.float32),
+            cell_size=np.array([cw, ch], np.float32),
+            image_size=np.array([iw, ih], np.float32),
+            grid=(int(rows), int(cols)),
+            activation=None,
+            descriptor_space=self._model['descriptor_space'],
+            meta={'keyframe_id': int(kid), 'stamp': (int(sec), int(nsec))},
+        )
+
+    def _fetch(self, ids) -> dict[int, LandmarkSet]:
+        out = {}
+        ids = [int(i) for i in ids]
+        for start in range(0, len(ids), _SQL_CHUNK):
+            chunk = ids[start:start + _SQL_CHUNK]
+            sql = (f'SELECT {_KF_COLS}, {_LM_COLS} FROM keyframes k LEFT JOIN landmarks l '
+                   f'ON l.keyframe_id = k.id WHERE k.id IN ({",".join("?" * len(chunk))})')
+            with self._read_errors():
+                rows = self._conn.execute(sql, chunk).fetchall()
+            for row in rows:
+                out[int(row[0])] = self._row_to_set(row)
+        return out
+
+    # ------------------------------------------------------------------ public API
+
+    def add_many(self, sets: list[LandmarkSet], stamps, ids=None) -> list[int]:
+        """Store keyframes in one transaction; returns their ids once they are durably on disk.
+        ids: keep these ids (export / import between maps); MapError if one is taken."""
+        if not sets:
+            return []
+        stamps, given = self._check_many(sets, stamps, ids)
+        records = []
+        for lset, (sec, nsec) in zip(sets, stamps):
+            rows, cols = (int(v) for v in lset.grid)
+            records.append(((sec, nsec, float(lset.image_size[0]), float(lset.image_size[1]), rows, cols,
+                             float(lset.cell_size[0]), float(lset.cell_size[1]), len(lset),
+                             np.ascontiguousarray(lset.global_descriptor, '<f4').tobytes()),
+                            (np.ascontiguousarray(lset.cells, '<i2').tobytes(),
+                             np.ascontiguousarray(lset.centers, '<f4').tobytes(),
+                             np.ascontiguousarray(lset.scores, '<f4').tobytes(),
+                             np.ascontiguousarray(lset.descriptors, '<f2').tobytes())))
+        with self._lock:
+            self._ready()
+            new_model = self._model is None
+            if not new_model and not self._same_space(given):
+                raise self._mismatch(given, 'a landmark set')
+
+            def insert(c):
+                if new_model:
+                    self._record_model(c, given)
+                out = []
+                for i, (values, blobs) in enumerate(records):
+                    try:
+                        if ids is None:
+                            cur = c.execute(f'INSERT INTO keyframes ({_KF_INSERT}) VALUES ({", ".join("?" * 10)})',
+                                            values)
+                        else:
+                            cur = c.execute(f'INSERT INTO keyframes (id, {_KF_INSERT}) '
+                                            f'VALUES ({", ".join("?" * 11)})', (int(ids[i]),) + values)
+                    except sqlite3.IntegrityError:
+                        raise MapError(f'map {self.path} already has a keyframe {ids[i]}') from None
+                    c.execute('INSERT INTO landmarks (keyframe_id, cells, centers, scores, descriptors) '
+                              'VALUES (?, ?, ?, ?, ?)', (cur.lastrowid,) + blobs)
+                    out.append(int(cur.lastrowid))
+                return out
+
+            new_ids = self._write(insert)
+            if new_model:
+                self._model = given
+                self._index = GlobalIndex(given['descriptor_dim'], self.conf)
+                self._landmarks = self._new_landmark_index()
+            self._index.add(np.stack([s.global_descriptor for s in sets]).astype(np.float32),
+                            np.asarray(new_ids, np.int64))
+            self._landmarks.add_sets(new_ids, sets)
+            self._landmarks_dirty = True
+            if self._landmarks.needs_rebuild():
+                t = time.perf_counter()
+                stored = self._stored_counts()
+                self._landmarks = self._build_landmarks(sum(stored.values()), len(stored))
+                log.info('map %s: landmark index retrained for %d landmarks (%.1f s)', self.path,
+                         self._landmarks.ntotal, time.perf_counter() - t)
+            self._ids.extend(new_ids)
+            if ids is not None:
+                self._ids.sort()
+            return new_ids
+
+    def _holistic(self, lset: LandmarkSet, k: int, below: int | None) -> tuple[np.ndarray, np.ndarray, dict]:
+        hol, ids = self._index.search(lset.global_descriptor, k, below=below)
+        return hol, ids, self._fetch(ids)
+
+    # keypoints for verification (reloc.py): an optional table, created on first use, so maps
+    # without it stay valid and readable; rows go with their keyframe (ON DELETE CASCADE)
+    _KEYPOINTS_TABLE = ('CREATE TABLE IF NOT EXISTS keypoints (keyframe_id INTEGER PRIMARY KEY '
+                        'REFERENCES keyframes(id) ON DELETE CASCADE, n INTEGER NOT NULL, uv BLOB NOT NULL, '
+                        'descriptors BLOB NOT NULL)')
+
+    def add_keypoints(self, keyframe_id: int, uv: np.ndarray, descriptors: np.ndarray) -> None:
+        """Store a keyframe's keypoints: uv (N, 2) float32 original pixels, binary descriptors
+        (N, B) uint8, as float32 / uint8 blobs (8 + B bytes per keypoint). Replaces earlier ones."""
+        uv = np.ascontiguousarray(uv, '<f4').reshape(-1, 2)
+        desc = np.ascontiguousarray(descriptors)
+        if desc.dtype != np.uint8 or desc.ndim != 2 or len(desc) != len(uv):
+            raise DescriptorError(f'keypoints need (N, B) uint8 descriptors for N={len(uv)} points, '
+                                  f'got {desc.dtype} {desc.shape}')
+        with self._lock:
+            self._ready()
+            if int(keyframe_id) not in set(self._ids):
+                raise KeyError(f'no keyframe {keyframe_id} in map {self.path}')
+            self._write(lambda c: (c.execute(self._KEYPOINTS_TABLE), c.execute(
+                'INSERT OR REPLACE INTO keypoints (keyframe_id, n, uv, descriptors) VALUES (?, ?, ?, ?)',
+                (int(keyframe_id), len(uv), uv.tobytes(), desc.tobytes()))))
+
+    def keypoints(self, keyframe_id: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """(uv (N, 2) float32, descriptors (N, B) uint8) of a keyframe, or None when none were stored."""
+        with self._lock:
+            self._ready()
+            with self._read_errors():
+                if not self._conn.execute("SELECT 1 FROM sqlite_master WHERE name = 'keypoints'").fetchone():
+                    return None
+                row = self._conn.execute('SELECT n, uv, descriptors FROM keypoints WHERE keyframe_id = ?',
+                                         (int(keyframe_id),)).fetchone()
+        if row is None:
+            return None
+        n, uv, desc = row
+        if len(uv) != 8 * n or (n and len(desc) % n) or (not n and desc):
+            raise MapError(f'map {self.path} is corrupt: keyframe {keyframe_id} keypoints are {len(uv)} + '
+                           f'{len(desc)} bytes for n={n}')
+        return (np.frombuffer(uv, '<f4').reshape(n, 2).copy(),
+                np.frombuffer(desc, np.uint8).reshape(n, len(desc) // n if n else 32).copy())
+
+    def get(self, keyframe_id: int) -> LandmarkSet:
+        """The stored landmark set of a keyframe (descriptors back from float16; no activation map)."""
+        with self._lock:
+            self._ready()
+            sets = self._fetch([int(keyframe_id)]) if self._model else {}
+        if int(keyframe_id) not in sets:
+            raise KeyError(f'no keyframe {keyframe_id} in map {self.path}')
+        return sets[int(keyframe_id)]
+
+    def clear(self) -> int:
+        """Remove every keyframe (returns how many); the model record stays, and ids are not reused."""
+        with self._lock:
+            self._ready()
+            self._write(lambda c: (c.execute('DELETE FROM landmarks'), c.execute('DELETE FROM keyframes')))
+            removed, self._ids = len(self._ids), []
+            if self._index is not None:
+                self._index.reset()
+                self._landmarks.reset()
+            self._drop_landmark_file()
+            return removed
+
+    def delete(self, keyframe_ids) -> int:
+        """Remove keyframes (and their landmarks) by id; returns how many existed. Ids are not reused."""
+        wanted = sorted({int(i) for i in keyframe_ids})
+        with self._lock:
+            self._ready()
+            present = sorted(set(wanted) & set(self._ids))
+            if not present:
+                return 0
+
+            def remove(c):
+                for start in range(0, len(present), _SQL_CHUNK):
+                    chunk = present[start:start + _SQL_CHUNK]
+                    marks = ','.join('?' * len(chunk))
+                    c.execute(f'DELETE FROM landmarks WHERE keyframe_id IN ({marks})', chunk)
+                    c.execute(f'DELETE FROM keyframes WHERE id IN ({marks})', chunk)
+            self._write(remove)
+            gone = set(present)
+            self._ids = [i for i in self._ids if i not in gone]
+            self._index.remove(present)
+            self._landmarks.remove_keyframes(present)
+            self._landmarks_dirty = True
+            return len(present)
+
+    def compact(self) -> dict:
+        """Checkpoint, then VACUUM: give the pages of deleted keyframes back to the filesystem.
+        Returns {'bytes_before', 'bytes_after'} (the .db plus its WAL)."""
+        with self._lock:
+            self._ready()
+            before = self.info()['file_bytes']
+            self.save()
+            try:
+                self._conn.execute('VACUUM')
+            except sqlite3.DatabaseError as e:
+                raise MapError(f'cannot compact map {self.path}: {e}') from e
+            self.save()
+            return {'bytes_before': before, 'bytes_after': self.info()['file_bytes']}
+
+    def info(self) -> dict:
+        with self._lock:
+            self._ready()
+            with self._read_errors():
+                meta = self._meta()
+            wal = self.path + '-wal'
+            db_bytes = os.path.getsize(self.path)
+            wal_bytes = os.path.getsize(wal) if os.path.exists(wal) else 0
+            return {'path': self.path, 'keyframes': len(self._ids), 'model': self.model,
+                    'descriptor_space': self._model and self._model['descriptor_space'],
+                    'descriptor_dim': self._model and int(self._model['descriptor_dim']),
+                    'schema_version': int(meta['schema_version']), 'backend': 'sqlite',
+                    'index': self._index.kind if self._index is not None else None,
+                    'quarantined': sorted(self._quarantined),
+                    'landmark_index': self._landmarks.kind if self._landmarks is not None else None,
+                    'landmarks': self._landmarks.ntotal if self._landmarks is not None else 0,
+                    'landmark_index_bytes': (os.path.getsize(self.landmark_path)
+                                             if os.path.exists(self.landmark_path) else 0),
+                    'first_id': self._ids[0] if self._ids else None,
+                    'last_id': self._ids[-1] if self._ids else None,
+                    'file_bytes': db_bytes + wal_bytes, 'db_bytes': db_bytes, 'wal_bytes': wal_bytes,
+                    'created': int(meta.get('created', 0)), 'created_by': meta.get('created_by', '')}
+
+    def save(self) -> None:
+        """Checkpoint the WAL into the main file and truncate it. Not needed for durability (every
+        add is durable on return); it keeps the WAL small and the .db file self-contained."""
+        with self._lock:
+            self._ready()
+            self._persist_landmarks()
+            try:
+                busy, _, _ = self._conn.execute('PRAGMA wal_checkpoint(TRUNCATE)').fetchone()
+            except sqlite3.DatabaseError as e:
+                raise MapError(f'cannot checkpoint map {self.path}: {e}') from e
+            if busy:
+                log.warning('map %s: checkpoint incomplete, another connection is reading', self.path)
+
+    def check(self, limit: int = 20) -> list[str]:
+        """Problems found in the map (empty list = healthy): SQLite integrity_check, format and
+        schema version, model record, blob sizes against n and D, orphan rows, FAISS vs SQLite."""
+        problems: list[str] = []
+
+        def add(items, what):
+            items = list(items)
+            problems.extend(what(x) for x in items[:limit])
+            if len(items) > limit:
+                problems.append(f'... and {len(items) - limit} more like that')
+
+        with self._lock:
+            self._ready()
+            c = self._conn
+            try:
+                rows = [r[0] for r in c.execute(f'PRAGMA integrity_check({int(limit)})')]
+                if rows != ['ok']:
+                    add(rows, lambda r: f'integrity_check: {r}')
+                    return problems
+                meta = self._meta()
+                if meta.get('format') != FORMAT:
+                    problems.append(f'meta format is {meta.get("format")!r}, expected {FORMAT!r}')
+                if meta.get('schema_version') != str(SCHEMA_VERSION):
+                    problems.append(f'schema_version is {meta.get("schema_version")!r}, expected {SCHEMA_VERSION}')
+                n_kf = c.execute('SELECT count(*) FROM keyframes').fetchone()[0]
+                if self._model is None:
+                    if n_kf:
+                        problems.append(f'{n_kf} keyframes but no model record')
+                    return problems
+                dim = int(self._model['descriptor_dim'])
+                if meta.get('descriptor_dim') != str(dim) or \
+                        meta.get('descriptor_space') != self._model['descriptor_space']:
+                    problems.append('meta descriptor_space/descriptor_dim disagree with the model record')
+                # the same scan the open runs (the node quarantines exactly these keyframes)
+                add(self._damaged(dim).values(), lambda p: f'{p} (quarantined: never answered)')
+                orphans = [r[0] for r in c.execute(
+                    'SELECT keyframe_id FROM landmarks WHERE keyframe_id NOT IN (SELECT id FROM keyframes)')]
+                add(orphans, lambda i: f'landmarks row {i} has no keyframe')
+                problems.extend(self._faiss_problems())
+                problems.extend(self._landmark_problems(self._stored_counts()))
+            except sqlite3.DatabaseError as e:
+                problems.append(f'SQLite error while checking: {e}')
+        return problems
+
+    def close(self) -> None:
+        """Close the file (SQLite checkpoints the WAL when the last connection closes). Idempotent."""
+        with self._lock:
+            if self._conn is not None:
+                try:
+                    try:
+                        self._persist_landmarks()
+                    except MapError as e:  # the file is rebuilt from SQLite at the next open
+                        log.warning('%s', e)
+                    self._conn.close()
+                finally:
+                    self._conn = None
+                    self._index = None
+                    self._landmarks = None
+                    self._ids = []
+
+    def __repr__(self) -> str:
+        state = 'closed' if self._conn is None else f'{len(self._ids)} keyframes'
+        return f'SQLiteMapStore({self.path!r}, {state})'

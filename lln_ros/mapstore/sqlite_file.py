@@ -1,0 +1,256 @@
+"""The SQLite map file: schema, creation under a temporary name, raw-file checks, identification,
+migrations and the load that rebuilds the in-memory indexes (a mixin of SQLiteMapStore)."""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sqlite3
+import struct
+import time
+import uuid
+
+import numpy as np
+
+from ..errors import MapError
+from .base import FORMAT
+from .index import GlobalIndex
+
+log = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+SQLITE_MAGIC = b'SQLite format 3\x00'
+
+SCHEMA = """
+CREATE TABLE meta (
+    key   TEXT PRIMARY KEY,
+    value TEXT NOT NULL
+);
+CREATE TABLE keyframes (
+    id                INTEGER PRIMARY KEY AUTOINCREMENT,
+    stamp_sec         INTEGER NOT NULL,
+    stamp_nanosec     INTEGER NOT NULL,
+    image_w           REAL    NOT NULL,
+    image_h           REAL    NOT NULL,
+    grid_rows         INTEGER NOT NULL,
+    grid_cols         INTEGER NOT NULL,
+    cell_w            REAL    NOT NULL,
+    cell_h            REAL    NOT NULL,
+    n                 INTEGER NOT NULL,
+    global_descriptor BLOB    NOT NULL
+);
+CREATE TABLE landmarks (
+    keyframe_id INTEGER PRIMARY KEY REFERENCES keyframes(id) ON DELETE CASCADE,
+    cells       BLOB NOT NULL,
+    centers     BLOB NOT NULL,
+    scores      BLOB NOT NULL,
+    descriptors BLOB NOT NULL
+);
+"""
+
+# schema version v -> function(conn) that upgrades a v map to v + 1 (called inside a transaction)
+MIGRATIONS: dict = {}
+
+_KF_COLS = 'k.id, k.stamp_sec, k.stamp_nanosec, k.image_w, k.image_h, k.grid_rows, k.grid_cols, ' \
+           'k.cell_w, k.cell_h, k.n, k.global_descriptor'
+_LM_COLS = 'l.cells, l.centers, l.scores, l.descriptors'
+_KF_INSERT = ('stamp_sec, stamp_nanosec, image_w, image_h, grid_rows, grid_cols, cell_w, cell_h, n, '
+              'global_descriptor')
+_SQL_CHUNK = 900  # ids per IN (...) list, below SQLite's oldest variable limit (999)
+
+
+class SQLiteFile:
+    """Opening and loading an SQLite map (SQLiteMapStore's; reads its path, conf and _conn)."""
+
+    def _create_file(self) -> None:
+        """Build an empty map under a temporary name, then link it into place (no half-made maps)."""
+        parent = os.path.dirname(self.path)
+        try:
+            os.makedirs(parent, exist_ok=True)
+        except OSError as e:  # e.g. a parent that is a regular file: [Errno 17] alone names nothing
+            raise MapError(f'cannot create map {self.path}: its folder {parent} cannot be made ({e})') from e
+        for suffix in ('-wal', '-shm', '-journal'):  # left over from a deleted file: never replay them
+            try:
+                os.remove(self.path + suffix)
+            except FileNotFoundError:
+                pass
+        tmp = f'{self.path}.creating-{os.getpid()}-{uuid.uuid4().hex[:8]}'
+        try:
+            conn = sqlite3.connect(tmp, isolation_level=None)
+            try:
+                conn.execute('BEGIN')
+                for statement in SCHEMA.split(';'):
+                    if statement.strip():
+                        conn.execute(statement)
+                from .. import __version__
+                conn.executemany('INSERT INTO meta (key, value) VALUES (?, ?)', [
+                    ('format', FORMAT), ('schema_version', str(SCHEMA_VERSION)),
+                    ('created', str(int(time.time()))), ('created_by', f'lln_ros {__version__}'),
+                    ('map_uuid', uuid.uuid4().hex)])
+                conn.execute('COMMIT')
+            finally:
+                conn.close()
+            fd = os.open(tmp, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+            try:
+                os.link(tmp, self.path)        # fails if someone else created the map meanwhile
+            except FileExistsError:
+                pass
+            except OSError:                    # no hard links on this filesystem
+                if not os.path.exists(self.path):
+                    os.replace(tmp, self.path)
+            dfd = os.open(parent, os.O_RDONLY)
+            try:
+                os.fsync(dfd)
+            finally:
+                os.close(dfd)
+        except (OSError, sqlite3.Error) as e:
+            raise MapError(f'cannot create map {self.path}: {e}') from e
+        finally:
+            for f in (tmp, tmp + '-journal'):
+                try:
+                    os.remove(f)
+                except FileNotFoundError:
+                    pass
+
+    def _check_file(self) -> None:
+        """Cheap checks on the raw file before SQLite sees it: header magic and truncation."""
+        try:
+            size = os.path.getsize(self.path)
+            with open(self.path, 'rb') as f:
+                head = f.read(100)
+        except OSError as e:
+            raise MapError(f'cannot read map {self.path}: {e}') from e
+        if size == 0:
+            raise MapError(f'{self.path} is an empty file (0 bytes), not an lln_ros map; '
+                           f'delete it to start a new map')
+        if len(head) < 100 or head[:16] != SQLITE_MAGIC:
+            raise MapError(f'{self.path} is not an lln_ros map: not an SQLite database '
+                           f'(corrupt, truncated or some other file; {size} bytes)')
+        page_size = struct.unpack('>H', head[16:18])[0]
+        page_size = 65536 if page_size == 1 else page_size
+        change, pages, valid_for = (struct.unpack('>I', head[o:o + 4])[0] for o in (24, 28, 92))
+        wal = self.path + '-wal'
+        wal_pending = os.path.exists(wal) and os.path.getsize(wal) > 0
+        # with a pending WAL the main file may legitimately lag behind; quick_check covers that case
+        if pages and change == valid_for and not wal_pending and size < pages * page_size:
+            raise MapError(f'map {self.path} is truncated: {size} bytes, its header says '
+                           f'{pages} pages of {page_size} bytes ({pages * page_size} bytes)')
+
+    def _identify(self) -> None:
+        c = self._conn
+        tables = {r[0] for r in c.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if 'meta' not in tables:
+            raise MapError(f'{self.path} is an SQLite database but not an lln_ros map '
+                           f'(no meta table; tables: {sorted(tables) or "none"})')
+        meta = self._meta()
+        if meta.get('format') != FORMAT:
+            raise MapError(f'{self.path} is an SQLite database but not an lln_ros map '
+                           f'(meta format is {meta.get("format")!r}, expected {FORMAT!r})')
+        try:
+            version = int(meta.get('schema_version', ''))
+        except ValueError:
+            raise MapError(f'map {self.path} has no valid schema_version '
+                           f'({meta.get("schema_version")!r})') from None
+        if version > SCHEMA_VERSION:
+            raise MapError(f'map {self.path} has schema version {version}; this lln_ros reads up to '
+                           f'{SCHEMA_VERSION}: upgrade lln_ros')
+        missing = {'keyframes', 'landmarks'} - tables
+        if missing and version == SCHEMA_VERSION:
+            raise MapError(f'map {self.path} is damaged: missing tables {sorted(missing)}')
+
+    def _configure(self) -> None:
+        c = self._conn
+        mode = c.execute('PRAGMA journal_mode=WAL').fetchone()[0]
+        if str(mode).lower() != 'wal':
+            raise MapError(f'cannot put map {self.path} in WAL mode (got {mode!r}); '
+                           f'is it on a network filesystem or read-only?')
+        c.execute('PRAGMA synchronous=FULL')
+        c.execute('PRAGMA foreign_keys=ON')
+
+    def _migrate(self) -> None:
+        version = int(self._meta()['schema_version'])
+        while version < SCHEMA_VERSION:
+            step = MIGRATIONS.get(version)
+            if step is None:
+                raise MapError(f'map {self.path} has schema version {version} and there is no '
+                               f'migration to {version + 1}')
+            self._conn.execute('BEGIN IMMEDIATE')
+            try:
+                step(self._conn)
+                self._conn.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'",
+                                   (str(version + 1),))
+                self._conn.execute('COMMIT')
+            except BaseException:
+                self._conn.execute('ROLLBACK')
+                raise
+            log.info('migrated map %s from schema %d to %d', self.path, version, version + 1)
+            version += 1
+
+    def _meta(self) -> dict:
+        return {k: v for k, v in self._conn.execute('SELECT key, value FROM meta')}
+
+    def _load(self) -> None:
+        """(Re)read the model record and rebuild the FAISS index from the keyframes table."""
+        c = self._conn
+        self._data_version = c.execute('PRAGMA data_version').fetchone()[0]
+        meta = self._meta()
+        self._model = self._read_model_record(meta['model']) if 'model' in meta else None
+        count = c.execute('SELECT count(*) FROM keyframes').fetchone()[0]
+        self._ids = []
+        self._index = None
+        self._landmarks = None
+        self._quarantined = {}
+        if self._model is None:
+            if count:
+                raise MapError(f'map {self.path} is damaged: {count} keyframes but no model record')
+            return
+        dim = int(self._model['descriptor_dim'])
+        self._quarantined = self._damaged(dim)
+        if self._quarantined:
+            log.warning('map %s: %d damaged keyframe(s) quarantined (kept in the file, never answered): %s',
+                        self.path, len(self._quarantined), '; '.join(list(self._quarantined.values())[:10]))
+        # streamed into one preallocated array: a 100k map's rows as Python objects would double the peak
+        x = np.empty((count, dim), np.float32)
+        cursor = c.execute('SELECT id, global_descriptor FROM keyframes ORDER BY id')
+        while rows := cursor.fetchmany(4096):
+            for kid, blob in rows:
+                if kid not in self._quarantined and len(self._ids) < count:
+                    x[len(self._ids)] = np.frombuffer(blob, '<f4')
+                    self._ids.append(int(kid))
+        self._index = GlobalIndex(dim, self.conf)
+        self._index.build(x[:len(self._ids)], np.asarray(self._ids, np.int64))
+        problems = self._faiss_problems()
+        if problems:
+            raise MapError(f'map {self.path}: in-memory index disagrees with the file: {"; ".join(problems)}')
+        self._load_landmarks()
+
+    def _damaged(self, dim: int) -> dict:
+        """{id: problem} of keyframes whose stored sizes do not fit their n and D (a missing landmarks
+        row, a blob of the wrong length, a bad grid or stamp). One SQL scan using length(), which
+        reads a blob's size from its record header without reading the blob: 0.87 s at 100k
+        keyframes against 4.1 s for quick_check (bench/bench_integrity.py, warm cache, loaded)."""
+        rows = self._conn.execute(
+            'SELECT k.id, k.n, k.grid_rows, k.grid_cols, k.stamp_nanosec, length(k.global_descriptor), '
+            'length(l.cells), length(l.centers), length(l.scores), length(l.descriptors), l.keyframe_id IS NULL '
+            'FROM keyframes k LEFT JOIN landmarks l ON l.keyframe_id = k.id WHERE l.keyframe_id IS NULL '
+            'OR k.n < 1 OR k.grid_rows < 1 OR k.grid_cols < 1 OR k.stamp_nanosec < 0 '
+            'OR k.stamp_nanosec >= 1000000000 OR length(k.global_descriptor) IS NOT 4 * :d '
+            'OR length(l.cells) IS NOT 4 * k.n OR length(l.centers) IS NOT 8 * k.n '
+            'OR length(l.scores) IS NOT 4 * k.n OR length(l.descriptors) IS NOT 2 * k.n * :d ORDER BY k.id',
+            {'d': int(dim)})
+        out = {}
+        for kid, n, rows_, cols_, nsec, lg, lc, lce, ls, ld, orphan in rows:
+            if orphan:
+                out[kid] = f'keyframe {kid} has no landmarks row'
+                continue
+            want = (4 * dim, 4 * n, 8 * n, 4 * n, 2 * n * dim)
+            if (lg, lc, lce, ls, ld) != want or n < 1:
+                out[kid] = (f'keyframe {kid}: blob sizes (global, cells, centers, scores, descriptors) '
+                            f'{(lg, lc, lce, ls, ld)} do not fit n={n}, D={dim} (expected {want})')
+            else:
+                out[kid] = f'keyframe {kid}: bad grid {rows_}x{cols_} or stamp nanosec {nsec}'
+        return out
