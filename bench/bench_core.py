@@ -33,10 +33,10 @@ if '--threads' in sys.argv[:-1]:
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from lln_ros.extractor import Extractor, default_conf  # noqa: E402
-from lln_ros.image import load_image, resize_for_network  # noqa: E402
-from lln_ros.landmarks import stack_landmarks  # noqa: E402
-from lln_ros.similarity import match_batch  # noqa: E402
+from lln_ros.core.extractor import Extractor, default_conf  # noqa: E402
+from lln_ros.io.image import load_image, resize_for_network  # noqa: E402
+from lln_ros.core.landmarks import stack_landmarks  # noqa: E402
+from lln_ros.core.similarity import match_batch  # noqa: E402
 
 PAPER_MS = {'extract_ms': 16.0, 'lln_50': 6.0, 'lln_75': 13.0, 'all': 27.0, 'holistic': 0.009}
 
@@ -125,7 +125,7 @@ def frame_fn(extractor, threads: int, images: list):
 
 def runtime_rows(repeats: int, budget: float) -> dict:
     """Per-frame extraction latency for every runtime x size x threads, quiet and loaded."""
-    from lln_ros.runtime import onnxruntime_available
+    from lln_ros.core.runtime import onnxruntime_available
     runtimes = ['torch'] + (['onnxruntime'] if onnxruntime_available() else [])
     extractors = {(rt, t): Extractor({'runtime': rt, 'num_threads': t, 'top_n': 50})
                   for rt in runtimes for t in (1, 2)}

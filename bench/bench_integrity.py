@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from lln_ros.landmarks import LandmarkSet  # noqa: E402
+from lln_ros.core.landmarks import LandmarkSet  # noqa: E402
 from lln_ros.mapstore import MapStore  # noqa: E402
 
 D, N_LANDMARKS, ROWS, COLS = 192, 50, 9, 12

@@ -57,7 +57,7 @@ for _var in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from lln_ros.landmarks import LandmarkSet  # noqa: E402
+from lln_ros.core.landmarks import LandmarkSet  # noqa: E402
 from lln_ros.mapstore import MapStore  # noqa: E402
 
 N_LANDMARKS, DIM, ROWS, COLS = 50, 192, 9, 12

@@ -46,7 +46,7 @@ def frames(width: int = 384, height: int = 288) -> tuple[list[np.ndarray], str]:
     import cv2
     root = REPO.parent / 'shared' / 'data' / 'rtabmap_loop'
     if root.is_dir():
-        from lln_ros.image import load_image
+        from lln_ros.io.image import load_image
         images = [cv2.resize(load_image(str(root / f'{i}.jpg')), (width, height), interpolation=cv2.INTER_AREA)
                   for i in range(1, 85)]
         return images, f'rtabmap_loop (84 frames, 512x384 resized to {width}x{height})'

@@ -21,11 +21,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lln_ros.extractor import Extractor
-from lln_ros.image import load_image
+from lln_ros.core.extractor import Extractor
+from lln_ros.io.image import load_image
 from lln_ros.mapstore import MapStore
 from lln_ros.reloc import Relocalizer, pair_boxes
-from lln_ros.similarity import match_pair
+from lln_ros.core.similarity import match_pair
 
 DATA = Path(__file__).resolve().parents[1].parent / 'shared' / 'data' / 'rtabmap_loop'
 

@@ -2,11 +2,11 @@
 
     python bench/bench_runtime_options.py [--repeats 30] [--budget 6] [--json]
 
-The same exported graph (lln_ros.runtime) on one 384x288 view of a real photograph, quiet and with
+The same exported graph (lln_ros.core.runtime) on one 384x288 view of a real photograph, quiet and with
 one competing CPU-bound process (started and stopped here), all in one run so ratios compare.
 Tried: ONNX Runtime intra-op threads 1/2, spinning on/off, sequential vs parallel execution, graph
 optimisation basic vs all; OpenVINO (when the `openvino` package is installed) with 1/2 inference
-threads and the latency hint; torch at 1/2 threads as the reference. lln_ros.runtime keeps the
+threads and the latency hint; torch at 1/2 threads as the reference. lln_ros.core.runtime keeps the
 winner (ORT_SESSION_CONFIG, the extractor's default threads); README quotes this table.
 """
 from __future__ import annotations
@@ -19,8 +19,8 @@ import sys
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_core import competing_load, photo_views, round_robin  # noqa: E402
 
-from lln_ros import runtime  # noqa: E402
-from lln_ros.extractor import Extractor  # noqa: E402
+from lln_ros.core import runtime  # noqa: E402
+from lln_ros.core.extractor import Extractor  # noqa: E402
 
 
 def ort_variant(path, threads: int, spinning: bool, parallel: bool = False, basic: bool = False):

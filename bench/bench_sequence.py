@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from lln_ros.sequence import KeyframeSequence
+from lln_ros.core.sequence import KeyframeSequence
 
 
 def stream(n_queries: int, map_size: int, k: int, seed: int = 0) -> list[dict]:

@@ -21,12 +21,13 @@ import sys
 import time
 from pathlib import Path
 
-from lln_ros import datasets, metrics
-from lln_ros.extractor import Extractor
-from lln_ros.features import FeatureCache
-from lln_ros.image import load_image
-from lln_ros.landmarks import stack_landmarks
-from lln_ros.retrieval import rank_all
+from lln_ros.io import datasets
+from lln_ros import metrics
+from lln_ros.core.extractor import Extractor
+from lln_ros.io.features import FeatureCache
+from lln_ros.io.image import load_image
+from lln_ros.core.landmarks import stack_landmarks
+from lln_ros.core.retrieval import rank_all
 
 DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
 CONFIGS = [('efficientnet_lite0', 'stage6'), ('efficientnet_lite0', 'stage7'), ('efficientnet_lite0', 'head'),

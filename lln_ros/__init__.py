@@ -14,11 +14,11 @@ from .errors import DatasetError, DescriptorError, ImageError, LLNError, MapErro
 __version__ = '0.1.0'
 
 _LAZY = {
-    'Extractor': 'extractor', 'load_image': 'image',
-    'LandmarkSet': 'landmarks', 'LandmarkBatch': 'landmarks', 'select_landmarks': 'landmarks',
-    'stack_landmarks': 'landmarks',
-    'Candidate': 'retrieval', 'LandmarkDatabase': 'retrieval',
-    'MatchResult': 'similarity', 'match_batch': 'similarity', 'match_pair': 'similarity',
+    'Extractor': 'core.extractor', 'load_image': 'io.image',
+    'LandmarkSet': 'core.landmarks', 'LandmarkBatch': 'core.landmarks', 'select_landmarks': 'core.landmarks',
+    'stack_landmarks': 'core.landmarks',
+    'Candidate': 'core.retrieval', 'LandmarkDatabase': 'core.retrieval',
+    'MatchResult': 'core.similarity', 'match_batch': 'core.similarity', 'match_pair': 'core.similarity',
     'MapStore': 'mapstore', 'MapCandidate': 'mapstore',
 }
 __all__ = [*_LAZY, 'LLNError', 'ImageError', 'ModelError', 'DescriptorError', 'MapError', 'MessageError',

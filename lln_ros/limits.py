@@ -20,7 +20,7 @@ from collections.abc import Mapping
 
 from .errors import ModelError, MessageError
 
-GRID_STRIDE = 32  # every backbone here has a stride-32 feature grid (lln_ros.image)
+GRID_STRIDE = 32  # every backbone here has a stride-32 feature grid (lln_ros.io.image)
 
 default_conf = {
     # raw and decoded images (extractor) and an image size declared by a landmark cloud (matcher):
@@ -31,7 +31,7 @@ default_conf = {
     # descriptor size D (resnet101 layer4 is 2048)
     'max_descriptor_dim': 4096,
     # feature-grid rows and columns a landmark set may declare (image size / cell size): the network
-    # input is at most 4096 px wide (lln_ros.image.MAX_WIDTH), i.e. 128 cells of 32 px; the height is
+    # input is at most 4096 px wide (lln_ros.io.image.MAX_WIDTH), i.e. 128 cells of 32 px; the height is
     # the model's input_height / 32 when the model says it
     'max_grid_side': 128,
     # ORB keypoint rows per keypoints cloud (the extractor's keypoints_max is 500 by default)

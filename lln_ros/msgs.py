@@ -41,7 +41,7 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
 from .errors import DescriptorError, MessageError
-from .landmarks import LandmarkSet
+from .core.landmarks import LandmarkSet
 from .limits import LimitError, check_pixels
 
 # PointField datatype <-> little-endian numpy scalar type

@@ -8,8 +8,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import ConnectionPatch, Rectangle  # noqa: E402
 
-from .image import heatmap  # noqa: E402
-from .landmarks import LandmarkSet  # noqa: E402
+from .io.image import heatmap  # noqa: E402
+from .core.landmarks import LandmarkSet  # noqa: E402
 
 
 def plot_matches(image_a: np.ndarray, image_b: np.ndarray, a: LandmarkSet, b: LandmarkSet,

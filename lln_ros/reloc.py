@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from .errors import LLNError
-from .image import check_image
+from .io.image import check_image
 
 default_conf = {
     'detector': 'orb',          # orb | sift | akaze

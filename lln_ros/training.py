@@ -43,13 +43,13 @@ import torch
 from tqdm import tqdm
 
 from . import metrics
-from .datasets import list_images
+from .io.datasets import list_images
 from .errors import DatasetError
-from .features import FeatureCache
-from .landmarks import l2_normalize, stack_landmarks
-from .lln import LLNHead, save_checkpoint
-from .retrieval import rank_all
-from .similarity import cross_match, offset_mode, offset_weights
+from .io.features import FeatureCache
+from .core.landmarks import l2_normalize, stack_landmarks
+from .core.lln import LLNHead, save_checkpoint
+from .core.retrieval import rank_all
+from .core.similarity import cross_match, offset_mode, offset_weights
 
 default_conf = {
     'objective': 'rerank',     # rerank (train on the test-time score) | triplet (the paper's loss)
@@ -87,7 +87,7 @@ class PairSet:
 
 
 def pairs_from_dataset(ds, neg_margin: int = 10) -> PairSet:
-    """A PairSet from an evaluation Dataset (lln_ros.datasets): positives are its ground truth;
+    """A PairSet from an evaluation Dataset (lln_ros.io.datasets): positives are its ground truth;
     negatives are refs farther than neg_margin refs (in ref order) from every positive, so frames
     just beside a match are neither."""
     gt = np.asarray(ds.gt, bool)

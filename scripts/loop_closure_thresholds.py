@@ -26,9 +26,9 @@ def main() -> int:
     p.add_argument('--exclude-recent', type=int, default=10)
     p.add_argument('--prefilter-k', type=int, default=30)
     args = p.parse_args()
-    from lln_ros.datasets import loop
-    from lln_ros.extractor import Extractor
-    from lln_ros.image import load_image
+    from lln_ros.io.datasets import loop
+    from lln_ros.core.extractor import Extractor
+    from lln_ros.io.image import load_image
     from lln_ros.loop_closure import threshold_table
     from lln_ros.mapstore import MapStore
 

@@ -34,7 +34,7 @@ def shared_data(*parts) -> Path:
 
 @pytest.fixture(scope='session')
 def extractor():
-    from lln_ros.extractor import Extractor
+    from lln_ros.core.extractor import Extractor
     return Extractor({'num_threads': 2})
 
 
@@ -43,7 +43,7 @@ def photo() -> np.ndarray:
     """A real photograph shipped inside matplotlib (RGB uint8), so self-contained tests use real pixels."""
     import matplotlib.cbook as cbook
 
-    from lln_ros.image import load_image
+    from lln_ros.io.image import load_image
     with cbook.get_sample_data('grace_hopper.jpg') as f:
         path = f.name
     return load_image(path)

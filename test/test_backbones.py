@@ -2,7 +2,7 @@
 import pytest
 import torch
 
-from lln_ros.backbones import ResNet101Block3, build_backbone
+from lln_ros.core.backbones import ResNet101Block3, build_backbone
 from lln_ros.errors import ModelError
 
 
@@ -22,7 +22,7 @@ def test_efficientnet_weights_are_the_imagenet_ones():
     """The shipped weights classify: a flat grey image and a real photo get different top classes,
     and the photo's logits are confident (random weights would be near uniform)."""
     import matplotlib.cbook as cbook
-    from lln_ros.image import load_image
+    from lln_ros.io.image import load_image
     with cbook.get_sample_data('grace_hopper.jpg') as f:
         img = load_image(f.name)
     net = build_backbone({'name': 'efficientnet_lite0', 'layer': 'head'}).net

@@ -1,4 +1,4 @@
-"""lln_ros.bag and lln-bag: MCAP bags from image folders, read back with rosbags and with the
+"""lln_ros.io.bag and lln-bag: MCAP bags from image folders, read back with rosbags and with the
 `mcap` reader, `info`, and `play` into a real subscriber in another process (real rclpy, real DDS)."""
 from __future__ import annotations
 
@@ -15,8 +15,9 @@ import pytest
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CompressedImage, Image
 
-from lln_ros import bag, msgs
-from lln_ros.datasets import natural_key
+from lln_ros.io import bag
+from lln_ros import msgs
+from lln_ros.io.datasets import natural_key
 from lln_ros.cli.bag import main
 from lln_ros.errors import ImageError
 from ros_harness import ros_env
@@ -132,7 +133,7 @@ def test_info(tmp_path, capsys):
 
 def test_write_bag_any_message_type(tmp_path):
     """write_bag takes any rclpy messages: an image topic and a landmarks cloud topic together."""
-    from lln_ros.landmarks import LandmarkSet, l2_normalize
+    from lln_ros.core.landmarks import LandmarkSet, l2_normalize
     rng = np.random.default_rng(0)
     cells = np.array([[3, 2], [0, 0], [11, 8]], np.int32)
     cell_size = np.array([512 / 12, 384 / 9], np.float32)
@@ -233,7 +234,7 @@ SUBSCRIBER = r'''
 import hashlib, json, sys, time
 import rclpy
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from lln_ros.bag import message_class
+from lln_ros.io.bag import message_class
 topic, msgtype, reliability = sys.argv[1], sys.argv[2], sys.argv[5]
 expected, timeout = int(sys.argv[3]), float(sys.argv[4])
 rclpy.init()

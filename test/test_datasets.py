@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from conftest import shared_data
-from lln_ros import datasets
+from lln_ros.io import datasets
 from lln_ros.errors import DatasetError
 
 

@@ -109,7 +109,7 @@ def test_nodes_ran_as_ros2_run_would_and_stopped_cleanly(tiny_run):
 
 
 def test_outputs_exist(tiny_run):
-    from lln_ros import bag
+    from lln_ros.io import bag
     out = tiny_run['out']
     for name in ('results_online.json', 'results_online.md', 'answers_online.csv', 'pr_online.png',
                  'map.db', 'offline/results.json', 'offline/results.md', 'logs/matcher.log'):
@@ -184,7 +184,7 @@ def test_default_without_shared_data_is_gardens_point(tmp_path, monkeypatch):
 def test_download_calls_fetch_gardenspoint(tmp_path, monkeypatch, capsys):
     """--download on a Gardens Point folder that lacks its traverses fetches it (here a stub that
     writes a tiny copy; the download itself is tested against a loopback server elsewhere)."""
-    import lln_ros.download as download
+    import lln_ros.io.download as download
     calls = []
 
     def fake_fetch(root, url, progress=True, **kw):

@@ -7,7 +7,8 @@ import pytest
 from test_e2e_rtabmap import GAP, play_rtabmap
 
 from conftest import shared_data
-from lln_ros import datasets, metrics
+from lln_ros.io import datasets
+from lln_ros import metrics
 from lln_ros.eval import evaluate_dataset
 
 LENGTH = 10

@@ -14,15 +14,15 @@ import numpy as np
 import pytest
 
 from conftest import shared_data
-from lln_ros import datasets
+from lln_ros.io import datasets
 from lln_ros.cli.eval import main
-from lln_ros.download import fetch_gardenspoint
+from lln_ros.io.download import fetch_gardenspoint
 from lln_ros.eval import METHODS, REPORT_KEYS, Head, evaluate, parse_head
 from lln_ros.eval.methods import variant
-from lln_ros.landmarks import stack_landmarks
+from lln_ros.core.landmarks import stack_landmarks
 from lln_ros.eval.report import markdown
-from lln_ros.lln import LLNHead, head_fingerprint, save_checkpoint
-from lln_ros.retrieval import rank_all
+from lln_ros.core.lln import LLNHead, head_fingerprint, save_checkpoint
+from lln_ros.core.retrieval import rank_all
 
 REQUIRED = {'p_at_100r', 'r_at_1', 'r_at_5', 'r_at_10', 'auc_pr', 'r_at_100p', 'extract_ms',
             'match_ms_per_pair', 'n'}
@@ -156,7 +156,7 @@ def test_every_local_method_reranks_the_same_holistic_top_k(tiny_run):
 
 def test_rankings_equal_direct_extraction(tiny_run, tiny, extractor):
     """The cached-feature path gives the ranking a plain Extractor gives from the image files."""
-    from lln_ros.image import load_image
+    from lln_ros.io.image import load_image
     run, _, ds = tiny_run
     v = variant(extractor, 'all', 20)
     qs = v.extract_batch([load_image(str(p)) for p in ds.query_paths])
@@ -242,7 +242,7 @@ def test_cli_exhaustive_prefilter_scores_every_reference(tiny, tiny_run, extract
     results = json.loads((tmp_path / 'x' / 'results.json').read_text())
     assert results['parameters']['prefilter_k'] == 0
     assert list(results['datasets']['ref-vs-query']['methods']) == ['holistic', 'act', 'holistic+seq', 'act+seq']
-    from lln_ros.image import load_image
+    from lln_ros.io.image import load_image
     v = variant(extractor, 'act', 20)
     refs = v.extract_batch([load_image(str(p)) for p in ds.ref_paths])
     queries = v.extract_batch([load_image(str(p)) for p in ds.query_paths])

@@ -4,10 +4,10 @@ import pytest
 import torch
 
 from lln_ros.errors import ImageError, ModelError
-from lln_ros.extractor import Extractor
-from lln_ros.image import load_image, network_size
-from lln_ros.landmarks import select_landmarks
-from lln_ros.lln import LLNHead, load_checkpoint, save_checkpoint
+from lln_ros.core.extractor import Extractor
+from lln_ros.io.image import load_image, network_size
+from lln_ros.core.landmarks import select_landmarks
+from lln_ros.core.lln import LLNHead, load_checkpoint, save_checkpoint
 
 
 def test_landmark_set_shapes_and_coordinates(extractor, photo):
@@ -154,7 +154,7 @@ def test_untrained_head_is_seeded():
 def test_lln_ranks_by_head_logits_not_by_index(extractor, photo):
     """Many cells get activation exactly 0 from the final ReLU; they must be ordered by the head's
     logits, not fall back to raster order (the top rows: ceiling, sky)."""
-    from lln_ros.image import resize_for_network
+    from lln_ros.io.image import resize_for_network
     feats = extractor.backbone_features(resize_for_network(photo, 288)[None])
     logits = extractor.head.logits(feats)[0].numpy()
     s = extractor(photo)

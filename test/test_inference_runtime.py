@@ -1,4 +1,4 @@
-"""The two inference runtimes (lln_ros.runtime): same landmarks on real frames, the exported graph's
+"""The two inference runtimes (lln_ros.core.runtime): same landmarks on real frames, the exported graph's
 cache, the fallback, model_info, and maps shared across runtimes."""
 import json
 import os
@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from conftest import shared_data
-from lln_ros import runtime
+from lln_ros.core import runtime
 from lln_ros.errors import ModelError
-from lln_ros.extractor import Extractor
-from lln_ros.image import load_image
+from lln_ros.core.extractor import Extractor
+from lln_ros.io.image import load_image
 from lln_ros.mapstore import MapStore
 
 pytestmark = pytest.mark.skipif(not runtime.onnxruntime_available(), reason='onnxruntime is not installed')
@@ -105,7 +105,7 @@ def test_model_info_names_the_runtime_and_default(pair):
     assert pair[1].model_info['runtime'] == 'onnxruntime'
     # the descriptor space does not depend on the runtime: the map's compatibility key
     assert pair[0].descriptor_space == pair[1].descriptor_space
-    from lln_ros.extractor import default_conf
+    from lln_ros.core.extractor import default_conf
     assert default_conf['runtime'] == 'onnxruntime'
     with pytest.raises(ModelError, match='unknown runtime'):
         Extractor({'runtime': 'tensorflow'})
@@ -164,7 +164,7 @@ def test_damaged_cache_file_is_exported_again(tmp_path, monkeypatch, photo):
 def test_without_onnxruntime_it_says_so_once_and_runs_torch(tmp_path):
     """A Python where `import onnxruntime` fails (as on a machine without it): torch runs, one log line."""
     code = ('import logging, sys; sys.modules["onnxruntime"] = None; logging.basicConfig(level=logging.INFO); '
-            'from lln_ros.extractor import Extractor; e = Extractor(); print("RUNTIME", e.model_info["runtime"])')
+            'from lln_ros.core.extractor import Extractor; e = Extractor(); print("RUNTIME", e.model_info["runtime"])')
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=600,
                          env={**os.environ, 'LLN_CACHE': str(tmp_path)})
     assert out.returncode == 0, out.stderr

@@ -1,4 +1,4 @@
-"""The landmark first stage (lln_ros/landmark_index.py): its scoring, its index kept consistent with
+"""The landmark first stage (lln_ros/core/landmark_index.py): its scoring, its index kept consistent with
 both map backends through add / delete / clear / restart, its persisted IVF-PQ file (stale, corrupt,
 missing, from another map), and on real images the revisits the holistic top-K misses."""
 import logging
@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 
 from conftest import shared_data
-from lln_ros import datasets
+from lln_ros.io import datasets
 from lln_ros.errors import MapError
-from lln_ros.image import load_image
-from lln_ros.landmark_index import LandmarkIndex, check_prefilter, decode_ids, encode_ids, score_hits
-from lln_ros.landmarks import stack_landmarks
+from lln_ros.io.image import load_image
+from lln_ros.core.landmark_index import LandmarkIndex, check_prefilter, decode_ids, encode_ids, score_hits
+from lln_ros.core.landmarks import stack_landmarks
 from lln_ros.mapstore import MapStore
 from lln_ros.metrics import recall_at_k
-from lln_ros.retrieval import first_stage
+from lln_ros.core.retrieval import first_stage
 from test_map_backends import BACKENDS, uri_for
 from test_mapstore import MODEL, make_set
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-FORMATTED = ['lln_ros/ros', 'lln_ros/cli/common.py', 'lln_ros/download.py', 'test/test_lint.py']
+FORMATTED = ['lln_ros/ros', 'lln_ros/cli/common.py', 'lln_ros/io/download.py', 'test/test_lint.py']
 
 
 def ruff() -> list[str]:

@@ -1,4 +1,4 @@
-"""The matcher's decisions without rclpy (lln_ros.localizer.Localizer) on real SQLite maps, the
+"""The matcher's decisions without rclpy (lln_ros.core.localizer.Localizer) on real SQLite maps, the
 input limits (lln_ros.limits) and problem logging by kind (lln_ros.counters)."""
 import json
 import os
@@ -11,9 +11,9 @@ import pytest
 
 from lln_ros.counters import Counters, problem_kind
 from lln_ros.errors import MapError, ModelError
-from lln_ros.landmarks import LandmarkSet
+from lln_ros.core.landmarks import LandmarkSet
 from lln_ros.limits import LimitError, check_landmark_set, default_conf, validate_model
-from lln_ros.localizer import Localizer, open_map, writable_problem
+from lln_ros.core.localizer import Localizer, open_map, writable_problem
 from lln_ros.mapstore import MapStore
 from test_mapstore import MODEL, SPACE, make_set
 
@@ -76,7 +76,7 @@ def map_path(tmp_path):
 
 def test_localizer_is_ros_free():
     """The Localizer, limits and counters import without rclpy (nodes decode; this decides)."""
-    code = ('import sys, lln_ros.localizer, lln_ros.limits, lln_ros.counters; '
+    code = ('import sys, lln_ros.core.localizer, lln_ros.limits, lln_ros.counters; '
             'bad = [m for m in sys.modules if m.split(".")[0] in ("rclpy", "sensor_msgs", "std_msgs")]; '
             'print(bad); sys.exit(1 if bad else 0)')
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from lln_ros.errors import MapError
-from lln_ros.landmarks import LandmarkSet
+from lln_ros.core.landmarks import LandmarkSet
 from lln_ros.mapstore import SCHEMA_VERSION, MapCandidate, MapStore
 
 SPACE = 'efficientnet_lite0/stage7/320'

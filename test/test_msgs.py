@@ -12,8 +12,8 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
 
 from lln_ros import msgs
 from lln_ros.errors import MessageError
-from lln_ros.landmarks import LandmarkSet, l2_normalize, select_landmarks
-from lln_ros.retrieval import pair_regions
+from lln_ros.core.landmarks import LandmarkSet, l2_normalize, select_landmarks
+from lln_ros.core.retrieval import pair_regions
 
 
 def make_landmarks(d=16, rows=9, cols=12, n=20, image_size=(512, 384), seed=0) -> LandmarkSet:
@@ -213,7 +213,7 @@ def test_landmarks_roundtrip(kwargs):
 
 
 def test_landmarks_roundtrip_feeds_the_matcher():
-    from lln_ros.similarity import match_pair
+    from lln_ros.core.similarity import match_pair
     a, b = make_landmarks(seed=1), make_landmarks(seed=2)
     a2, b2 = (msgs.cloud_to_landmarks(roundtrip(msgs.landmarks_to_cloud(s))) for s in (a, b))
     want, got = match_pair(a, b), match_pair(a2, b2)
@@ -351,7 +351,7 @@ def test_landmarks_descriptors_renormalised_on_decode():
 
 
 def test_matches_roundtrip_and_match_rows():
-    from lln_ros.similarity import match_pair
+    from lln_ros.core.similarity import match_pair
     a, b = make_landmarks(seed=1), make_landmarks(seed=1)
     b.descriptors = b.descriptors[::-1].copy()  # same landmarks, other order
     b.centers, b.cells, b.scores = b.centers[::-1].copy(), b.cells[::-1].copy(), b.scores[::-1].copy()

@@ -26,7 +26,7 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_srvs.srv import Trigger
 
 from lln_ros import msgs
-from lln_ros.landmarks import LandmarkSet
+from lln_ros.core.landmarks import LandmarkSet
 from lln_ros.mapstore import MapStore
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from conftest import shared_data
-from lln_ros.image import load_image
+from lln_ros.io.image import load_image
 from lln_ros.reloc import Keypoints, Relocalizer, RelocError, camera_matrix, pair_boxes, region_boxes
-from lln_ros.similarity import match_pair
+from lln_ros.core.similarity import match_pair
 
 
 @pytest.fixture(scope='module')

@@ -6,11 +6,11 @@ import pytest
 
 from conftest import shared_data
 from lln_ros.errors import DescriptorError
-from lln_ros.extractor import Extractor
-from lln_ros.image import load_image
-from lln_ros.landmarks import stack_landmarks
-from lln_ros.retrieval import LandmarkDatabase, rank_all
-from lln_ros.similarity import match_batch
+from lln_ros.core.extractor import Extractor
+from lln_ros.io.image import load_image
+from lln_ros.core.landmarks import stack_landmarks
+from lln_ros.core.retrieval import LandmarkDatabase, rank_all
+from lln_ros.core.similarity import match_batch
 
 
 def crops(photo):

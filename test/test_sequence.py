@@ -1,4 +1,4 @@
-"""lln_ros.sequence and lln_ros.peers: the sequence search (offline = online), its stream faults, the
+"""lln_ros.core.sequence and lln_ros.peers: the sequence search (offline = online), its stream faults, the
 SeqSLAM front end, and lln-eval's sad / seqslam / X+seq rows on real data."""
 import json
 
@@ -9,16 +9,8 @@ import pytest
 from conftest import shared_data
 from lln_ros.cli.eval import main
 from lln_ros.errors import LLNError
-from lln_ros.sequence import (
-    KeyframeSequence,
-    SequenceError,
-    SequenceMatcher,
-    contrast_enhance,
-    rank_sequences,
-    sad_descriptors,
-    sad_difference,
-    sad_size,
-)
+from lln_ros.core.sequence import (KeyframeSequence, SequenceError, SequenceMatcher, contrast_enhance, rank_sequences,
+                                   sad_descriptors, sad_difference, sad_size)
 
 S = 10**9  # ns per second
 

@@ -8,7 +8,7 @@ from sensor_msgs.msg import PointCloud2
 
 from lln_ros import msgs
 from lln_ros.mapstore import MapStore
-from lln_ros.sequence import KeyframeSequence
+from lln_ros.core.sequence import KeyframeSequence
 from test_nodes import (MATCHER, cloud, header, places, read_log, rig, start_matcher,  # noqa: F401 (fixtures)
                         stamp_of)
 

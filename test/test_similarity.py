@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from lln_ros.errors import DescriptorError
-from lln_ros.landmarks import LandmarkSet, l2_normalize, stack_landmarks
-from lln_ros.similarity import match_batch, match_pair, offset_mode, offset_weights
+from lln_ros.core.landmarks import LandmarkSet, l2_normalize, stack_landmarks
+from lln_ros.core.similarity import match_batch, match_pair, offset_mode, offset_weights
 
 
 def make_set(desc, cells, grid=(9, 12), space='test/x/8'):

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from lln_ros import datasets, training
+from lln_ros.io import datasets
+from lln_ros import training
 from lln_ros.errors import DatasetError
-from lln_ros.extractor import Extractor
-from lln_ros.lln import LLNHead, load_checkpoint
+from lln_ros.core.extractor import Extractor
+from lln_ros.core.lln import LLNHead, load_checkpoint
 
 
 @pytest.fixture(scope='module')
@@ -94,8 +95,8 @@ def rerank_trainer(traverses, tmp_path):
 def test_match_tables_reproduce_the_similarity_of_all_cells(traverses, tmp_path):
     """The rerank objective's fixed tables hold exactly the paper's S (method `all`): summed over
     query cells they give match_batch's score for every candidate."""
-    from lln_ros.landmarks import stack_landmarks
-    from lln_ros.similarity import match_batch
+    from lln_ros.core.landmarks import stack_landmarks
+    from lln_ros.core.similarity import match_batch
     t = rerank_trainer(traverses, tmp_path)
     ex = small_extractor()
     ex.conf = {**ex.conf, 'method': 'all'}

@@ -11,8 +11,8 @@ from visualization_msgs.msg import MarkerArray
 
 from lln_ros import msgs
 from lln_ros.drawing import CAPTION_HEIGHT, draw_match_overlay, similarity_colours
-from lln_ros.retrieval import pair_regions
-from lln_ros.similarity import match_pair
+from lln_ros.core.retrieval import pair_regions
+from lln_ros.core.similarity import match_pair
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 
 T0 = 1_700_000_000 * 10**9

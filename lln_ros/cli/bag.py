@@ -24,7 +24,7 @@ def _positive(text: str) -> float:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from ..bag import DEFAULT_START_NS, DEFAULT_TOPIC
+    from ..io.bag import DEFAULT_START_NS, DEFAULT_TOPIC
     p = argparse.ArgumentParser(prog='lln-bag', description=__doc__.strip().splitlines()[0])
     sub = p.add_subparsers(dest='command', required=True, metavar='COMMAND')
 
@@ -79,7 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    from .. import bag
+    from ..io import bag
     if args.command == 'from-images':
         paths = bag.list_images(args.folder, args.glob)
         suffixes = sorted({p.suffix.lower() for p in paths})

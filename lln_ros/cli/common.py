@@ -101,7 +101,7 @@ def parser_from_doc(prog: str, doc: str) -> argparse.ArgumentParser:
 
 def add_model_arguments(p: argparse.ArgumentParser, weights: bool = True) -> None:
     """The extractor flags (lln-match, lln-reloc, lln-eval), defaults from the extractor's conf."""
-    from ..extractor import default_conf as ext
+    from ..core.extractor import default_conf as ext
 
     p.add_argument('--top-n', type=int, default=ext['top_n'], help=f'landmarks per image (default {ext["top_n"]})')
     p.add_argument(
@@ -136,8 +136,8 @@ def runtime_conf(args) -> dict:
 
 def add_prefilter_argument(p: argparse.ArgumentParser, what: str = 'first-stage candidates reranked') -> None:
     """--prefilter and --prefilter-k, defaults from retrieval.default_conf (one source)."""
-    from ..landmark_index import PREFILTERS
-    from ..retrieval import default_conf as retrieval
+    from ..core.landmark_index import PREFILTERS
+    from ..core.retrieval import default_conf as retrieval
 
     first, k = retrieval['prefilter'], retrieval['prefilter_k']
     p.add_argument('--prefilter', default=first, choices=PREFILTERS,
@@ -149,7 +149,7 @@ def add_prefilter_argument(p: argparse.ArgumentParser, what: str = 'first-stage 
 
 
 def add_scale_argument(p: argparse.ArgumentParser) -> None:
-    from ..similarity import default_conf as similarity
+    from ..core.similarity import default_conf as similarity
 
     p.add_argument(
         '--scale',
@@ -200,8 +200,8 @@ def read_dataset(spec: str, frac, download: bool):
     """(Dataset or None when it must be downloaded first, the --range it got). Every image is read
     and checked by the dataset readers; a gardenspoint: folder without its traverses is None with
     --download, else a DatasetError saying to add --download."""
-    from .. import datasets
-    from ..download import GARDENS_POINT_FOLDERS
+    from ..io import datasets
+    from ..io.download import GARDENS_POINT_FOLDERS
     from ..errors import DatasetError
 
     kind, _, rest = spec.partition(':')
@@ -227,7 +227,7 @@ def read_dataset(spec: str, frac, download: bool):
 
 def download_dataset(prog: str, spec: str, url: str | None, quiet: bool, log):
     """Fetch the Gardens Point traverses that read_dataset found missing, then read the dataset."""
-    from .. import datasets, download
+    from ..io import datasets, download
 
     root = spec.partition(':')[2].split(',')[0]
     url = url or download.GARDENS_POINT_URL

@@ -106,7 +106,7 @@ def nordland_spec(data: Path) -> str:
 
 def build_parser():
     from ..eval.runner import default_conf as eval_defaults
-    from ..extractor import default_conf as ext
+    from ..core.extractor import default_conf as ext
     p = parser_from_doc(PROG, __doc__)
     p.add_argument('--out', required=True, metavar='DIR', help='output folder (bags, map, results, plots, logs)')
     p.add_argument('--dataset', metavar='SPEC', help='default: the Nordland test split, else Gardens Point')
@@ -164,7 +164,7 @@ def check_args(args) -> None:
 
 def choose_dataset(args) -> tuple[str, tuple | None, str]:
     """(spec, range, why) from --dataset / --range or the defaults."""
-    from ..datasets import parse_range
+    from ..io.datasets import parse_range
     frac = parse_range(args.range)  # DatasetError (exit 2) on a bad --range
     if args.dataset:
         return args.dataset, frac, 'given with --dataset'
@@ -203,8 +203,8 @@ def load_dataset(spec: str, frac, args, log):
 def run_online(ds, args, out: Path, exes: dict, log) -> dict:
     from tqdm import tqdm
 
-    from .. import bag
-    from ..bag import DEFAULT_START_NS
+    from ..io import bag
+    from ..io.bag import DEFAULT_START_NS
 
     timing = {}
     t = time.monotonic()

@@ -135,7 +135,7 @@ def run(args, argv) -> dict:
         raise UsageError('--reloc-top and --reloc-min-inliers must be at least 1')
     if args.sequence < 0:
         raise UsageError(f'--sequence must be 0 (off) or a length of at least 1, got {args.sequence}')
-    from ..datasets import parse_range
+    from ..io.datasets import parse_range
     frac = parse_range(args.range)
     heads = head_specs(args)
 
@@ -145,7 +145,7 @@ def run(args, argv) -> dict:
         raise UsageError('--range applies to aligned: datasets only, and none was given')
 
     # 2. the model and every head (checkpoint metadata must fit the backbone)
-    from ..extractor import Extractor
+    from ..core.extractor import Extractor
     extractor = Extractor(extractor_conf(args, num_threads=args.threads))
     heads = load_heads(extractor, heads)
 

@@ -2,7 +2,7 @@
 
     lln-export [--backbone efficientnet_lite0] [--layer stage6] [--weights HEAD.pt] [--output FILE.onnx]
 
-Never needed by hand: the extractor exports on first use into the cache (lln_ros.runtime; default
+Never needed by hand: the extractor exports on first use into the cache (lln_ros.core.runtime; default
 ~/.cache/lln_ros/onnx, or $LLN_CACHE/onnx) and reuses the file. This command fills that cache ahead
 of time, or writes a file elsewhere with --output, and checks the exported graph against torch on a
 real photograph (the largest feature and logit difference is printed).
@@ -33,9 +33,9 @@ def build_parser() -> argparse.ArgumentParser:
 def run(args) -> dict:
     import numpy as np
 
-    from .. import runtime
-    from ..extractor import Extractor
-    from ..image import resize_for_network
+    from ..core import runtime
+    from ..core.extractor import Extractor
+    from ..io.image import resize_for_network
 
     # the torch extractor builds and checks the model exactly as extraction does
     ex = Extractor({'backbone': {'name': args.backbone, 'layer': args.layer, 'weights_path': args.backbone_weights},
@@ -49,7 +49,7 @@ def run(args) -> dict:
     if not runtime.onnxruntime_available():
         raise LLNError(f'exported {path}, but onnxruntime is not installed to check it (pip install onnxruntime)')
     import matplotlib.cbook as cbook
-    from ..image import load_image
+    from ..io.image import load_image
     with cbook.get_sample_data('grace_hopper.jpg') as f:
         rgb = resize_for_network(load_image(f.name), 288)[None]
     t_feats, t_logits = ex.network(rgb)

@@ -18,7 +18,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.strip().splitlines()[0])
     p.add_argument('image_a')
     p.add_argument('image_b')
-    from ..landmarks import METHODS
+    from ..core.landmarks import METHODS
     p.add_argument('--method', default=METHODS[0], choices=METHODS)
     add_model_arguments(p)
     add_scale_argument(p)
@@ -28,13 +28,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def extractor_from_args(args, method: str = 'lln'):
-    from ..extractor import Extractor
+    from ..core.extractor import Extractor
     return Extractor(extractor_conf(args, method=method))
 
 
 def run(args) -> dict:
-    from ..image import load_image
-    from ..similarity import match_pair
+    from ..io.image import load_image
+    from ..core.similarity import match_pair
 
     check_output_file(args.plot, '--plot')
     images = [load_image(args.image_a), load_image(args.image_b)]

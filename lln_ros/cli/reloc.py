@@ -40,9 +40,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run(args) -> dict:
-    from ..image import load_image
+    from ..io.image import load_image
     from ..reloc import Relocalizer, camera_matrix, pair_boxes
-    from ..similarity import match_pair
+    from ..core.similarity import match_pair
 
     check_output_file(args.plot, '--plot')
     images = [load_image(args.query), load_image(args.keyframe)]

@@ -60,7 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def load_pairs(spec: str, frac, neg_margin: int):
-    from .. import datasets, training
+    from ..io import datasets
+    from .. import training
     kind, _, rest = spec.partition(':')
     if kind == 'places':
         return training.pairs_from_places(rest)
@@ -73,7 +74,7 @@ def load_pairs(spec: str, frac, neg_margin: int):
 def load_dataset(spec: str, frac):
     """A Dataset; frac (--range / --val-range) applies to aligned specs only and is kept in its name,
     so the checkpoint metadata says which part of a route was trained or validated on."""
-    from .. import datasets
+    from ..io import datasets
     use = frac if spec.startswith('aligned:') else None
     ds = datasets.parse_spec(spec, use)
     if use:
@@ -82,8 +83,9 @@ def load_dataset(spec: str, frac):
 
 
 def run(args) -> dict:
-    from .. import datasets, training
-    from ..extractor import Extractor
+    from ..io import datasets
+    from .. import training
+    from ..core.extractor import Extractor
     size = args.train_size.lower()
     train_size = tuple(int(v) for v in size.split('x')) if 'x' in size else int(size)
     conf = {'objective': args.objective, 'tau': args.tau, 'soft_temp': args.soft_temp,

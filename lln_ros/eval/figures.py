@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 
 from .. import metrics
-from ..landmarks import METHODS as LOCAL_METHODS
-from ..landmarks import stack_landmarks
-from ..similarity import match_batch, match_pair
+from ..core.landmarks import METHODS as LOCAL_METHODS
+from ..core.landmarks import stack_landmarks
+from ..core.similarity import match_batch, match_pair
 from .methods import parse_methods, row_names, slug, variant
 from .report import pct
 
@@ -109,7 +109,7 @@ def plot_heatmaps(images: list[np.ndarray], rows: list[tuple[str, list, list]], 
     (the paper's Fig. 3). rows: (label, score maps (rows, cols) per image, LandmarkSets per image)."""
     from matplotlib.patches import Rectangle
 
-    from ..image import heatmap
+    from ..io.image import heatmap
     plt = _pyplot()
     nr, nc = len(rows), len(images)
     fig, axes = plt.subplots(nr, nc, figsize=(3.2 * nc, 2.6 * nr + 0.4), dpi=100, squeeze=False)
@@ -137,7 +137,7 @@ def plot_heatmaps(images: list[np.ndarray], rows: list[tuple[str, list, list]], 
 def write_figures(run, ds, extractor, heads: list, conf: dict, feats: dict,
                   ref_sizes: list, query_sizes: list, out: Path) -> dict:
     """PNGs of one dataset; returns {'pr', 'recall_at_k', 'heatmaps': file, 'examples': [...]}."""
-    from ..image import load_image
+    from ..io.image import load_image
     from ..plotting import plot_matches
     stem = slug(run.name)
     figs: dict = {}
@@ -240,7 +240,7 @@ def plot_online_examples(ds, run: dict, online: dict, out: Path, count: int) -> 
     landmarks outlined come from the extractors' clouds): the most confident successes and failures."""
     from types import SimpleNamespace
 
-    from ..image import load_image
+    from ..io.image import load_image
     from ..plotting import plot_matches
     if count <= 0:
         return []

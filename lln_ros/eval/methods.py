@@ -8,8 +8,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import ModelError
-from ..landmarks import METHODS as LOCAL_METHODS
-from ..lln import LLNHead, head_fingerprint, load_checkpoint
+from ..core.landmarks import METHODS as LOCAL_METHODS
+from ..core.lln import LLNHead, head_fingerprint, load_checkpoint
 from .peers import PEER_METHODS
 
 METHODS = ('holistic',) + tuple(LOCAL_METHODS)   # the paper's rows, the default
@@ -76,7 +76,7 @@ def load_heads(extractor, heads: list[Head] | None) -> list[Head]:
                           dict(extractor.head_meta))
         else:
             if w.lower() in SHIPPED_WORDS:
-                from ..extractor import shipped_weights
+                from ..core.extractor import shipped_weights
                 path = shipped_weights(name, layer)
                 if not path:
                     raise ModelError(f'no LLN head ships for backbone {name!r} layer {layer!r}; '

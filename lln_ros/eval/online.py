@@ -186,7 +186,7 @@ def run_offline(ds, spec: str, args, out: Path, log) -> dict:
     """The same dataset through lln-eval's code (evaluate) with the nodes' method, top-n and
     prefilter-k, into out/offline; the ranking and summary of its one row."""
     from ..cli.common import runtime_conf
-    from ..extractor import Extractor
+    from ..core.extractor import Extractor
     from .runner import evaluate
     ext_method = 'lln' if args.method == 'holistic' else args.method
     extractor = Extractor({'top_n': args.top_n, 'method': ext_method, 'num_threads': args.threads,

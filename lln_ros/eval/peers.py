@@ -3,7 +3,7 @@
     sad       single frame: downsampled, patch-normalised grey images compared by mean absolute
               difference (the SeqSLAM front end, Milford and Wyeth ICRA 2012); score = -difference
     seqslam   the same differences, locally contrast-enhanced along the map, then the sequence
-              search of lln_ros.sequence (length L, velocity range); score = -mean enhanced difference
+              search of lln_ros.core.sequence (length L, velocity range); score = -mean enhanced difference
 
 and `sequence_row`: any method's single-frame ranking turned into a sequence ranking (`X+seq`).
 """
@@ -14,15 +14,8 @@ import time
 import cv2
 import numpy as np
 
-from ..sequence import (
-    contrast_enhance,
-    dense_to_ranked,
-    rank_sequences,
-    sad_conf,
-    sad_descriptors,
-    sad_difference,
-    sad_size,
-)
+from ..core.sequence import (contrast_enhance, dense_to_ranked, rank_sequences, sad_conf, sad_descriptors,
+                             sad_difference, sad_size)
 
 PEER_METHODS = ('sad', 'seqslam')
 

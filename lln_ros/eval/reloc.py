@@ -29,9 +29,9 @@ def evaluate_reloc(ds, queries: list, refs: list, ranked: np.ndarray, conf: dict
     have a true match, mean inliers of the best true candidate and of false candidates, mean
     matching + verification ms per query (all its candidates; detection excluded, it is shared
     and reported as detect_ms per image)."""
-    from ..image import load_image
-    from ..landmarks import stack_landmarks
-    from ..similarity import match_batch
+    from ..io.image import load_image
+    from ..core.landmarks import stack_landmarks
+    from ..core.similarity import match_batch
     conf = {**eval_conf, **(conf or {})}
     reloc = Relocalizer({'detector': conf['reloc_detector'], 'margin': conf['reloc_margin'],
                          'fast_threshold': conf['reloc_fast_threshold']})

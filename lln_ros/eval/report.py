@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import metrics
-from ..retrieval import default_conf as retrieval_defaults
+from ..core.retrieval import default_conf as retrieval_defaults
 
 # (results key, label) of every metric a report shows, in the order shown
 METRICS = (('p_at_100r', 'P@100%R'), ('r_at_100p', 'R@100%P'), ('auc_pr', 'AUC-PR'),

@@ -16,7 +16,7 @@ only in which cells become landmarks). Rows:
     all            every cell of the grid; no head involved
     sad, seqslam   classic peers (eval/peers.py): patch-normalised thumbnails, single frame / sequence
     X+seq          with conf['sequence'] = L > 0: row X's ranking made sequence-consistent
-                   (lln_ros.sequence, the search the matcher node runs online)
+                   (lln_ros.core.sequence, the search the matcher node runs online)
 
 Every local method reranks the SAME holistic top-K (prefilter_k, the paper's 30) by the landmark
 similarity S (retrieval.rank_all); loop datasets restrict answers with `allowed=ds.candidates`.
@@ -49,17 +49,17 @@ import torch
 
 from .. import metrics
 from ..errors import DatasetError
-from ..extractor import default_conf as extractor_defaults
-from ..features import FeatureCache
-from ..landmarks import LandmarkSet, l2_normalize, stack_landmarks
-from ..lln import head_fingerprint
-from ..landmark_index import check_prefilter
-from ..retrieval import batch_index, first_stage, rank_all
-from ..retrieval import default_conf as retrieval_defaults
-from ..sequence import check_conf as sequence_conf
-from ..sequence import default_conf as sequence_defaults
-from ..sequence import sad_conf
-from ..similarity import match_batch
+from ..core.extractor import default_conf as extractor_defaults
+from ..io.features import FeatureCache
+from ..core.landmarks import LandmarkSet, l2_normalize, stack_landmarks
+from ..core.lln import head_fingerprint
+from ..core.landmark_index import check_prefilter
+from ..core.retrieval import batch_index, first_stage, rank_all
+from ..core.retrieval import default_conf as retrieval_defaults
+from ..core.sequence import check_conf as sequence_conf
+from ..core.sequence import default_conf as sequence_defaults
+from ..core.sequence import sad_conf
+from ..core.similarity import match_batch
 from .figures import figure_files, write_figures
 from .methods import (
     METHODS,
@@ -147,7 +147,7 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
                      spec: str = '', log=None, out_dir: str | os.PathLike | None = None) -> DatasetRun:
     """Every requested method on one dataset (see the module doc). `heads` must be loaded. With
     out_dir (and conf['plots']) the dataset's PNGs are written there and named in entry['figures']."""
-    from ..image import load_image
+    from ..io.image import load_image
     conf = {**default_conf, **(conf or {})}
     heads = heads or load_heads(extractor, None)
     log = log or (lambda msg: None)

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from ..landmarks import l2_normalize
+from ..core.landmarks import l2_normalize
 
 
 def interleaved_times(jobs: dict, repeats: int = 3) -> dict:
@@ -33,7 +33,7 @@ def interleaved_times(jobs: dict, repeats: int = 3) -> dict:
 def extraction_job(extractor, image: np.ndarray, holistic: bool = False):
     """One full extraction of an original-size RGB image: resize, backbone, head, selection
     (holistic: resize, backbone, global max pool, no head)."""
-    from ..image import resize_for_network
+    from ..io.image import resize_for_network
     if not holistic:
         return lambda: extractor(image)
 

@@ -8,12 +8,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import landmark_index
+from ..core import landmark_index
 from ..errors import DescriptorError, MapError, ModelError
-from ..landmark_index import LandmarkIndex, check_prefilter
-from ..landmarks import LandmarkSet, stack_landmarks
+from ..core.landmark_index import LandmarkIndex, check_prefilter
+from ..core.landmarks import LandmarkSet, stack_landmarks
 from ..limits import validate_model
-from ..retrieval import Candidate, default_conf as retrieval_conf, pair_regions, rerank
+from ..core.retrieval import Candidate, default_conf as retrieval_conf, pair_regions, rerank
 from .uri import backend_for
 
 FORMAT = 'lln_ros-map'
@@ -196,7 +196,7 @@ class MapStore(abc.ABC):
         return np.stack([sets[int(i)].global_descriptor for i in ids]).astype(np.float32) @ \
             np.asarray(lset.global_descriptor, np.float32)
 
-    # the landmark index (lln_ros/landmark_index.py) kept in step with the stored keyframes
+    # the landmark index (lln_ros/core/landmark_index.py) kept in step with the stored keyframes
 
     def _new_landmark_index(self) -> LandmarkIndex:
         return LandmarkIndex(int(self._model['descriptor_dim']), self.conf)

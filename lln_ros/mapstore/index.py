@@ -1,5 +1,5 @@
 """The in-memory FAISS index of the keyframes' global descriptors (the holistic first stage);
-the landmark index is lln_ros/landmark_index.py."""
+the landmark index is lln_ros/core/landmark_index.py."""
 from __future__ import annotations
 
 import logging

@@ -51,9 +51,9 @@ from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
-from .. import landmark_index
+from ..core import landmark_index
 from ..errors import DescriptorError, LLNError, MapError
-from ..landmarks import LandmarkSet
+from ..core.landmarks import LandmarkSet
 from .base import FORMAT, MapStore
 
 log = logging.getLogger(__name__)

@@ -69,8 +69,8 @@ import time
 import numpy as np
 
 from ..errors import DescriptorError, MapError
-from ..landmark_index import LandmarkIndex, default_conf as landmark_index_defaults
-from ..landmarks import LandmarkSet
+from ..core.landmark_index import LandmarkIndex, default_conf as landmark_index_defaults
+from ..core.landmarks import LandmarkSet
 from .base import MapStore
 from .index import GlobalIndex
 from .sqlite_file import _KF_COLS, _KF_INSERT, _LM_COLS, _SQL_CHUNK, FORMAT, SCHEMA_VERSION, SQLiteFile

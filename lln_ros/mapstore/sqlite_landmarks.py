@@ -8,9 +8,9 @@ import uuid
 
 import numpy as np
 
-from .. import landmark_index
+from ..core import landmark_index
 from ..errors import MapError
-from ..landmark_index import LandmarkIndex
+from ..core.landmark_index import LandmarkIndex
 from .sqlite_file import _SQL_CHUNK
 
 log = logging.getLogger(__name__)

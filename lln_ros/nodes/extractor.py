@@ -25,18 +25,18 @@ from std_msgs.msg import String
 
 from .. import msgs
 from ..errors import LLNError
-from ..backbones import BACKBONES
-from ..backbones import default_conf as BACKBONE
-from ..extractor import Extractor
-from ..extractor import default_conf as EXTRACTOR
-from ..image import check_image, heatmap_bgr
-from ..landmarks import METHODS
+from ..core.backbones import BACKBONES
+from ..core.backbones import default_conf as BACKBONE
+from ..core.extractor import Extractor
+from ..core.extractor import default_conf as EXTRACTOR
+from ..io.image import check_image, heatmap_bgr
+from ..core.landmarks import METHODS
 from ..limits import default_conf as LIMITS
 from ..stream import StampGaps
 from .common import MODEL_QOS, Health, loss_events, run_node, start_diagnostics, subscription_qos, worst
 from .parameters import Param, declare_all
 
-# defaults come from the ROS-free confs (lln_ros.extractor / backbones / limits): one source each
+# defaults come from the ROS-free confs (lln_ros.core.extractor / backbones / limits): one source each
 PARAMETERS = {
     'backbone': Param(BACKBONE['name'], 'backbone', choices=tuple(BACKBONES)),
     'layer': Param(BACKBONE['layer'], "backbone feature layer; '' = the backbone's default"),

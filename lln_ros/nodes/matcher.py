@@ -17,13 +17,13 @@ so whatever a subscriber has seen answered survives kill -9.
 verify=true: keypoints are paired with landmark sets by header stamp and stored per keyframe; the
 top candidates are re-ranked by region-constrained RANSAC inliers (lln_ros.reloc.verify_candidates).
 
-sequence_length L > 0 ranks keyframes by sequence agreement over the last L queries (lln_ros.sequence,
+sequence_length L > 0 ranks keyframes by sequence agreement over the last L queries (lln_ros.core.sequence,
 the search lln-eval --sequence runs offline): candidates come best sequence_score first, min_score
 applies to sequence_score, and `score` / `holistic_score` are this query's own (0 = the keyframe was
 not among this query's prefilter_k). Out-of-order stamps and gaps longer than sequence_max_gap start a
 new sequence (counted as sequence_reset_out_of_order / sequence_reset_gap).
 
-What happens to each message is decided by lln_ros.localizer.Localizer (ROS-free, unit-tested
+What happens to each message is decided by lln_ros.core.localizer.Localizer (ROS-free, unit-tested
 without rclpy); this node decodes (lln_ros.msgs), calls it and publishes. Input limits
 (max_image_pixels, max_landmarks, max_descriptor_dim, max_grid_side, max_keypoints) default to
 lln_ros.limits.default_conf.
@@ -40,16 +40,16 @@ from std_srvs.srv import Trigger
 
 from .. import msgs
 from ..errors import LLNError
-from ..landmark_index import PREFILTERS
+from ..core.landmark_index import PREFILTERS
 from ..limits import default_conf as LIMITS
-from ..localizer import Localizer, open_map
-from ..localizer import default_conf as LOC
-from ..sequence import KeyframeSequence
+from ..core.localizer import Localizer, open_map
+from ..core.localizer import default_conf as LOC
+from ..core.sequence import KeyframeSequence
 from ..stream import StampGaps
 from .common import MODEL_QOS, Health, loss_events, run_node, start_diagnostics, subscription_qos, worst
 from .parameters import Param, declare_all
 
-# defaults come from the ROS-free confs (lln_ros.localizer / limits): one source each.
+# defaults come from the ROS-free confs (lln_ros.core.localizer / limits): one source each.
 # dynamic=True: settable at run time (ros2 param set), applied from the next message on
 PARAMETERS = {
     'map_path': Param('~/.ros/lln_ros/map.db', 'map URI: SQLite file path (created if missing), '

@@ -289,7 +289,7 @@ class Probe:
         frame 0, `confirm(stamp)` checks that it arrived downstream (the map counts a keyframe / the
         query is answered); if not, frame 0 is sent again (HANDSHAKE_TRIES times at most). Returns
         timing and the number of frames sent again."""
-        from .. import bag
+        from ..io import bag
 
         seen = self.landmarks[out_kind]
         self.spin_until(

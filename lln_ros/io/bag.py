@@ -23,8 +23,8 @@ from pathlib import Path
 import cv2
 
 from .datasets import list_images
-from .errors import DatasetError, ImageError, LLNError
-from .msgs import array_to_compressed, array_to_image, make_header
+from ..errors import DatasetError, ImageError, LLNError
+from ..msgs import array_to_compressed, array_to_image, make_header
 
 DEFAULT_START_NS = 1_700_000_000 * 1_000_000_000  # 2023-11-14T22:13:20Z: bags are reproducible
 DEFAULT_TOPIC = '/camera/image_raw'

@@ -20,7 +20,7 @@ import types
 import torch
 from torch import nn
 
-from .errors import ModelError
+from ..errors import ModelError
 
 default_conf = {
     'name': 'efficientnet_lite0',
@@ -94,7 +94,7 @@ class EfficientNetLite(nn.Module):
 
     def exportable(self) -> 'EfficientNetLite':
         """A copy for ONNX export whose "same" padding is constant, valid for inputs whose height
-        and width are multiples of 32 (all the extractor feeds; lln_ros.image.network_size).
+        and width are multiples of 32 (all the extractor feeds; lln_ros.io.image.network_size).
 
         The library computes the padding per call from the input size with math.ceil, which a trace
         turns into a constant minus the live size: the exported graph would crop every input to the

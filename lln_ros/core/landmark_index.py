@@ -47,7 +47,7 @@ import zlib
 import faiss
 import numpy as np
 
-from .errors import MapError
+from ..errors import MapError
 from .similarity import offset_mode, offset_weights
 
 log = logging.getLogger(__name__)

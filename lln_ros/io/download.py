@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from .errors import DatasetError
+from ..errors import DatasetError
 
 GARDENS_POINT_URL = 'https://www.tu-chemnitz.de/etit/proaut/datasets/GardensPoint_Walking.zip'
 GARDENS_POINT_FOLDERS = ('day_left', 'day_right', 'night_right')

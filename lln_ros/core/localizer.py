@@ -29,10 +29,10 @@ import logging
 import os
 from dataclasses import dataclass, field
 
-from . import limits as limits_mod
-from .errors import DescriptorError, LLNError, MapError
+from .. import limits as limits_mod
+from ..errors import DescriptorError, LLNError, MapError
 from .landmark_index import check_prefilter
-from .limits import LimitError, check_landmark_set, validate_model
+from ..limits import LimitError, check_landmark_set, validate_model
 from .retrieval import default_conf as retrieval_conf
 from .sequence import KeyframeSequence
 
@@ -79,7 +79,7 @@ def space_model(space: str) -> dict:
 def writable_problem(uri) -> str:
     """Why the map at uri cannot be written ('' = it can, or it is not an SQLite file we can judge).
     Asked before the file is opened, so a refused map leaves no -wal/-shm behind."""
-    from .mapstore import backend_for
+    from ..mapstore import backend_for
     kind, location = backend_for(uri)
     if kind != 'sqlite':
         return ''
@@ -103,7 +103,7 @@ def open_map(uri, mode: str = 'localization', descriptor_space: str = '', conf: 
     """(store, {quarantined keyframe id: problem}) for the matcher: the model from descriptor_space
     validated, a map that mapping mode cannot write refused (MapError naming the file and why),
     and the map's damaged keyframes found by the open's integrity scan."""
-    from .mapstore import MapStore
+    from ..mapstore import MapStore
     model = space_model(descriptor_space) if descriptor_space else None
     if mode == 'mapping':
         problem = writable_problem(uri)
@@ -119,10 +119,10 @@ class Localizer:
     caller at a time (the node's single-threaded executor); the store is thread-safe itself."""
 
     def __init__(self, store, conf: dict | None = None, counters=None, log=None, decode_keypoints=None):
-        from .counters import Counters
+        from ..counters import Counters
         self.conf = conf = self.check_conf(conf)
         self.store, self.limits = store, conf['limits']
-        self.log = log or logging.getLogger('lln_ros.localizer')
+        self.log = log or logging.getLogger('lln_ros.core.localizer')
         self.counters = counters if counters is not None else Counters(log=self.log.warning)
         self.mapping = conf['mode'] == 'mapping'
         self.sequence = KeyframeSequence({'length': conf['sequence_length'], 'max_gap_s': conf['sequence_max_gap']}) \
@@ -136,7 +136,7 @@ class Localizer:
             if not hasattr(store, 'add_keypoints'):
                 raise MapError(f'verify needs keypoint storage, which the {type(store).__name__} backend of '
                                f'map {store.path} does not have (use an SQLite map)')
-            from .reloc import Relocalizer
+            from ..reloc import Relocalizer
             self.reloc = Relocalizer({'min_inliers': conf['verify_min_inliers'], 'margin': conf['verify_margin']})
 
     @staticmethod
@@ -249,7 +249,7 @@ class Localizer:
         return self._decode_keypoints(payload, lset)
 
     def _decode_keypoints(self, payload, lset):
-        from .reloc import detection_scale
+        from ..reloc import detection_scale
         w, h = (float(v) for v in lset.image_size)
         try:
             return self.decode_keypoints(payload, (w, h), detection_scale(h, self.reloc.conf['min_height']),
@@ -269,7 +269,7 @@ class Localizer:
         return kid
 
     def _stored_keypoints(self, keyframe_id: int, image_size):
-        from .reloc import Keypoints, detection_scale
+        from ..reloc import Keypoints, detection_scale
         found = self.store.keypoints(keyframe_id)
         if found is None:
             return None
@@ -334,7 +334,7 @@ class Localizer:
 
     def verify(self, lset, kps, found):
         """Candidates re-ranked by region-constrained inliers, and {keyframe_id: inliers}."""
-        from .reloc import verify_candidates
+        from ..reloc import verify_candidates
         if kps is None or not found:
             return found, {}
         ranked = verify_candidates(self.reloc, kps, lset.cell_size, found,

@@ -4,8 +4,8 @@
     landmarks = extractor(image)            # uint8 (H, W) or (H, W, 3|4), RGB unless channel_order='bgr'
     many = extractor.extract_batch(images)  # same result, batched through the network
 
-`runtime` picks what runs the network (lln_ros.runtime): 'onnxruntime' (the default; the graph is
-exported once and cached, see lln_ros.runtime) or 'torch'. Both give the same landmarks; when ONNX
+`runtime` picks what runs the network (lln_ros.core.runtime): 'onnxruntime' (the default; the graph is
+exported once and cached, see lln_ros.core.runtime) or 'torch'. Both give the same landmarks; when ONNX
 Runtime is not installed the extractor says so in one log line and runs torch. model_info['runtime']
 names the one that runs.
 """
@@ -18,8 +18,8 @@ import numpy as np
 import torch
 
 from . import backbones
-from .errors import ModelError
-from .image import check_image, resize_for_network
+from ..errors import ModelError
+from ..io.image import check_image, resize_for_network
 from .landmarks import METHODS, LandmarkSet, l2_normalize, select_landmarks
 from .lln import LLNHead, head_fingerprint, load_checkpoint
 from .runtime import RUNTIMES, build_network

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import DescriptorError
+from ..errors import DescriptorError
 
 METHODS = ('lln', 'act', 'rand', 'all')
 

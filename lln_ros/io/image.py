@@ -10,7 +10,7 @@ import os
 import cv2
 import numpy as np
 
-from .errors import ImageError
+from ..errors import ImageError
 
 MIN_SIDE = 8       # below this there is no structure left to upsample into a 32-pixel grid cell
 MAX_WIDTH = 4096   # after resizing to the input height: guards against absurd aspect ratios

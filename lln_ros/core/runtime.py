@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .errors import ModelError
+from ..errors import ModelError
 from .lln import state_fingerprint
 
 log = logging.getLogger(__name__)

@@ -18,7 +18,7 @@ import faiss
 import numpy as np
 
 from . import landmark_index
-from .errors import DescriptorError
+from ..errors import DescriptorError
 from .landmark_index import LandmarkIndex, check_prefilter
 from .landmarks import LandmarkBatch, LandmarkSet, stack_landmarks
 from .similarity import match_batch

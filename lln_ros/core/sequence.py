@@ -39,7 +39,7 @@ import cv2
 import faiss
 import numpy as np
 
-from .errors import LLNError
+from ..errors import LLNError
 
 default_conf = {
     'length': 10,        # L: queries in a sequence (SeqSLAM's ds)

@@ -16,7 +16,7 @@ import os
 import torch
 from torch import nn
 
-from .errors import ModelError
+from ..errors import ModelError
 
 CHECKPOINT_VERSION = 1
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import DescriptorError
+from ..errors import DescriptorError
 from .landmarks import LandmarkBatch, LandmarkSet, stack_landmarks
 
 default_conf = {

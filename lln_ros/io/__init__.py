@@ -1,0 +1,1 @@
+"""Reading and writing: images, datasets, MCAP bags, the backbone feature cache, downloads."""
