@@ -12,6 +12,7 @@ machine is, then with one competing CPU-bound process that this script starts an
 Each row runs `--repeats` frames or `--budget` seconds, whichever ends first (at least 5 frames).
 The load average at the start is printed: on a shared machine "quiet" means "no process of ours".
 """
+
 from __future__ import annotations
 
 import argparse
@@ -34,9 +35,9 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from lln_ros.core.extractor import Extractor, default_conf  # noqa: E402
-from lln_ros.io.image import load_image, resize_for_network  # noqa: E402
 from lln_ros.core.landmarks import stack_landmarks  # noqa: E402
 from lln_ros.core.similarity import match_batch  # noqa: E402
+from lln_ros.io.image import load_image, resize_for_network  # noqa: E402
 
 PAPER_MS = {'extract_ms': 16.0, 'lln_50': 6.0, 'lln_75': 13.0, 'all': 27.0, 'holistic': 0.009}
 
@@ -73,8 +74,15 @@ def round_robin(fns: dict, repeats: int, budget: float, warmup: int = 2) -> dict
         rounds += 1
     # CPU time (all threads of this process) per call: the work, whatever the other processes do;
     # for one thread it is close to what the wall time would be on an idle machine
-    return {name: {'p50_ms': float(np.median(wall[name]) * 1e3), 'p90_ms': float(np.percentile(wall[name], 90) * 1e3),
-                   'cpu_ms': float(np.median(cpu[name]) * 1e3), 'frames': len(wall[name])} for name in fns}
+    return {
+        name: {
+            'p50_ms': float(np.median(wall[name]) * 1e3),
+            'p90_ms': float(np.percentile(wall[name], 90) * 1e3),
+            'cpu_ms': float(np.median(cpu[name]) * 1e3),
+            'frames': len(wall[name]),
+        }
+        for name in fns
+    }
 
 
 @contextlib.contextmanager
@@ -97,6 +105,7 @@ def photo_views(count: int, width: int, height: int = 288) -> list[np.ndarray]:
     shifted and some mirrored, resized to the size so the network sees them as they are."""
     import cv2
     import matplotlib.cbook as cbook
+
     with cbook.get_sample_data('grace_hopper.jpg') as f:
         photo = load_image(f.name)
     ph, pw = photo.shape[:2]
@@ -105,7 +114,7 @@ def photo_views(count: int, width: int, height: int = 288) -> list[np.ndarray]:
     out = []
     for i in range(count):
         y, x = (i * 37) % (ph - ch), (i * 53) % (pw - cw)
-        v = cv2.resize(photo[y:y + ch, x:x + cw], (width, height), interpolation=cv2.INTER_AREA)
+        v = cv2.resize(photo[y : y + ch, x : x + cw], (width, height), interpolation=cv2.INTER_AREA)
         out.append(np.ascontiguousarray(v[:, ::-1] if i % 2 else v))
     return out
 
@@ -120,15 +129,16 @@ def frame_fn(extractor, threads: int, images: list):
     def fn():
         torch.set_num_threads(threads)  # torch's pool is per process: set it for every call
         return extractor(images[next(it) % len(images)])
+
     return fn
 
 
 def runtime_rows(repeats: int, budget: float) -> dict:
     """Per-frame extraction latency for every runtime x size x threads, quiet and loaded."""
     from lln_ros.core.runtime import onnxruntime_available
+
     runtimes = ['torch'] + (['onnxruntime'] if onnxruntime_available() else [])
-    extractors = {(rt, t): Extractor({'runtime': rt, 'num_threads': t, 'top_n': 50})
-                  for rt in runtimes for t in (1, 2)}
+    extractors = {(rt, t): Extractor({'runtime': rt, 'num_threads': t, 'top_n': 50}) for rt in runtimes for t in (1, 2)}
     frames = {size: photo_views(4, *size) for size in RUNTIME_SIZES}
     start_load = list(os.getloadavg())
     rows = []
@@ -138,19 +148,41 @@ def runtime_rows(repeats: int, budget: float) -> dict:
             load['loaded' if loaded else 'quiet'] = os.getloadavg()[0]
             for size in RUNTIME_SIZES:
                 for t in (1, 2):
-                    stats = round_robin({rt: frame_fn(extractors[(rt, t)], t, frames[size]) for rt in runtimes},
-                                        repeats, budget)
-                    rows += [{'runtime': rt, 'ran': extractors[(rt, t)].model_info['runtime'], 'size': list(size),
-                              'threads': t, 'loaded': loaded, **stats[rt]} for rt in runtimes]
-    return {'load_average_at_start': start_load, 'load_1min': load, 'rows': rows,
-            'default_runtime': default_conf['runtime'] if onnxruntime_available() else 'torch'}
+                    stats = round_robin(
+                        {rt: frame_fn(extractors[(rt, t)], t, frames[size]) for rt in runtimes}, repeats, budget
+                    )
+                    rows += [
+                        {
+                            'runtime': rt,
+                            'ran': extractors[(rt, t)].model_info['runtime'],
+                            'size': list(size),
+                            'threads': t,
+                            'loaded': loaded,
+                            **stats[rt],
+                        }
+                        for rt in runtimes
+                    ]
+    return {
+        'load_average_at_start': start_load,
+        'load_1min': load,
+        'rows': rows,
+        'default_runtime': default_conf['runtime'] if onnxruntime_available() else 'torch',
+    }
 
 
 def runtime_summary(r: dict) -> dict:
     """Ratios the issue's targets are stated in, from one run's rows."""
+
     def p50(rt, size, t, loaded):
-        return next((x['p50_ms'] for x in r['rows'] if x['runtime'] == rt and tuple(x['size']) == size
-                     and x['threads'] == t and x['loaded'] == loaded), None)
+        return next(
+            (
+                x['p50_ms']
+                for x in r['rows']
+                if x['runtime'] == rt and tuple(x['size']) == size and x['threads'] == t and x['loaded'] == loaded
+            ),
+            None,
+        )
+
     out = {}
     for t in (1, 2):
         a, b = p50('torch', (384, 288), t, False), p50('onnxruntime', (384, 288), t, False)
@@ -161,34 +193,48 @@ def runtime_summary(r: dict) -> dict:
             out[f'speedup_384_{t}t_loaded'] = a / b
     d = r['default_runtime']
     for t in (1, 2):
-        q, l = p50(d, (384, 288), t, False), p50(d, (384, 288), t, True)
-        if q and l:
-            out[f'default_loaded_over_quiet_384_{t}t'] = l / q
+        quiet_ms, loaded_ms = p50(d, (384, 288), t, False), p50(d, (384, 288), t, True)
+        if quiet_ms and loaded_ms:
+            out[f'default_loaded_over_quiet_384_{t}t'] = loaded_ms / quiet_ms
     return out
 
 
 def runtime_table(r: dict) -> str:
     la = ', '.join(f'{v:.1f}' for v in r['load_average_at_start'])
-    lines = [f'load average at start (1/5/15 min): {la}; default runtime: {r["default_runtime"]}', '',
-             '| input | threads | runtime | p50 ms | p90 ms | CPU ms | with 1 competing process: p50 ms | p90 ms '
-             '| loaded/quiet |', '|---|---|---|---|---|---|---|---|---|']
+    lines = [
+        f'load average at start (1/5/15 min): {la}; default runtime: {r["default_runtime"]}',
+        '',
+        '| input | threads | runtime | p50 ms | p90 ms | CPU ms | with 1 competing process: p50 ms | p90 ms '
+        '| loaded/quiet |',
+        '|---|---|---|---|---|---|---|---|---|',
+    ]
     quiet = [x for x in r['rows'] if not x['loaded']]
     for q in quiet:
-        l = next(x for x in r['rows'] if x['loaded'] and x['runtime'] == q['runtime']
-                 and x['size'] == q['size'] and x['threads'] == q['threads'])
+        loaded = next(
+            x
+            for x in r['rows']
+            if x['loaded'] and x['runtime'] == q['runtime'] and x['size'] == q['size'] and x['threads'] == q['threads']
+        )
         name = q['runtime'] if q['ran'] == q['runtime'] else f'{q["runtime"]} (ran {q["ran"]})'
-        lines.append(f'| {q["size"][0]}x{q["size"][1]} | {q["threads"]} | {name} | {q["p50_ms"]:.1f} | '
-                     f'{q["p90_ms"]:.1f} | {q["cpu_ms"]:.1f} | {l["p50_ms"]:.1f} | {l["p90_ms"]:.1f} | {l["p50_ms"] / q["p50_ms"]:.2f}x |')
+        lines.append(
+            f'| {q["size"][0]}x{q["size"][1]} | {q["threads"]} | {name} | {q["p50_ms"]:.1f} | '
+            f'{q["p90_ms"]:.1f} | {q["cpu_ms"]:.1f} | {loaded["p50_ms"]:.1f} | {loaded["p90_ms"]:.1f} | '
+            f'{loaded["p50_ms"] / q["p50_ms"]:.2f}x |'
+        )
     s = runtime_summary(r)
     lines.append('')
     for t in (1, 2):
         if f'speedup_384_{t}t_quiet' in s:
-            lines.append(f'- onnxruntime vs torch at 384x288, {t} thread(s): {s[f"speedup_384_{t}t_quiet"]:.2f}x '
-                         f'faster (with the competing process: {s[f"speedup_384_{t}t_loaded"]:.2f}x)')
+            lines.append(
+                f'- onnxruntime vs torch at 384x288, {t} thread(s): {s[f"speedup_384_{t}t_quiet"]:.2f}x '
+                f'faster (with the competing process: {s[f"speedup_384_{t}t_loaded"]:.2f}x)'
+            )
     for t in (1, 2):
         if f'default_loaded_over_quiet_384_{t}t' in s:
-            lines.append(f'- default runtime, 384x288, {t} thread(s): p50 with the competing process = '
-                         f'{s[f"default_loaded_over_quiet_384_{t}t"]:.2f}x its p50 without')
+            lines.append(
+                f'- default runtime, 384x288, {t} thread(s): p50 with the competing process = '
+                f'{s[f"default_loaded_over_quiet_384_{t}t"]:.2f}x its p50 without'
+            )
     return '\n'.join(lines)
 
 
@@ -197,20 +243,25 @@ def views(photo: np.ndarray, count: int) -> list[np.ndarray]:
     out = []
     for i in range(count):
         y, x = (i * 37) % (photo.shape[0] - 288), (i * 53) % (photo.shape[1] - 384)
-        v = photo[y:y + 288, x:x + 384]
+        v = photo[y : y + 288, x : x + 384]
         out.append(np.ascontiguousarray(v[:, ::-1] if i % 2 else v))
     return out
 
 
 def run(repeats: int, threads: int) -> dict:
     import matplotlib.cbook as cbook
+
     torch.set_num_threads(threads)
     with cbook.get_sample_data('grace_hopper.jpg') as f:
         photo = load_image(f.name)
     images = views(photo, 31)
     query_img = images[0]
-    result = {'threads': threads, 'repeats': repeats, 'machine': platform.processor() or platform.machine(),
-              'torch': torch.__version__}
+    result = {
+        'threads': threads,
+        'repeats': repeats,
+        'machine': platform.processor() or platform.machine(),
+        'torch': torch.__version__,
+    }
 
     ex = Extractor({'num_threads': threads, 'top_n': 50, 'runtime': 'torch'})
     net_in = torch.from_numpy(resize_for_network(query_img, 288)[None]).permute(0, 3, 1, 2).float() / 255
@@ -218,6 +269,7 @@ def run(repeats: int, threads: int) -> dict:
     def backbone():
         with torch.inference_mode():
             ex.backbone(net_in)
+
     result['backbone_ms'] = median_time(backbone, repeats) * 1e3
     result['extract_ms'] = median_time(lambda: ex(query_img), repeats) * 1e3  # torch
     result['extract_over_backbone'] = result['extract_ms'] / result['backbone_ms']
@@ -243,20 +295,33 @@ def run(repeats: int, threads: int) -> dict:
 def table(r: dict) -> str:
     rows = [
         ('backbone forward, 384x288', f'{r["backbone_ms"]:.1f} ms', '-'),
-        ('full extraction (torch), 384x288',
-         f'{r["extract_ms"]:.1f} ms ({r["extract_over_backbone"]:.2f}x backbone)',
-         f'{PAPER_MS["extract_ms"]} ms'),
-        (f'match LLN n={r["n_lln_50"]}, per pair (30 batched)', f'{r["match_us_per_pair_lln_50"]:.0f} us',
-         f'{PAPER_MS["lln_50"]} ms'),
-        (f'match LLN n={r["n_lln_75"]}, per pair (30 batched)', f'{r["match_us_per_pair_lln_75"]:.0f} us',
-         f'{PAPER_MS["lln_75"]} ms'),
-        (f'match ALL n={r["n_all"]}, per pair (30 batched)', f'{r["match_us_per_pair_all"]:.0f} us',
-         f'{PAPER_MS["all"]} ms'),
+        (
+            'full extraction (torch), 384x288',
+            f'{r["extract_ms"]:.1f} ms ({r["extract_over_backbone"]:.2f}x backbone)',
+            f'{PAPER_MS["extract_ms"]} ms',
+        ),
+        (
+            f'match LLN n={r["n_lln_50"]}, per pair (30 batched)',
+            f'{r["match_us_per_pair_lln_50"]:.0f} us',
+            f'{PAPER_MS["lln_50"]} ms',
+        ),
+        (
+            f'match LLN n={r["n_lln_75"]}, per pair (30 batched)',
+            f'{r["match_us_per_pair_lln_75"]:.0f} us',
+            f'{PAPER_MS["lln_75"]} ms',
+        ),
+        (
+            f'match ALL n={r["n_all"]}, per pair (30 batched)',
+            f'{r["match_us_per_pair_all"]:.0f} us',
+            f'{PAPER_MS["all"]} ms',
+        ),
         ('holistic cosine, per pair', f'{r["holistic_us_per_pair"]:.3f} us', f'{PAPER_MS["holistic"]} ms'),
     ]
     w = max(len(a) for a, _, _ in rows)
-    lines = [f'| {"what":<{w}} | lln_ros ({r["threads"]}-thread CPU, median) | paper (GPU) |',
-             f'|{"-" * (w + 2)}|---|---|']
+    lines = [
+        f'| {"what":<{w}} | lln_ros ({r["threads"]}-thread CPU, median) | paper (GPU) |',
+        f'|{"-" * (w + 2)}|---|---|',
+    ]
     lines += [f'| {a:<{w}} | {b} | {c} |' for a, b, c in rows]
     return '\n'.join(lines)
 
@@ -266,8 +331,12 @@ def main(argv=None) -> int:
     p.add_argument('--json', action='store_true', help='print one JSON object')
     p.add_argument('--repeats', type=int, default=30)
     p.add_argument('--threads', type=int, default=2)
-    p.add_argument('--budget', type=float, default=8.0,
-                   help='seconds per runtime-table row at most (default 8; slow rows stop early)')
+    p.add_argument(
+        '--budget',
+        type=float,
+        default=8.0,
+        help='seconds per runtime-table row at most (default 8; slow rows stop early)',
+    )
     p.add_argument('--no-runtimes', action='store_true', help='leave out the runtime table')
     args = p.parse_args(argv)
     r = run(args.repeats, args.threads)

@@ -8,6 +8,7 @@ msgs.cloud_to_landmarks with the node's limits, then Localizer.query. Per messag
 time of --repeat runs, then the peak of traced allocations of one more run (tracemalloc; numpy
 reports its arrays to it), printed as a table with the outcome (answered / the counter it was refused under).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -25,9 +26,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_integrity import SPACE, synthetic  # noqa: E402
+
 from lln_ros import msgs  # noqa: E402
-from lln_ros.errors import MessageError  # noqa: E402
 from lln_ros.core.localizer import Localizer, open_map  # noqa: E402
+from lln_ros.errors import MessageError  # noqa: E402
 
 
 def hostile(good) -> dict:
@@ -44,9 +46,14 @@ def hostile(good) -> dict:
     many[0], many[1:] = base[0], base[1]
     truncated = msgs.array_to_cloud(base)
     truncated.data = array.array('B', bytes(truncated.data)[:-7])
-    return {'good query': msgs.array_to_cloud(base), 'cell 1e-3 px': msgs.array_to_cloud(tiny),
-            'image 1e9 x 1e9': msgs.array_to_cloud(huge), 'image 32768 px wide': msgs.array_to_cloud(wide),
-            '100k landmark rows': msgs.array_to_cloud(many), 'truncated data': truncated}
+    return {
+        'good query': msgs.array_to_cloud(base),
+        'cell 1e-3 px': msgs.array_to_cloud(tiny),
+        'image 1e9 x 1e9': msgs.array_to_cloud(huge),
+        'image 32768 px wide': msgs.array_to_cloud(wide),
+        '100k landmark rows': msgs.array_to_cloud(many),
+        'truncated data': truncated,
+    }
 
 
 def handle(loc: Localizer, cloud) -> str:
@@ -78,7 +85,7 @@ def main(argv=None) -> int:
             rows = []
             for name, cloud in hostile(sets[7]).items():
                 times, peaks, outcome = [], [], ''
-                for _ in range(args.repeat):   # timed without tracemalloc, which slows allocation
+                for _ in range(args.repeat):  # timed without tracemalloc, which slows allocation
                     start = time.perf_counter()
                     outcome = handle(loc, cloud)
                     times.append(time.perf_counter() - start)

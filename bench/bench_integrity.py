@@ -13,6 +13,7 @@ times, in this process with the page cache warm (the file was just written or re
                    building the FAISS index
 and prints a table (median of --repeat runs) with the machine's load average.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -41,11 +42,19 @@ def synthetic(rng, count: int) -> list[LandmarkSet]:
         desc /= np.linalg.norm(desc, axis=1, keepdims=True)
         flat = rng.choice(ROWS * COLS, N_LANDMARKS, replace=False)
         cells = np.stack([flat % COLS, flat // COLS], axis=1).astype(np.int32)
-        out.append(LandmarkSet(global_descriptor=desc[0], descriptors=desc[1:], cells=cells,
-                               centers=((cells + 0.5) * cell).astype(np.float32),
-                               scores=np.linspace(1, 0, N_LANDMARKS, dtype=np.float32), cell_size=cell,
-                               image_size=np.array([384, 288], np.float32), grid=(ROWS, COLS),
-                               descriptor_space=SPACE))
+        out.append(
+            LandmarkSet(
+                global_descriptor=desc[0],
+                descriptors=desc[1:],
+                cells=cells,
+                centers=((cells + 0.5) * cell).astype(np.float32),
+                scores=np.linspace(1, 0, N_LANDMARKS, dtype=np.float32),
+                cell_size=cell,
+                image_size=np.array([384, 288], np.float32),
+                grid=(ROWS, COLS),
+                descriptor_space=SPACE,
+            )
+        )
     return out
 
 
@@ -92,8 +101,10 @@ def main(argv=None) -> int:
     open_s, _ = timed(lambda: MapStore(path, create=False, verify=False).close(), args.repeat)
     size_mb = os.path.getsize(path) / 2**20
     load = ' '.join(f'{x:.1f}' for x in os.getloadavg())
-    print(f'map: {args.keyframes} keyframes (n={N_LANDMARKS}, D={D}), {size_mb:.0f} MB; built/checked in '
-          f'{built_s:.0f} s; load average {load} on {os.cpu_count()} cores; warm page cache')
+    print(
+        f'map: {args.keyframes} keyframes (n={N_LANDMARKS}, D={D}), {size_mb:.0f} MB; built/checked in '
+        f'{built_s:.0f} s; load average {load} on {os.cpu_count()} cores; warm page cache'
+    )
     print(f'{"step":<18}{"median s":>10}{"per 100k keyframes s":>24}')
     for name, seconds in (('integrity scan', scan_s), ('quick_check', quick_s), ('open (verify=False)', open_s)):
         print(f'{name:<18}{seconds:>10.3f}{seconds * 100_000 / args.keyframes:>24.3f}')
@@ -101,8 +112,12 @@ def main(argv=None) -> int:
     # the damaged blob goes back, so the next run reuses a healthy map
     with MapStore(path, create=False, verify=False) as store:
         good = synthetic(np.random.default_rng(1), 1)[0]
-        store._write(lambda c: c.execute('UPDATE landmarks SET descriptors = ? WHERE keyframe_id = ?',
-                                         (np.ascontiguousarray(good.descriptors, '<f2').tobytes(), victim)))
+        store._write(
+            lambda c: c.execute(
+                'UPDATE landmarks SET descriptors = ? WHERE keyframe_id = ?',
+                (np.ascontiguousarray(good.descriptors, '<f2').tobytes(), victim),
+            )
+        )
     return 0
 
 

@@ -34,6 +34,7 @@ At each table size:
                     of it that is the global index (N x D x 4 bytes)
   KB/keyframe       .db + WAL bytes after a checkpoint, per keyframe
 """
+
 from __future__ import annotations
 
 import argparse
@@ -80,11 +81,18 @@ def synthetic_set(rng, base: LandmarkSet | None = None, noise: float = 0.3) -> L
         desc = unit(base.descriptors + noise * unit(rng.standard_normal(base.descriptors.shape)))
         cells = base.cells.copy()
     cell = np.array([384 / COLS, 288 / ROWS], np.float32)
-    return LandmarkSet(global_descriptor=glob, descriptors=desc, cells=cells,
-                       centers=((cells + 0.5) * cell).astype(np.float32),
-                       scores=np.sort(rng.random(N_LANDMARKS).astype(np.float32))[::-1].copy(),
-                       cell_size=cell, image_size=np.array([384, 288], np.float32), grid=(ROWS, COLS),
-                       activation=None, descriptor_space=SPACE)
+    return LandmarkSet(
+        global_descriptor=glob,
+        descriptors=desc,
+        cells=cells,
+        centers=((cells + 0.5) * cell).astype(np.float32),
+        scores=np.sort(rng.random(N_LANDMARKS).astype(np.float32))[::-1].copy(),
+        cell_size=cell,
+        image_size=np.array([384, 288], np.float32),
+        grid=(ROWS, COLS),
+        activation=None,
+        descriptor_space=SPACE,
+    )
 
 
 def rss_mb() -> float:
@@ -97,7 +105,7 @@ def rss_mb() -> float:
 
 def cold_start(uri: str, verify: bool, conf: dict | None, queries: int = 50) -> dict:
     """Open the map in a fresh process; time the open, then RSS after `queries` queries."""
-    code = f'''
+    code = f"""
 import json, time, numpy as np, sys
 sys.path.insert(0, {str(Path(__file__).resolve().parent)!r})
 from bench_map import rss_mb, synthetic_set
@@ -112,9 +120,13 @@ for i in rng.choice(len(ids), {queries}):
     store.query(synthetic_set(rng, store.get(int(ids[i]))), k=5)
 print(json.dumps({{'open_s': opened, 'rss_before_mb': before, 'rss_mb': rss_mb()}}))
 store.close()
-'''
-    env = {**os.environ, 'PYTHONPATH': os.pathsep.join(
-        p for p in (str(Path(__file__).resolve().parents[1]), os.environ.get('PYTHONPATH')) if p)}
+"""
+    env = {
+        **os.environ,
+        'PYTHONPATH': os.pathsep.join(
+            p for p in (str(Path(__file__).resolve().parents[1]), os.environ.get('PYTHONPATH')) if p
+        ),
+    }
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, env=env)
     if out.returncode:  # Milvus Lite: the builder's embedded server still holds the directory lock
         print(f'cold start of {uri} failed:\n{out.stderr[-1500:]}', file=sys.stderr)
@@ -151,18 +163,26 @@ def query_stats(store, rng, count: int, exhaustive: int = 0, prefilters=('landma
         t = time.perf_counter()
         store.query(q, prefilter_k=0, k=5)
         every.append(time.perf_counter() - t)
-    out = {'recall30': float(np.mean(recall)) if recall else None,
-           'exhaustive_p50_ms': float(np.median(every)) * 1000 if every else None}
+    out = {
+        'recall30': float(np.mean(recall)) if recall else None,
+        'exhaustive_p50_ms': float(np.median(every)) * 1000 if every else None,
+    }
     for n, pf in enumerate(prefilters):
         ms = np.array(times[pf]) * 1000
-        pre = '' if n == 0 else f'{pf}_'   # the first (the default) keeps the plain keys
-        out.update({f'{pre}p50_ms': float(np.percentile(ms, 50)), f'{pre}p99_ms': float(np.percentile(ms, 99)),
-                    f'{pre}top1': top1[pf] / count})
+        pre = '' if n == 0 else f'{pf}_'  # the first (the default) keeps the plain keys
+        out.update(
+            {
+                f'{pre}p50_ms': float(np.percentile(ms, 50)),
+                f'{pre}p99_ms': float(np.percentile(ms, 99)),
+                f'{pre}top1': top1[pf] / count,
+            }
+        )
     return out
 
 
 def _exact_top(store, q: np.ndarray, k: int) -> set:
     import faiss
+
     index = store._index.index
     if not hasattr(store, '_exact_cache') or store._exact_cache[0] != index.ntotal:
         lists, x, ids = index.invlists, [], []
@@ -170,8 +190,9 @@ def _exact_top(store, q: np.ndarray, k: int) -> set:
             size = lists.list_size(c)
             if size:
                 ids.append(faiss.rev_swig_ptr(lists.get_ids(c), size).copy())
-                x.append(faiss.rev_swig_ptr(lists.get_codes(c), size * DIM * 4).view(np.float32)
-                         .reshape(size, DIM).copy())
+                x.append(
+                    faiss.rev_swig_ptr(lists.get_codes(c), size * DIM * 4).view(np.float32).reshape(size, DIM).copy()
+                )
         store._exact_cache = (index.ntotal, np.concatenate(x), np.concatenate(ids))
     _, x, ids = store._exact_cache
     return set(ids[np.argsort(-(x @ q))[:k]].tolist())
@@ -198,24 +219,42 @@ def main(argv=None) -> int:
     ap.add_argument('--sizes', default='1000,10000,100000')
     ap.add_argument('--dir', default='/tmp/lln_bench_map', help='where the map is built (deleted first)')
     ap.add_argument('--backend', default='sqlite', help='comma-separated: sqlite, milvus-lite, milvus (a server)')
-    ap.add_argument('--uri', default=os.environ.get('LLN_MILVUS_URI', ''),
-                    help='--backend milvus: the server, milvus://host:port[/database] (default $LLN_MILVUS_URI)')
+    ap.add_argument(
+        '--uri',
+        default=os.environ.get('LLN_MILVUS_URI', ''),
+        help='--backend milvus: the server, milvus://host:port[/database] (default $LLN_MILVUS_URI)',
+    )
     ap.add_argument('--plot', default='out/bench_map.png', help="latency-vs-size plot ('' = none)")
     ap.add_argument('--queries', type=int, default=200)
     ap.add_argument('--threads', default='1', help='BLAS / OpenMP threads (read before numpy loads)')
-    ap.add_argument('--index-threshold', type=int, default=None,
-                    help='SQLite backend: keyframes above which the global index is IVF (default: the store\'s)')
-    ap.add_argument('--exhaustive-max', type=int, default=10_000,
-                    help='largest map also timed with prefilter_k 0 (every keyframe reranked)')
-    ap.add_argument('--prefilters', default='landmarks,holistic',
-                    help='first stages timed on the same queries; the first is the p50/p99/top-1 columns')
+    ap.add_argument(
+        '--index-threshold',
+        type=int,
+        default=None,
+        help="SQLite backend: keyframes above which the global index is IVF (default: the store's)",
+    )
+    ap.add_argument(
+        '--exhaustive-max',
+        type=int,
+        default=10_000,
+        help='largest map also timed with prefilter_k 0 (every keyframe reranked)',
+    )
+    ap.add_argument(
+        '--prefilters',
+        default='landmarks,holistic',
+        help='first stages timed on the same queries; the first is the p50/p99/top-1 columns',
+    )
     ap.add_argument('--json', action='store_true')
     args = ap.parse_args(argv)
     args.prefilter_list = [p for p in args.prefilters.split(',') if p]
     backends = args.backend.split(',')
     bad = [b for b in backends if b not in ('sqlite', 'milvus-lite', 'milvus')]
     if bad or ('milvus' in backends and not args.uri.startswith('milvus://')):
-        ap.error(f'--backend: unknown {bad}' if bad else '--backend milvus needs --uri milvus://host:port (or $LLN_MILVUS_URI)')
+        ap.error(
+            f'--backend: unknown {bad}'
+            if bad
+            else '--backend milvus needs --uri milvus://host:port (or $LLN_MILVUS_URI)'
+        )
     results = {}
     for backend in backends:
         results[backend] = run(args, backend)
@@ -237,8 +276,11 @@ def run(args, backend: str) -> dict:
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     server_map = f'bench_{os.getpid()}'
-    uri = {'sqlite': str(work / 'map.db'), 'milvus-lite': f'milvus-lite://{work}/map.db',
-           'milvus': f"{args.uri.split('?')[0].rstrip('/')}{'' if urlpath(args.uri) else '/lln_bench'}?map={server_map}"}[backend]
+    uri = {
+        'sqlite': str(work / 'map.db'),
+        'milvus-lite': f'milvus-lite://{work}/map.db',
+        'milvus': f'{args.uri.split("?")[0].rstrip("/")}{"" if urlpath(args.uri) else "/lln_bench"}?map={server_map}',
+    }[backend]
     disk_before = bytes_on_disk(uri) if backend == 'milvus' else 0
     rng = np.random.default_rng(0)
     rows, curve = [], []
@@ -253,8 +295,13 @@ def run(args, backend: str) -> dict:
             store.add_many(sets, [(len(store) + i, 0) for i in range(batch)])
             bulk_time += time.perf_counter() - t
             bulk_count += batch
-        stats = query_stats(store, rng, args.queries if step in sizes else 50,
-                            20 if step in sizes and step <= args.exhaustive_max else 0, args.prefilter_list)
+        stats = query_stats(
+            store,
+            rng,
+            args.queries if step in sizes else 50,
+            20 if step in sizes and step <= args.exhaustive_max else 0,
+            args.prefilter_list,
+        )
         curve.append({'keyframes': step, **stats})
         print(f'{step:>7} keyframes: p50 {stats["p50_ms"]:.1f} ms, p99 {stats["p99_ms"]:.1f} ms', file=sys.stderr)
         if step not in sizes:
@@ -267,22 +314,34 @@ def run(args, backend: str) -> dict:
             stamps.append(time.perf_counter())
         online_rate = len(online) / (stamps[-1] - stamps[0])
         slowest = min(50 / (stamps[i + 50] - stamps[i]) for i in range(0, len(online) - 49, 10))
-        store.delete(new)   # keep the map at exactly `step` keyframes
+        store.delete(new)  # keep the map at exactly `step` keyframes
         store.save()
         disk = bytes_on_disk(uri) - disk_before
         store.close()
         cold = cold_start(uri, verify=True, conf=conf)
         cold_fast = cold_start(uri, verify=False, conf=conf)
         store = MapStore.open(uri, create=False, verify=False, conf=conf)
-        rows.append({'keyframes': step, 'insert_bulk_per_s': bulk_count / bulk_time, 'insert_online_per_s': online_rate,
-                     'insert_online_slowest50_per_s': slowest,
-                     **stats, 'cold_start_s': cold['open_s'], 'cold_start_noverify_s': cold_fast['open_s'],
-                     'rss_mb': cold['rss_mb'], 'rss_growth_mb': cold['rss_mb'] - cold['rss_before_mb'],
-                     'index_mb': step * DIM * 4 / 2**20, 'kb_per_keyframe': disk / step / 1000,
-                     'index': store.info().get('index'), 'landmark_index': store.info().get('landmark_index')})
+        rows.append(
+            {
+                'keyframes': step,
+                'insert_bulk_per_s': bulk_count / bulk_time,
+                'insert_online_per_s': online_rate,
+                'insert_online_slowest50_per_s': slowest,
+                **stats,
+                'cold_start_s': cold['open_s'],
+                'cold_start_noverify_s': cold_fast['open_s'],
+                'rss_mb': cold['rss_mb'],
+                'rss_growth_mb': cold['rss_mb'] - cold['rss_before_mb'],
+                'index_mb': step * DIM * 4 / 2**20,
+                'kb_per_keyframe': disk / step / 1000,
+                'index': store.info().get('index'),
+                'landmark_index': store.info().get('landmark_index'),
+            }
+        )
     store.close()
-    if backend == 'milvus':   # an idle server's CPU climbs with every collection left loaded
+    if backend == 'milvus':  # an idle server's CPU climbs with every collection left loaded
         from pymilvus import MilvusClient
+
         where = __import__('lln_ros.mapstore.milvus', fromlist=['parse_uri']).parse_uri(uri)
         client = MilvusClient(uri=where['uri'], db_name=where['db_name'])
         for name in client.list_collections():
@@ -290,9 +349,17 @@ def run(args, backend: str) -> dict:
                 client.drop_collection(name)
         client.close()
     shutil.rmtree(work, ignore_errors=True)
-    info = {'backend': backend, 'uri': uri, 'threads': args.threads, 'n': N_LANDMARKS, 'D': DIM,
-            'machine': platform.processor() or platform.machine(), 'cpus': os.cpu_count(), 'load': os.getloadavg(),
-            'max_rss_mb_builder': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    info = {
+        'backend': backend,
+        'uri': uri,
+        'threads': args.threads,
+        'n': N_LANDMARKS,
+        'D': DIM,
+        'machine': platform.processor() or platform.machine(),
+        'cpus': os.cpu_count(),
+        'load': os.getloadavg(),
+        'max_rss_mb_builder': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
     return {'info': info, 'rows': rows, 'curve': curve}
 
 
@@ -302,25 +369,50 @@ def urlpath(uri: str) -> str:
 
 def print_table(args, backend: str, result: dict) -> None:
     info, rows = result['info'], result['rows']
-    print(f"backend {backend} ({info['uri']}), n={N_LANDMARKS}, D={DIM}, {info['cpus']} CPUs, "
-          f"load after it {', '.join(f'{v:.2f}' for v in info['load'])}")
+    print(
+        f'backend {backend} ({info["uri"]}), n={N_LANDMARKS}, D={DIM}, {info["cpus"]} CPUs, '
+        f'load after it {", ".join(f"{v:.2f}" for v in info["load"])}'
+    )
     first, others = args.prefilter_list[0], args.prefilter_list[1:]
-    head = ('keyframes', 'index', 'lm index', 'ins/s bulk', 'ins/s online', 'slowest 50 /s', f'{first} p50 ms',
-            f'{first} p99 ms', *[f'{pf} {what}' for pf in others for what in ('p50 ms', 'p99 ms')],
-            'exhaustive p50 ms', f'{first} top-1', *[f'{pf} top-1' for pf in others], 'recall@30', 'cold s',
-            'cold s (no verify)', 'RSS MB', 'RSS growth MB', 'index MB', 'KB/kf')
+    head = (
+        'keyframes',
+        'index',
+        'lm index',
+        'ins/s bulk',
+        'ins/s online',
+        'slowest 50 /s',
+        f'{first} p50 ms',
+        f'{first} p99 ms',
+        *[f'{pf} {what}' for pf in others for what in ('p50 ms', 'p99 ms')],
+        'exhaustive p50 ms',
+        f'{first} top-1',
+        *[f'{pf} top-1' for pf in others],
+        'recall@30',
+        'cold s',
+        'cold s (no verify)',
+        'RSS MB',
+        'RSS growth MB',
+        'index MB',
+        'KB/kf',
+    )
     print('| ' + ' | '.join(head) + ' |')
     print('|' + '---|' * len(head))
     for r in rows:
-        every = f"{r['exhaustive_p50_ms']:.0f}" if r['exhaustive_p50_ms'] is not None else '-'
-        recall = f"{r['recall30']:.2f}" if r['recall30'] is not None else (
-            '1 (exact)' if r['index'] in ('exact', 'FLAT') else 'n/a')
-        extra = ''.join(f"| {r[f'{pf}_p50_ms']:.1f} | {r[f'{pf}_p99_ms']:.1f} " for pf in others)
-        extra_top = ''.join(f"| {r[f'{pf}_top1']:.2f} " for pf in others)
-        print(f"| {r['keyframes']:,} | {r['index']} | {r.get('landmark_index')} | {r['insert_bulk_per_s']:.0f} "
-              f"| {r['insert_online_per_s']:.0f} | {r['insert_online_slowest50_per_s']:.0f} | {r['p50_ms']:.1f} "
-              f"| {r['p99_ms']:.1f} {extra}| {every} | {r['top1']:.2f} {extra_top}| {recall} | {r['cold_start_s']:.2f} | {r['cold_start_noverify_s']:.2f} "
-              f"| {r['rss_mb']:.0f} | {r['rss_growth_mb']:.0f} | {r['index_mb']:.0f} | {r['kb_per_keyframe']:.1f} |")
+        every = f'{r["exhaustive_p50_ms"]:.0f}' if r['exhaustive_p50_ms'] is not None else '-'
+        recall = (
+            f'{r["recall30"]:.2f}'
+            if r['recall30'] is not None
+            else ('1 (exact)' if r['index'] in ('exact', 'FLAT') else 'n/a')
+        )
+        extra = ''.join(f'| {r[f"{pf}_p50_ms"]:.1f} | {r[f"{pf}_p99_ms"]:.1f} ' for pf in others)
+        extra_top = ''.join(f'| {r[f"{pf}_top1"]:.2f} ' for pf in others)
+        print(
+            f'| {r["keyframes"]:,} | {r["index"]} | {r.get("landmark_index")} | {r["insert_bulk_per_s"]:.0f} '
+            f'| {r["insert_online_per_s"]:.0f} | {r["insert_online_slowest50_per_s"]:.0f} | {r["p50_ms"]:.1f} '
+            f'| {r["p99_ms"]:.1f} {extra}| {every} | {r["top1"]:.2f} {extra_top}| {recall} '
+            f'| {r["cold_start_s"]:.2f} | {r["cold_start_noverify_s"]:.2f} '
+            f'| {r["rss_mb"]:.0f} | {r["rss_growth_mb"]:.0f} | {r["index_mb"]:.0f} | {r["kb_per_keyframe"]:.1f} |'
+        )
     print()
 
 
@@ -332,18 +424,22 @@ def print_comparison(results: dict) -> None:
     for backend, result in results.items():
         for r in result['rows']:
             ratio = r['p50_ms'] / base[r['keyframes']]['p50_ms'] if r['keyframes'] in base else float('nan')
-            print(f"| {backend} | {r['keyframes']:,} | {r['p50_ms']:.1f} | {ratio:.1f}x | {r['insert_online_per_s']:.0f} "
-                  f"| {r['insert_online_slowest50_per_s']:.0f} | {result['info']['load'][0]:.1f} |")
+            print(
+                f'| {backend} | {r["keyframes"]:,} | {r["p50_ms"]:.1f} | {ratio:.1f}x | {r["insert_online_per_s"]:.0f} '
+                f'| {r["insert_online_slowest50_per_s"]:.0f} | {result["info"]["load"][0]:.1f} |'
+            )
 
 
 def plot(args, results: dict) -> None:
     import matplotlib
+
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots(figsize=(6, 4))
     for backend, result in results.items():
         n = [c['keyframes'] for c in result['curve']]
-        line, = ax.plot(n, [c['p50_ms'] for c in result['curve']], 'o-', label=f'{backend} p50')
+        (line,) = ax.plot(n, [c['p50_ms'] for c in result['curve']], 'o-', label=f'{backend} p50')
         ax.plot(n, [c['p99_ms'] for c in result['curve']], 's--', color=line.get_color(), label=f'{backend} p99')
     ax.set_xscale('log')
     ax.set_yscale('log')

@@ -16,6 +16,7 @@ else views of a photograph shipped in matplotlib) at --hz for --seconds, and cou
 plus the end-to-end latency (image stamp -> landmarks here) and the load average during the run.
 A benchmark, not a test: it prints a table (or --json); nothing asserts a rate.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -35,22 +36,26 @@ sys.path.insert(0, str(REPO / 'bench'))
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from sensor_msgs.msg import Image, PointCloud2  # noqa: E402
 
-from ros_harness import VENV_BIN, Probe, RosProcess, ros_env  # noqa: E402
-
 from lln_ros import msgs  # noqa: E402
+from ros_harness import VENV_BIN, Probe, RosProcess, ros_env  # noqa: E402
 
 NODE = '/lln_extractor'
 
 
 def frames(width: int = 384, height: int = 288) -> tuple[list[np.ndarray], str]:
     import cv2
+
     root = REPO.parent / 'shared' / 'data' / 'rtabmap_loop'
     if root.is_dir():
         from lln_ros.io.image import load_image
-        images = [cv2.resize(load_image(str(root / f'{i}.jpg')), (width, height), interpolation=cv2.INTER_AREA)
-                  for i in range(1, 85)]
+
+        images = [
+            cv2.resize(load_image(str(root / f'{i}.jpg')), (width, height), interpolation=cv2.INTER_AREA)
+            for i in range(1, 85)
+        ]
         return images, f'rtabmap_loop (84 frames, 512x384 resized to {width}x{height})'
     from bench_core import photo_views
+
     return photo_views(30, width, height), f'30 views of grace_hopper.jpg at {width}x{height}'
 
 
@@ -58,8 +63,16 @@ def run(seconds: float, hz: float, runtime: str | None, threads: int, reliable: 
     images, source = frames()
     tmp = Path(tempfile.mkdtemp(prefix='lln_rate_'))
     env = ros_env(tmp)
-    args = ['--params-file', str(REPO / 'config' / 'extractor.yaml'), '-p', f'num_threads:={threads}',
-            '-p', 'diagnostics_period:=0.5', '-p', f'reliability:={"reliable" if reliable else "best_effort"}']
+    args = [
+        '--params-file',
+        str(REPO / 'config' / 'extractor.yaml'),
+        '-p',
+        f'num_threads:={threads}',
+        '-p',
+        'diagnostics_period:=0.5',
+        '-p',
+        f'reliability:={"reliable" if reliable else "best_effort"}',
+    ]
     if runtime:
         args += ['-p', f'runtime:={runtime}']
     node = RosProcess(VENV_BIN / 'extractor', args, env, tmp / 'extractor.log')
@@ -75,19 +88,28 @@ def run(seconds: float, hz: float, runtime: str | None, threads: int, reliable: 
 
     def on_landmarks(msg):
         arrivals.append((time.time_ns(), msgs.stamp_to_ns(msg.header)))
+
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from std_msgs.msg import String
+
     probe.node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 50)
     probe.node.create_subscription(PointCloud2, 'landmarks', on_landmarks, 100)
-    probe.node.create_subscription(String, 'model_info', lambda m: model.append(json.loads(m.data)),
-                                   QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                                              durability=DurabilityPolicy.TRANSIENT_LOCAL))
-    pub = probe.node.create_publisher(Image, 'image', QoSProfile(
-        depth=5, reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT))
+    probe.node.create_subscription(
+        String,
+        'model_info',
+        lambda m: model.append(json.loads(m.data)),
+        QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL),
+    )
+    pub = probe.node.create_publisher(
+        Image,
+        'image',
+        QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT),
+    )
     try:
         t0 = time.monotonic()
-        probe.spin_until(lambda: not node.alive() or (pub.get_subscription_count() > 0 and model and diag),
-                         300, 'the extractor node')
+        probe.spin_until(
+            lambda: not node.alive() or (pub.get_subscription_count() > 0 and model and diag), 300, 'the extractor node'
+        )
         if not node.alive():
             raise RuntimeError(f'the extractor died:\n{node.log()}')
         startup = time.monotonic() - t0
@@ -113,13 +135,23 @@ def run(seconds: float, hz: float, runtime: str | None, threads: int, reliable: 
         counts = {k: int(diag.get(k, 0)) - base.get(k, 0) for k in ('received', 'published', 'dropped')}
         lat = np.array([(a - s) / 1e6 for a, s in arrivals]) if arrivals else np.zeros(1)
         return {
-            'seconds': wall, 'hz': hz, 'source': source, 'sent': sent, 'sent_hz': sent / wall, **counts,
-            'landmarks_here': len(arrivals), 'kept_up': counts['published'] / max(counts['received'], 1),
+            'seconds': wall,
+            'hz': hz,
+            'source': source,
+            'sent': sent,
+            'sent_hz': sent / wall,
+            **counts,
+            'landmarks_here': len(arrivals),
+            'kept_up': counts['published'] / max(counts['received'], 1),
             'published_hz': counts['published'] / wall,
-            'latency_ms_p50': float(np.median(lat)), 'latency_ms_p90': float(np.percentile(lat, 90)),
-            'runtime': model[0].get('runtime') if model else None, 'threads': threads,
-            'reliable': reliable, 'startup_s': startup,
-            'load_average_start': list(load_start), 'load_average_end': list(os.getloadavg()),
+            'latency_ms_p50': float(np.median(lat)),
+            'latency_ms_p90': float(np.percentile(lat, 90)),
+            'runtime': model[0].get('runtime') if model else None,
+            'threads': threads,
+            'reliable': reliable,
+            'startup_s': startup,
+            'load_average_start': list(load_start),
+            'load_average_end': list(os.getloadavg()),
         }
     finally:
         probe.close()
@@ -141,15 +173,16 @@ def table(r: dict) -> str:
         ('load average at end', ', '.join(f'{v:.1f}' for v in r['load_average_end'])),
     ]
     w = max(len(a) for a, _ in rows)
-    return '\n'.join([f'| {"what":<{w}} | extractor node |', f'|{"-" * (w + 2)}|---|']
-                     + [f'| {a:<{w}} | {b} |' for a, b in rows])
+    return '\n'.join(
+        [f'| {"what":<{w}} | extractor node |', f'|{"-" * (w + 2)}|---|'] + [f'| {a:<{w}} | {b} |' for a, b in rows]
+    )
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('--seconds', type=float, default=60.0, help='length of the stream (default 60)')
     p.add_argument('--hz', type=float, default=30.0, help='camera rate (default 30)')
-    p.add_argument('--runtime', default=None, help='extractor runtime (default: the node\'s default)')
+    p.add_argument('--runtime', default=None, help="extractor runtime (default: the node's default)")
     p.add_argument('--threads', type=int, default=0, help='num_threads parameter (default 0 = the default)')
     p.add_argument('--reliable', action='store_true', help='reliable DDS for the images (default best effort)')
     p.add_argument('--json', action='store_true')

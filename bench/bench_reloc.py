@@ -7,6 +7,7 @@ median ms per pair of matching (ratio test) and of RANSAC verification (F) for b
 mean inliers, and the bytes per keyframe a map spends on stored ORB keypoints (the matcher's
 verify mode). Needs ../shared/data/rtabmap_loop.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,10 +23,10 @@ import cv2
 import numpy as np
 
 from lln_ros.core.extractor import Extractor
+from lln_ros.core.similarity import match_pair
 from lln_ros.io.image import load_image
 from lln_ros.mapstore import MapStore
 from lln_ros.reloc import Relocalizer, pair_boxes
-from lln_ros.core.similarity import match_pair
 
 DATA = Path(__file__).resolve().parents[1].parent / 'shared' / 'data' / 'rtabmap_loop'
 
@@ -44,7 +45,7 @@ def best_of(fn, repeats: int) -> float:
 def run(repeats: int, margin: float, n_pairs: int) -> dict:
     gt = cv2.imread(str(DATA / 'samples_GT.bmp'), cv2.IMREAD_GRAYSCALE) > 127
     pairs = [(r, int(np.flatnonzero(gt[r])[0])) for r in range(len(gt)) if gt[r].any()]
-    pairs = pairs[::max(1, len(pairs) // n_pairs)][:n_pairs]
+    pairs = pairs[:: max(1, len(pairs) // n_pairs)][:n_pairs]
     extractor = Extractor({'num_threads': 1})
     reloc = Relocalizer({'margin': margin})
     rows = {'regions': {'match': [], 'verify': [], 'inliers': []}, 'all': {'match': [], 'verify': [], 'inliers': []}}
@@ -72,23 +73,37 @@ def run(repeats: int, margin: float, n_pairs: int) -> dict:
                         store.add_keypoints(kid, kps.uv, kps.descriptors)
                 store.save()
                 sizes[with_kps] = os.path.getsize(os.path.join(d, 'map.db')) / 100
-    return {'pairs': len(pairs), 'margin': margin, 'keypoints_stored': len(kps),
-            'load': os.getloadavg()[0],
-            **{f'{name}_{k}': statistics.median(v) if k != 'inliers' else float(np.mean(v))
-               for name, r in rows.items() for k, v in r.items()},
-            'bytes_per_keyframe': sizes[False], 'bytes_per_keyframe_with_keypoints': sizes[True]}
+    return {
+        'pairs': len(pairs),
+        'margin': margin,
+        'keypoints_stored': len(kps),
+        'load': os.getloadavg()[0],
+        **{
+            f'{name}_{k}': statistics.median(v) if k != 'inliers' else float(np.mean(v))
+            for name, r in rows.items()
+            for k, v in r.items()
+        },
+        'bytes_per_keyframe': sizes[False],
+        'bytes_per_keyframe_with_keypoints': sizes[True],
+    }
 
 
 def table(r: dict) -> str:
-    lines = [f'rtabmap_loop revisit pairs: {r["pairs"]}, regions grown by {r["margin"]:g} cells, '
-             f'load average {r["load"]:.1f}',
-             '| pipeline | match ms/pair | verify ms/pair | mean inliers |', '|---|---:|---:|---:|']
+    lines = [
+        f'rtabmap_loop revisit pairs: {r["pairs"]}, regions grown by {r["margin"]:g} cells, '
+        f'load average {r["load"]:.1f}',
+        '| pipeline | match ms/pair | verify ms/pair | mean inliers |',
+        '|---|---:|---:|---:|',
+    ]
     for name, label in (('regions', 'mLLN (matched regions)'), ('all', 'all keypoints')):
         lines.append(f'| {label} | {r[name + "_match"]:.2f} | {r[name + "_verify"]:.2f} | {r[name + "_inliers"]:.1f} |')
     extra = r['bytes_per_keyframe_with_keypoints'] - r['bytes_per_keyframe']
-    lines += ['', f'map file per keyframe: {r["bytes_per_keyframe"]:.0f} B landmarks only, '
-                  f'{r["bytes_per_keyframe_with_keypoints"]:.0f} B with {r["keypoints_stored"]} ORB keypoints '
-                  f'(+{extra:.0f} B, {extra / r["keypoints_stored"]:.1f} B per keypoint)']
+    lines += [
+        '',
+        f'map file per keyframe: {r["bytes_per_keyframe"]:.0f} B landmarks only, '
+        f'{r["bytes_per_keyframe_with_keypoints"]:.0f} B with {r["keypoints_stored"]} ORB keypoints '
+        f'(+{extra:.0f} B, {extra / r["keypoints_stored"]:.1f} B per keypoint)',
+    ]
     return '\n'.join(lines)
 
 

@@ -9,6 +9,7 @@ optimisation basic vs all; OpenVINO (when the `openvino` package is installed) w
 threads and the latency hint; torch at 1/2 threads as the reference. lln_ros.core.runtime keeps the
 winner (ORT_SESSION_CONFIG, the extractor's default threads); README quotes this table.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -25,12 +26,14 @@ from lln_ros.core.extractor import Extractor  # noqa: E402
 
 def ort_variant(path, threads: int, spinning: bool, parallel: bool = False, basic: bool = False):
     import onnxruntime as ort
+
     so = ort.SessionOptions()
     so.intra_op_num_threads = threads
     so.inter_op_num_threads = 1
     so.execution_mode = ort.ExecutionMode.ORT_PARALLEL if parallel else ort.ExecutionMode.ORT_SEQUENTIAL
-    so.graph_optimization_level = (ort.GraphOptimizationLevel.ORT_ENABLE_BASIC if basic
-                                   else ort.GraphOptimizationLevel.ORT_ENABLE_ALL)
+    so.graph_optimization_level = (
+        ort.GraphOptimizationLevel.ORT_ENABLE_BASIC if basic else ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    )
     so.log_severity_level = 3
     so.add_session_config_entry('session.intra_op.allow_spinning', '1' if spinning else '0')
     so.add_session_config_entry('session.inter_op.allow_spinning', '1' if spinning else '0')
@@ -40,10 +43,13 @@ def ort_variant(path, threads: int, spinning: bool, parallel: bool = False, basi
 
 def openvino_variant(path, threads: int, precision: str = 'f32'):
     import openvino as ov
+
     # f32: the same numbers as torch; OpenVINO's default on a CPU with bf16 units (this one) is bf16
-    compiled = ov.Core().compile_model(str(path), 'CPU', {'INFERENCE_NUM_THREADS': threads,
-                                                          'PERFORMANCE_HINT': 'LATENCY',
-                                                          'INFERENCE_PRECISION_HINT': precision})
+    compiled = ov.Core().compile_model(
+        str(path),
+        'CPU',
+        {'INFERENCE_NUM_THREADS': threads, 'PERFORMANCE_HINT': 'LATENCY', 'INFERENCE_PRECISION_HINT': precision},
+    )
     request = compiled.create_infer_request()
     return lambda x: request.infer({0: x})
 
@@ -74,6 +80,7 @@ def call(kind: str, threads: int, fn, x):
         if kind == 'torch':
             torch.set_num_threads(threads)
         return fn(x)
+
     return run_once
 
 
@@ -94,13 +101,18 @@ def run(repeats: int, budget: float) -> dict:
 
 
 def format_table(r: dict) -> str:
-    lines = [f'load average at start (1/5/15 min): {", ".join(f"{v:.1f}" for v in r["load_average_at_start"])}',
-             '', '| 384x288, one frame | p50 ms | CPU ms | with 1 competing process: p50 ms | CPU ms | ratio |',
-             '|---|---|---|---|---|---|']
+    lines = [
+        f'load average at start (1/5/15 min): {", ".join(f"{v:.1f}" for v in r["load_average_at_start"])}',
+        '',
+        '| 384x288, one frame | p50 ms | CPU ms | with 1 competing process: p50 ms | CPU ms | ratio |',
+        '|---|---|---|---|---|---|',
+    ]
     for name, v in r['rows'].items():
-        q, l = v['quiet']['p50_ms'], v['loaded']['p50_ms']
-        lines.append(f'| {name} | {q:.1f} | {v["quiet"]["cpu_ms"]:.1f} | {l:.1f} | {v["loaded"]["cpu_ms"]:.1f} '
-                     f'| {l / q:.2f}x |')
+        quiet_ms, loaded_ms = v['quiet']['p50_ms'], v['loaded']['p50_ms']
+        lines.append(
+            f'| {name} | {quiet_ms:.1f} | {v["quiet"]["cpu_ms"]:.1f} | {loaded_ms:.1f} | {v["loaded"]["cpu_ms"]:.1f} '
+            f'| {loaded_ms / quiet_ms:.2f}x |'
+        )
     return '\n'.join(lines)
 
 

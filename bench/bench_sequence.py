@@ -9,6 +9,7 @@ K = prefilter_k and the velocity steps (and, through filling the dense window, o
 K = 0 is the matcher's prefilter_k 0 (every keyframe scored, K = map size). The target (issue 7) is
 under 1 ms per query at L = 10.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -64,8 +65,10 @@ def main(argv=None) -> int:
     if args.json:
         print(json.dumps({'rows': rows, 'loadavg': load, 'cpu': platform.processor() or platform.machine()}))
         return 0
-    print(f'sequence search overhead per query (median of {args.repeats}), K = {args.k or "map size"}, '
-          f'{platform.machine()}, {os.cpu_count()} CPUs, load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}')
+    print(
+        f'sequence search overhead per query (median of {args.repeats}), K = {args.k or "map size"}, '
+        f'{platform.machine()}, {os.cpu_count()} CPUs, load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}'
+    )
     print('| L | map keyframes | ms / query | target < 1 ms at L = 10 |')
     print('|---:|---:|---:|---|')
     for r in rows:

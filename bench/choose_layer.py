@@ -12,6 +12,7 @@ spatially weighted mutual matching, reranking the holistic top 30) on
   - a Nordland development slice from the TRAINING part of the route (0.60-0.70; the test split,
     the last 30%, is never looked at here): winter queries against summer, tolerance +-1.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,17 +22,21 @@ import sys
 import time
 from pathlib import Path
 
-from lln_ros.io import datasets
 from lln_ros import metrics
 from lln_ros.core.extractor import Extractor
-from lln_ros.io.features import FeatureCache
-from lln_ros.io.image import load_image
 from lln_ros.core.landmarks import stack_landmarks
 from lln_ros.core.retrieval import rank_all
+from lln_ros.io import datasets
+from lln_ros.io.features import FeatureCache
+from lln_ros.io.image import load_image
 
 DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
-CONFIGS = [('efficientnet_lite0', 'stage6'), ('efficientnet_lite0', 'stage7'), ('efficientnet_lite0', 'head'),
-           ('efficientnet_lite2', 'stage7')]
+CONFIGS = [
+    ('efficientnet_lite0', 'stage6'),
+    ('efficientnet_lite0', 'stage7'),
+    ('efficientnet_lite0', 'head'),
+    ('efficientnet_lite2', 'stage7'),
+]
 
 
 def recall_at_precision(ranked, scores, gt, min_precision=0.95) -> float:
@@ -49,8 +54,10 @@ def evaluate(ex: Extractor, cache: FeatureCache, ds, methods=('holistic', 'act',
         qs = [ex.from_features(f, s) for f, s in zip(fq, ds.info['query_sizes'])]
         rs = stack_landmarks([ex.from_features(f, s) for f, s in zip(fr, ds.info['ref_sizes'])])
         ranked, scores = rank_all(qs, rs, 30, allowed=ds.candidates, rerank_local=method != 'holistic')
-        out[method] = {'r_at_1': metrics.recall_at_k(ranked, ds.gt, 1),
-                       'r_at_p95': recall_at_precision(ranked, scores[:, 0], ds.gt)}
+        out[method] = {
+            'r_at_1': metrics.recall_at_k(ranked, ds.gt, 1),
+            'r_at_p95': recall_at_precision(ranked, scores[:, 0], ds.gt),
+        }
     return out
 
 
@@ -77,20 +84,35 @@ def main(argv=None) -> int:
             times.append(time.perf_counter() - t)
         cache = FeatureCache(args.cache, ex)
         d = ex.backbone.dim
-        rows.append({'backbone': backbone, 'layer': layer, 'D': d, 'bytes_per_keyframe': 50 * d * 2 + d * 4,
-                     'extract_ms': statistics.median(times[2:]) * 1e3,
-                     'rtabmap': evaluate(ex, cache, loop), 'nordland_dev': evaluate(ex, cache, nordland)})
+        rows.append(
+            {
+                'backbone': backbone,
+                'layer': layer,
+                'D': d,
+                'bytes_per_keyframe': 50 * d * 2 + d * 4,
+                'extract_ms': statistics.median(times[2:]) * 1e3,
+                'rtabmap': evaluate(ex, cache, loop),
+                'nordland_dev': evaluate(ex, cache, nordland),
+            }
+        )
     if args.json:
         print(json.dumps(rows))
         return 0
-    print('| backbone / layer | D | bytes/keyframe (n=50) | extract ms | rtabmap top-1: holistic / ACT / ALL | '
-          'rtabmap recall@P>=0.95: holistic / ACT / ALL | Nordland dev R@1: holistic / ACT / ALL |')
+    print(
+        '| backbone / layer | D | bytes/keyframe (n=50) | extract ms | rtabmap top-1: holistic / ACT / ALL | '
+        'rtabmap recall@P>=0.95: holistic / ACT / ALL | Nordland dev R@1: holistic / ACT / ALL |'
+    )
     print('|---|---|---|---|---|---|---|')
     for r in rows:
         rt_, nd = r['rtabmap'], r['nordland_dev']
-        print(f"| {r['backbone']} / {r['layer']} | {r['D']} | {r['bytes_per_keyframe']:,} | {r['extract_ms']:.1f} | "
-              + ' | '.join(' / '.join(f"{d[m][key]:.3f}" for m in ('holistic', 'act', 'all'))
-                           for d, key in ((rt_, 'r_at_1'), (rt_, 'r_at_p95'), (nd, 'r_at_1'))) + ' |')
+        print(
+            f'| {r["backbone"]} / {r["layer"]} | {r["D"]} | {r["bytes_per_keyframe"]:,} | {r["extract_ms"]:.1f} | '
+            + ' | '.join(
+                ' / '.join(f'{d[m][key]:.3f}' for m in ('holistic', 'act', 'all'))
+                for d, key in ((rt_, 'r_at_1'), (rt_, 'r_at_p95'), (nd, 'r_at_1'))
+            )
+            + ' |'
+        )
     return 0
 
 

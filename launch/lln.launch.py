@@ -15,12 +15,14 @@ share/lln_ros/config, then the launch arguments below override theirs. Every pro
 (and any camera driver included after it in the same launch) gets the Fast DDS profile for
 camera-sized images, unless FASTRTPS_DEFAULT_PROFILES_FILE is already set. See docs/interfaces.md.
 """
-from launch import LaunchDescription
+
 from launch.actions import DeclareLaunchArgument, SetEnvironmentVariable
 from launch.conditions import IfCondition
 from launch.substitutions import EnvironmentVariable, LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
+
+from launch import LaunchDescription
 
 
 def generate_launch_description() -> LaunchDescription:
@@ -32,82 +34,173 @@ def generate_launch_description() -> LaunchDescription:
     verify = LaunchConfiguration('verify')
     ros_arguments = ['--log-level', LaunchConfiguration('log_level')]
     arguments = [
-        DeclareLaunchArgument('image', default_value='/camera/image_raw',
-                              description='camera image topic (sensor_msgs/Image); with image_transport '
-                                          'compressed, <image>/compressed is used'),
-        DeclareLaunchArgument('image_transport', default_value='raw', choices=['raw', 'compressed'],
-                              description='raw: sensor_msgs/Image | compressed: sensor_msgs/CompressedImage'),
-        DeclareLaunchArgument('reliability', default_value='best_effort', choices=['best_effort', 'reliable'],
-                              description='image subscription QoS: best_effort (camera drivers) | '
-                                          'reliable (bag playback without drops)'),
-        DeclareLaunchArgument('frame_queue', default_value='1',
-                              description='frames waiting for extraction: 1 = newest only (cameras) | e.g. 100 '
-                                          'for bag replays, so no frame is skipped'),
-        DeclareLaunchArgument('mode', default_value='localization', choices=['localization', 'mapping'],
-                              description='localization: answer queries, map unchanged | mapping: answer '
-                                          'each query, then store it (online loop-closure detection)'),
-        DeclareLaunchArgument('feed', default_value='query', choices=['query', 'keyframes'],
-                              description="matcher input fed by the extractor's landmarks"),
-        DeclareLaunchArgument('map_path', default_value='~/.ros/lln_ros/map.db',
-                              description='map URI: SQLite file path (created if missing) | '
-                                          'milvus-lite:///path.db | milvus://host:port[/db][?map=name]'),
-        DeclareLaunchArgument('verify', default_value='false', choices=['true', 'false'],
-                              description='re-rank candidates by keypoint inliers: the extractor publishes '
-                                          'ORB keypoints, the matcher verifies and adds `inliers`'),
-        DeclareLaunchArgument('use_sim_time', default_value='false', choices=['true', 'false'],
-                              description='run on /clock (bag replay: lln-bag play --clock, ros2 bag play '
-                                          '--clock), so max_query_age and stamps work on recorded data'),
-        DeclareLaunchArgument('namespace', default_value='',
-                              description='namespace of the nodes and their relative topics and services'),
-        DeclareLaunchArgument('log_level', default_value='info',
-                              choices=['debug', 'info', 'warn', 'error', 'fatal'],
-                              description='log level of the nodes'),
-        DeclareLaunchArgument('visualize', default_value='false', choices=['true', 'false'],
-                              description='also start lln_visualizer: `overlay` image (query beside its '
-                                          'best keyframe, matched regions linked) and `markers`'),
-        DeclareLaunchArgument('rviz', default_value='false', choices=['true', 'false'],
-                              description='also start rviz2 with share/lln_ros/rviz/lln.rviz'),
-        DeclareLaunchArgument('dds_profile', default_value=EnvironmentVariable(
-                                  'FASTRTPS_DEFAULT_PROFILES_FILE',
-                                  default_value=PathJoinSubstitution([config, 'fastdds_large_data.xml'])),
-                              description='Fast DDS XML profile for the started processes (default: '
-                                          '$FASTRTPS_DEFAULT_PROFILES_FILE, else the shipped large-data '
-                                          'profile with a 16 MiB shared-memory segment)'),
-        DeclareLaunchArgument('extractor_params', default_value=PathJoinSubstitution([config, 'extractor.yaml']),
-                              description='parameter file of the extractor'),
-        DeclareLaunchArgument('matcher_params', default_value=PathJoinSubstitution([config, 'matcher.yaml']),
-                              description='parameter file of the matcher'),
+        DeclareLaunchArgument(
+            'image',
+            default_value='/camera/image_raw',
+            description='camera image topic (sensor_msgs/Image); with image_transport '
+            'compressed, <image>/compressed is used',
+        ),
+        DeclareLaunchArgument(
+            'image_transport',
+            default_value='raw',
+            choices=['raw', 'compressed'],
+            description='raw: sensor_msgs/Image | compressed: sensor_msgs/CompressedImage',
+        ),
+        DeclareLaunchArgument(
+            'reliability',
+            default_value='best_effort',
+            choices=['best_effort', 'reliable'],
+            description='image subscription QoS: best_effort (camera drivers) | reliable (bag playback without drops)',
+        ),
+        DeclareLaunchArgument(
+            'frame_queue',
+            default_value='1',
+            description='frames waiting for extraction: 1 = newest only (cameras) | e.g. 100 '
+            'for bag replays, so no frame is skipped',
+        ),
+        DeclareLaunchArgument(
+            'mode',
+            default_value='localization',
+            choices=['localization', 'mapping'],
+            description='localization: answer queries, map unchanged | mapping: answer '
+            'each query, then store it (online loop-closure detection)',
+        ),
+        DeclareLaunchArgument(
+            'feed',
+            default_value='query',
+            choices=['query', 'keyframes'],
+            description="matcher input fed by the extractor's landmarks",
+        ),
+        DeclareLaunchArgument(
+            'map_path',
+            default_value='~/.ros/lln_ros/map.db',
+            description='map URI: SQLite file path (created if missing) | '
+            'milvus-lite:///path.db | milvus://host:port[/db][?map=name]',
+        ),
+        DeclareLaunchArgument(
+            'verify',
+            default_value='false',
+            choices=['true', 'false'],
+            description='re-rank candidates by keypoint inliers: the extractor publishes '
+            'ORB keypoints, the matcher verifies and adds `inliers`',
+        ),
+        DeclareLaunchArgument(
+            'use_sim_time',
+            default_value='false',
+            choices=['true', 'false'],
+            description='run on /clock (bag replay: lln-bag play --clock, ros2 bag play '
+            '--clock), so max_query_age and stamps work on recorded data',
+        ),
+        DeclareLaunchArgument(
+            'namespace', default_value='', description='namespace of the nodes and their relative topics and services'
+        ),
+        DeclareLaunchArgument(
+            'log_level',
+            default_value='info',
+            choices=['debug', 'info', 'warn', 'error', 'fatal'],
+            description='log level of the nodes',
+        ),
+        DeclareLaunchArgument(
+            'visualize',
+            default_value='false',
+            choices=['true', 'false'],
+            description='also start lln_visualizer: `overlay` image (query beside its '
+            'best keyframe, matched regions linked) and `markers`',
+        ),
+        DeclareLaunchArgument(
+            'rviz',
+            default_value='false',
+            choices=['true', 'false'],
+            description='also start rviz2 with share/lln_ros/rviz/lln.rviz',
+        ),
+        DeclareLaunchArgument(
+            'dds_profile',
+            default_value=EnvironmentVariable(
+                'FASTRTPS_DEFAULT_PROFILES_FILE', default_value=PathJoinSubstitution([config, 'fastdds_large_data.xml'])
+            ),
+            description='Fast DDS XML profile for the started processes (default: '
+            '$FASTRTPS_DEFAULT_PROFILES_FILE, else the shipped large-data '
+            'profile with a 16 MiB shared-memory segment)',
+        ),
+        DeclareLaunchArgument(
+            'extractor_params',
+            default_value=PathJoinSubstitution([config, 'extractor.yaml']),
+            description='parameter file of the extractor',
+        ),
+        DeclareLaunchArgument(
+            'matcher_params',
+            default_value=PathJoinSubstitution([config, 'matcher.yaml']),
+            description='parameter file of the matcher',
+        ),
     ]
     # Fast DDS 2.x (Jazzy) reads FASTRTPS_*, 3.x (Kilted and later) FASTDDS_*
-    environment = [SetEnvironmentVariable(name, LaunchConfiguration('dds_profile'))
-                   for name in ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')]
+    environment = [
+        SetEnvironmentVariable(name, LaunchConfiguration('dds_profile'))
+        for name in ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
+    ]
     extractor = Node(
-        package='lln_ros', executable='extractor', name='lln_extractor', output='screen', emulate_tty=True,
-        namespace=namespace, ros_arguments=ros_arguments,
-        parameters=[LaunchConfiguration('extractor_params'),
-                    {'image_transport': LaunchConfiguration('image_transport'),
-                     'reliability': LaunchConfiguration('reliability'),
-                     'frame_queue': LaunchConfiguration('frame_queue'),
-                     'publish_keypoints': verify, 'use_sim_time': use_sim_time}],
+        package='lln_ros',
+        executable='extractor',
+        name='lln_extractor',
+        output='screen',
+        emulate_tty=True,
+        namespace=namespace,
+        ros_arguments=ros_arguments,
+        parameters=[
+            LaunchConfiguration('extractor_params'),
+            {
+                'image_transport': LaunchConfiguration('image_transport'),
+                'reliability': LaunchConfiguration('reliability'),
+                'frame_queue': LaunchConfiguration('frame_queue'),
+                'publish_keypoints': verify,
+                'use_sim_time': use_sim_time,
+            },
+        ],
         remappings=[('image', image), ('image/compressed', [image, '/compressed'])],
     )
     matcher = Node(
-        package='lln_ros', executable='matcher', name='lln_matcher', output='screen', emulate_tty=True,
-        namespace=namespace, ros_arguments=ros_arguments,
-        parameters=[LaunchConfiguration('matcher_params'),
-                    {'mode': LaunchConfiguration('mode'), 'map_path': LaunchConfiguration('map_path'),
-                     'verify': verify, 'use_sim_time': use_sim_time}],
+        package='lln_ros',
+        executable='matcher',
+        name='lln_matcher',
+        output='screen',
+        emulate_tty=True,
+        namespace=namespace,
+        ros_arguments=ros_arguments,
+        parameters=[
+            LaunchConfiguration('matcher_params'),
+            {
+                'mode': LaunchConfiguration('mode'),
+                'map_path': LaunchConfiguration('map_path'),
+                'verify': verify,
+                'use_sim_time': use_sim_time,
+            },
+        ],
         remappings=[(LaunchConfiguration('feed'), 'landmarks')],
     )
     visualizer = Node(
-        package='lln_ros', executable='visualizer', name='lln_visualizer', output='screen', emulate_tty=True,
-        namespace=namespace, ros_arguments=ros_arguments, condition=IfCondition(LaunchConfiguration('visualize')),
-        parameters=[{'image_transport': LaunchConfiguration('image_transport'),
-                     'reliability': LaunchConfiguration('reliability'), 'use_sim_time': use_sim_time}],
+        package='lln_ros',
+        executable='visualizer',
+        name='lln_visualizer',
+        output='screen',
+        emulate_tty=True,
+        namespace=namespace,
+        ros_arguments=ros_arguments,
+        condition=IfCondition(LaunchConfiguration('visualize')),
+        parameters=[
+            {
+                'image_transport': LaunchConfiguration('image_transport'),
+                'reliability': LaunchConfiguration('reliability'),
+                'use_sim_time': use_sim_time,
+            }
+        ],
         remappings=[('image', image), ('image/compressed', [image, '/compressed'])],
     )
     rviz = Node(
-        package='rviz2', executable='rviz2', name='rviz2', output='screen', namespace=namespace,
+        package='rviz2',
+        executable='rviz2',
+        name='rviz2',
+        output='screen',
+        namespace=namespace,
         condition=IfCondition(LaunchConfiguration('rviz')),
         arguments=['-d', PathJoinSubstitution([share, 'rviz', 'lln.rviz'])],
         parameters=[{'use_sim_time': use_sim_time}],

@@ -11,6 +11,7 @@ expected #'), so messages that differ only in a byte count or a field name are o
 queries of one sort give one WARN line, not 300. At most `max_kinds` kinds are remembered per
 counter (a sender can make endless distinct texts); later ones share the kind '<other>'.
 """
+
 from __future__ import annotations
 
 import re
@@ -35,7 +36,7 @@ class Counters:
     def __init__(self, log=print, period_s: float = 60.0, max_kinds: int = 64, clock=time.monotonic):
         self.log, self.period_s, self.max_kinds, self.clock = log, float(period_s), int(max_kinds), clock
         self.counts: Counter = Counter()
-        self._kinds: dict = {}   # (counter, kind) -> [time last logged, repeats since]
+        self._kinds: dict = {}  # (counter, kind) -> [time last logged, repeats since]
         self._lock = threading.Lock()
 
     def count(self, key: str, n: int = 1) -> None:
@@ -56,12 +57,16 @@ class Counters:
             state = self._kinds.get(key)
             if state is None:
                 self._kinds[key] = [now, 0]
-                line = (f'{counter}: {message} (skipped; further problems of this kind are counted and '
-                        f'logged at most every {self.period_s:g} s; {total} so far)')
+                line = (
+                    f'{counter}: {message} (skipped; further problems of this kind are counted and '
+                    f'logged at most every {self.period_s:g} s; {total} so far)'
+                )
             elif now - state[0] >= self.period_s:
                 repeats, state[0], state[1] = state[1], now, 0
-                line = (f'{counter}: {message} (skipped; {repeats} more of this kind in the last '
-                        f'{self.period_s:g} s; {total} so far)')
+                line = (
+                    f'{counter}: {message} (skipped; {repeats} more of this kind in the last '
+                    f'{self.period_s:g} s; {total} so far)'
+                )
             else:
                 state[1] += 1
                 return False

@@ -7,6 +7,7 @@ readers lose (README "Camera-sized images"). config/fastdds_large_data.xml enlar
 
     note = apply_large_data_profile()   # in a process that publishes images, before rclpy.init
 """
+
 from __future__ import annotations
 
 import os
@@ -25,6 +26,7 @@ def shipped_profile() -> Path | None:
     candidates = []
     try:
         from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+
         try:
             candidates.append(Path(get_package_share_directory('lln_ros')) / 'config' / PROFILE_NAME)
         except (PackageNotFoundError, ValueError, OSError):  # OSError: no AMENT_PREFIX_PATH
@@ -56,21 +58,27 @@ def apply_large_data_profile(environ=os.environ) -> tuple[str, str]:
     with a segment over 512 KiB is in effect, 'warn' when images over ~512 KB that this process
     publishes would go over UDP (and be lost with best-effort readers)."""
     if not uses_fastdds(environ):
-        return 'info', (f"RMW {environ['RMW_IMPLEMENTATION']}: lln_ros's Fast DDS profile does not apply; see "
-                        "README 'Camera-sized images' for that middleware's large-message settings")
+        return 'info', (
+            f"RMW {environ['RMW_IMPLEMENTATION']}: lln_ros's Fast DDS profile does not apply; see "
+            "README 'Camera-sized images' for that middleware's large-message settings"
+        )
     chosen = next((environ[v] for v in PROFILE_VARIABLES if environ.get(v)), None)
     if chosen is None:
         profile = shipped_profile()
         if profile is None:
-            return 'warn', (f'{PROFILE_NAME} not found (package not installed?): messages over 512 KiB this '
-                            'process publishes go over UDP and best-effort readers lose most of them')
+            return 'warn', (
+                f'{PROFILE_NAME} not found (package not installed?): messages over 512 KiB this '
+                'process publishes go over UDP and best-effort readers lose most of them'
+            )
         for variable in PROFILE_VARIABLES:
             environ[variable] = str(profile)
         return 'info', f'Fast DDS profile {profile} (shared-memory segment {_mib(max(segment_sizes(profile)))})'
     sizes = segment_sizes(chosen)
     if not sizes or max(sizes) <= DEFAULT_SEGMENT_BYTES:
-        return 'warn', (f'Fast DDS profile {chosen} sets no shared-memory segment over 512 KiB: camera-sized '
-                        f'images this process publishes go over UDP; see {PROFILE_NAME}')
+        return 'warn', (
+            f'Fast DDS profile {chosen} sets no shared-memory segment over 512 KiB: camera-sized '
+            f'images this process publishes go over UDP; see {PROFILE_NAME}'
+        )
     return 'info', f'Fast DDS profile {chosen} (shared-memory segment {_mib(max(sizes))})'
 
 

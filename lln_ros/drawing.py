@@ -5,8 +5,10 @@ beside its best keyframe, matched regions outlined and linked, as `lln-match --p
 
 `matches` is the matcher's `matches` table (lln_ros.msgs.cloud_to_matches): query_u, query_v, map_u,
 map_v, cell_w, cell_h (pixels of each image), similarity, weight. Line colour = similarity
-(viridis, dark = low), thick lines = pairs consistent with the offset mode (weight >= 0.5). Images are BGR uint8 (H, W, 3).
+(viridis, dark = low), thick lines = pairs consistent with the offset mode (weight >= 0.5).
+Images are BGR uint8 (H, W, 3).
 """
+
 from __future__ import annotations
 
 import cv2
@@ -35,9 +37,15 @@ def similarity_colours(similarity: np.ndarray) -> np.ndarray:
     return cv2.applyColorMap(level.astype(np.uint8).reshape(-1, 1), cv2.COLORMAP_VIRIDIS).reshape(-1, 3)
 
 
-def draw_match_overlay(query: np.ndarray, keyframe: np.ndarray | None, matches: np.ndarray,
-                       caption: list[str] = (), max_links: int = 60, height: int = PANEL_HEIGHT,
-                       original_heights: tuple = (None, None)) -> np.ndarray:
+def draw_match_overlay(
+    query: np.ndarray,
+    keyframe: np.ndarray | None,
+    matches: np.ndarray,
+    caption: list[str] = (),
+    max_links: int = 60,
+    height: int = PANEL_HEIGHT,
+    original_heights: tuple = (None, None),
+) -> np.ndarray:
     """BGR uint8 canvas (CAPTION_HEIGHT * len(caption) + height, Wq + Wk, 3): query left, keyframe right.
 
     keyframe None (its image was never seen, e.g. a map built by another run): a grey panel that
@@ -49,15 +57,31 @@ def draw_match_overlay(query: np.ndarray, keyframe: np.ndarray | None, matches: 
     right, sk = _fit(keyframe, height, original_heights[1])
     top = CAPTION_HEIGHT * len(caption)
     canvas = np.zeros((top + height, left.shape[1] + right.shape[1], 3), np.uint8)
-    canvas[top:, :left.shape[1]] = left
-    canvas[top:, left.shape[1]:] = right
+    canvas[top:, : left.shape[1]] = left
+    canvas[top:, left.shape[1] :] = right
     dx = left.shape[1]
     if keyframe is None:
-        cv2.putText(canvas, 'keyframe image not seen', (dx + 10, top + height // 2), cv2.FONT_HERSHEY_SIMPLEX,
-                    0.6, (220, 220, 220), 1, cv2.LINE_AA)
+        cv2.putText(
+            canvas,
+            'keyframe image not seen',
+            (dx + 10, top + height // 2),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.6,
+            (220, 220, 220),
+            1,
+            cv2.LINE_AA,
+        )
     for i, line in enumerate(caption):
-        cv2.putText(canvas, line, (6, CAPTION_HEIGHT * (i + 1) - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.55,
-                    (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(
+            canvas,
+            line,
+            (6, CAPTION_HEIGHT * (i + 1) - 6),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.55,
+            (255, 255, 255),
+            1,
+            cv2.LINE_AA,
+        )
     if len(matches) == 0:
         return canvas
     order = np.argsort(-(matches['weight'] * matches['similarity']))[:max_links]
@@ -68,14 +92,26 @@ def draw_match_overlay(query: np.ndarray, keyframe: np.ndarray | None, matches: 
         thickness = 2 if m['weight'] >= 0.5 else 1  # consistent with the offset mode, or not
         q = (m['query_u'] * sq, top + m['query_v'] * sq)
         half = (m['cell_w'] * sq / 2, m['cell_h'] * sq / 2)
-        cv2.rectangle(canvas, (round(q[0] - half[0]), round(q[1] - half[1])),
-                      (round(q[0] + half[0]), round(q[1] + half[1])), colour, 1, cv2.LINE_AA)
+        cv2.rectangle(
+            canvas,
+            (round(q[0] - half[0]), round(q[1] - half[1])),
+            (round(q[0] + half[0]), round(q[1] + half[1])),
+            colour,
+            1,
+            cv2.LINE_AA,
+        )
         if keyframe is None:
             continue
         k = (dx + m['map_u'] * sk, top + m['map_v'] * sk)
         half = (m['cell_w'] * sk / 2, m['cell_h'] * sk / 2)
-        cv2.rectangle(canvas, (round(k[0] - half[0]), round(k[1] - half[1])),
-                      (round(k[0] + half[0]), round(k[1] + half[1])), colour, 1, cv2.LINE_AA)
+        cv2.rectangle(
+            canvas,
+            (round(k[0] - half[0]), round(k[1] - half[1])),
+            (round(k[0] + half[0]), round(k[1] + half[1])),
+            colour,
+            1,
+            cv2.LINE_AA,
+        )
         cv2.line(canvas, (round(q[0]), round(q[1])), (round(k[0]), round(k[1])), colour, thickness, cv2.LINE_AA)
         for end in (q, k):
             cv2.circle(canvas, (round(end[0]), round(end[1])), 3, colour, -1, cv2.LINE_AA)

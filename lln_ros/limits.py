@@ -13,12 +13,13 @@ count as a refused message (bad_image / bad_keyframe / bad_query / bad_keypoints
 
 No rclpy here: the node, both map backends and lln-map use these functions.
 """
+
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping
 
-from .errors import ModelError, MessageError
+from .errors import MessageError, ModelError
 
 GRID_STRIDE = 32  # every backbone here has a stride-32 feature grid (lln_ros.io.image)
 
@@ -62,8 +63,11 @@ def _int_field(model: Mapping, name: str, low: int, high: int, required: bool) -
             raise ModelError(f'model has no {name}')
         return None
     # JSON numbers arrive as int or float (1e999 is inf, 1e30 is a float); bool is an int in Python
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or \
-            (isinstance(value, float) and not (math.isfinite(value) and value.is_integer())):
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, float))
+        or (isinstance(value, float) and not (math.isfinite(value) and value.is_integer()))
+    ):
         raise ModelError(f'model {name} must be an integer, got {value!r}')
     value = int(value)
     if not low <= value <= high:
@@ -83,12 +87,15 @@ def validate_model(model, conf: Mapping | None = None) -> dict:
     """
     lim = limits(conf)
     if not isinstance(model, Mapping):
-        raise ModelError(f'model must be a JSON object with descriptor_space and descriptor_dim '
-                         f'(Extractor.model_info), got {type(model).__name__}')
+        raise ModelError(
+            f'model must be a JSON object with descriptor_space and descriptor_dim '
+            f'(Extractor.model_info), got {type(model).__name__}'
+        )
     space = model.get('descriptor_space')
     if not isinstance(space, str) or not space or len(space) > 256:
-        raise ModelError(f'model descriptor_space must be a non-empty string of at most 256 characters, '
-                         f'got {_short(space)}')
+        raise ModelError(
+            f'model descriptor_space must be a non-empty string of at most 256 characters, got {_short(space)}'
+        )
     dim = _int_field(model, 'descriptor_dim', 1, lim['max_descriptor_dim'], required=True)
     tail = space.rsplit('/', 1)[-1]
     if '/' in space and tail.isdigit() and int(tail) != dim:
@@ -112,8 +119,10 @@ def check_pixels(width: int, height: int, conf: Mapping, what: str = 'image') ->
     """LimitError when a width x height image exceeds max_image_pixels (Python ints: no overflow)."""
     pixels = int(width) * int(height)
     if pixels > conf['max_image_pixels']:
-        raise LimitError(f'{what}: {int(width)}x{int(height)} = {pixels} pixels is more than max_image_pixels '
-                         f'{conf["max_image_pixels"]}')
+        raise LimitError(
+            f'{what}: {int(width)}x{int(height)} = {pixels} pixels is more than max_image_pixels '
+            f'{conf["max_image_pixels"]}'
+        )
 
 
 def check_landmark_set(lset, model: Mapping | None, conf: Mapping, what: str = 'landmarks cloud') -> None:
@@ -126,25 +135,34 @@ def check_landmark_set(lset, model: Mapping | None, conf: Mapping, what: str = '
     image_w, image_h = (float(v) for v in lset.image_size)
     cell_w, cell_h = (float(v) for v in lset.cell_size)
     if not all(math.isfinite(v) and v > 0 for v in (image_w, image_h, cell_w, cell_h)):
-        raise LimitError(f'{what}: sizes must be positive and finite (image {image_w:g}x{image_h:g}, '
-                         f'cell {cell_w:g}x{cell_h:g})')
+        raise LimitError(
+            f'{what}: sizes must be positive and finite (image {image_w:g}x{image_h:g}, cell {cell_w:g}x{cell_h:g})'
+        )
     if image_w * image_h > conf['max_image_pixels']:
-        raise LimitError(f'{what}: declared image {image_w:g}x{image_h:g} is more than max_image_pixels '
-                         f'{conf["max_image_pixels"]}')
+        raise LimitError(
+            f'{what}: declared image {image_w:g}x{image_h:g} is more than max_image_pixels {conf["max_image_pixels"]}'
+        )
     if len(lset) > conf['max_landmarks']:
         raise LimitError(f'{what}: {len(lset)} landmarks is more than max_landmarks {conf["max_landmarks"]}')
     cols, rows = image_w / cell_w, image_h / cell_h
     side = conf['max_grid_side']
     if cols > side + 0.5 or rows > side + 0.5:
-        raise LimitError(f'{what}: image {image_w:g}x{image_h:g} in cells of {cell_w:g}x{cell_h:g} is a '
-                         f'{cols:.4g}x{rows:.4g} grid; at most {side} cells a side (max_grid_side)')
+        raise LimitError(
+            f'{what}: image {image_w:g}x{image_h:g} in cells of {cell_w:g}x{cell_h:g} is a '
+            f'{cols:.4g}x{rows:.4g} grid; at most {side} cells a side (max_grid_side)'
+        )
     if abs(cols - round(cols)) > 0.01 or abs(rows - round(rows)) > 0.01 or round(cols) < 1 or round(rows) < 1:
-        raise LimitError(f'{what}: image {image_w:g}x{image_h:g} is not a whole number of '
-                         f'{cell_w:g}x{cell_h:g} cells ({cols:.4g}x{rows:.4g})')
+        raise LimitError(
+            f'{what}: image {image_w:g}x{image_h:g} is not a whole number of '
+            f'{cell_w:g}x{cell_h:g} cells ({cols:.4g}x{rows:.4g})'
+        )
     height = (model or {}).get('input_height')
     if height and round(rows) != int(height) // GRID_STRIDE:
-        raise LimitError(f'{what}: grid of {round(rows)} rows, but the model (input_height {height}) '
-                         f'makes {int(height) // GRID_STRIDE}')
+        raise LimitError(
+            f'{what}: grid of {round(rows)} rows, but the model (input_height {height}) '
+            f'makes {int(height) // GRID_STRIDE}'
+        )
     if tuple(int(v) for v in lset.grid) != (round(rows), round(cols)):
-        raise LimitError(f'{what}: grid {tuple(lset.grid)} does not match image / cell size '
-                         f'({round(rows)}, {round(cols)})')
+        raise LimitError(
+            f'{what}: grid {tuple(lset.grid)} does not match image / cell size ({round(rows)}, {round(cols)})'
+        )

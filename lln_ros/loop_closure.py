@@ -11,6 +11,7 @@ end keys its poses by stamp, so a constraint here is (query stamp, keyframe stam
 back end's own registration (PnP with depth, ICP, essential matrix with the intrinsics) uses as a
 prior before it adds a between-factor. docs/slam_integration.md says what to threshold on.
 """
+
 from __future__ import annotations
 
 import math
@@ -19,30 +20,35 @@ from dataclasses import dataclass, field
 import numpy as np
 
 DEFAULT_CONF = {
-    'min_score': 0.0,     # landmark similarity S of the best candidate (method lln); 0 = any
-    'min_inliers': 0,     # verify mode: RANSAC inliers of the best candidate; 0 = do not require
-    'min_gap_s': 0.0,     # candidates closer in time than this to the query are odometry, not loops
+    'min_score': 0.0,  # landmark similarity S of the best candidate (method lln); 0 = any
+    'min_inliers': 0,  # verify mode: RANSAC inliers of the best candidate; 0 = do not require
+    'min_gap_s': 0.0,  # candidates closer in time than this to the query are odometry, not loops
 }
 
 
 @dataclass
 class LoopClosure:
     """One accepted loop closure: the query frame revisits the keyframe."""
+
     query_stamp_ns: int
     keyframe_stamp_ns: int
     keyframe_id: int
     score: float
     holistic_score: float
-    inliers: float | None = None          # verify mode only
+    inliers: float | None = None  # verify mode only
     regions: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), np.float32))
     """(M, 6) float32 query_u, query_v, map_u, map_v, cell_w, cell_h of the matched region pairs."""
 
     def as_dict(self) -> dict:
-        return {'query_stamp_ns': self.query_stamp_ns, 'keyframe_stamp_ns': self.keyframe_stamp_ns,
-                'keyframe_id': self.keyframe_id, 'score': round(self.score, 4),
-                'holistic_score': round(self.holistic_score, 4),
-                'inliers': None if self.inliers is None else int(self.inliers),
-                'regions': np.round(self.regions, 1).tolist()}
+        return {
+            'query_stamp_ns': self.query_stamp_ns,
+            'keyframe_stamp_ns': self.keyframe_stamp_ns,
+            'keyframe_id': self.keyframe_id,
+            'score': round(self.score, 4),
+            'holistic_score': round(self.holistic_score, 4),
+            'inliers': None if self.inliers is None else int(self.inliers),
+            'regions': np.round(self.regions, 1).tolist(),
+        }
 
 
 class LoopClosureFilter:
@@ -78,15 +84,23 @@ class LoopClosureFilter:
             return None
         regions = np.zeros((0, 6), np.float32)
         if matches is not None and len(matches) and int(matches['keyframe_id'][0]) == int(row['keyframe_id']):
-            regions = np.stack([matches[k] for k in ('query_u', 'query_v', 'map_u', 'map_v', 'cell_w', 'cell_h')],
-                               axis=1).astype(np.float32)
-        return LoopClosure(query_stamp_ns, stamp, int(row['keyframe_id']), float(row['score']),
-                           float(row['holistic_score']), None if inliers is None or math.isnan(inliers) else inliers,
-                           regions)
+            regions = np.stack(
+                [matches[k] for k in ('query_u', 'query_v', 'map_u', 'map_v', 'cell_w', 'cell_h')], axis=1
+            ).astype(np.float32)
+        return LoopClosure(
+            query_stamp_ns,
+            stamp,
+            int(row['keyframe_id']),
+            float(row['score']),
+            float(row['holistic_score']),
+            None if inliers is None or math.isnan(inliers) else inliers,
+            regions,
+        )
 
 
-def threshold_table(scores: np.ndarray, correct: np.ndarray, positives: int,
-                    precisions=(1.0, 0.99, 0.95, 0.9, 0.8)) -> list[dict]:
+def threshold_table(
+    scores: np.ndarray, correct: np.ndarray, positives: int, precisions=(1.0, 0.99, 0.95, 0.9, 0.8)
+) -> list[dict]:
     """For each target precision, the lowest threshold on the top-1 score that reaches it and the
     recall there. scores, correct: (Q,) of the answered queries; positives: queries with a true loop."""
     order = np.argsort(-np.asarray(scores, np.float64), kind='stable')
@@ -100,9 +114,16 @@ def threshold_table(scores: np.ndarray, correct: np.ndarray, positives: int,
         good = np.flatnonzero(prec >= target)
         if len(good):
             i = good[np.argmax(rec[good])]
-            out.append({'precision_target': target, 'threshold': float(thr[i]), 'precision': float(prec[i]),
-                        'recall': float(rec[i])})
+            out.append(
+                {
+                    'precision_target': target,
+                    'threshold': float(thr[i]),
+                    'precision': float(prec[i]),
+                    'recall': float(rec[i]),
+                }
+            )
         else:
-            out.append({'precision_target': target, 'threshold': float('nan'), 'precision': float('nan'),
-                        'recall': 0.0})
+            out.append(
+                {'precision_target': target, 'threshold': float('nan'), 'precision': float('nan'), 'recall': 0.0}
+            )
     return out

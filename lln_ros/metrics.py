@@ -12,6 +12,7 @@ Queries without any true match (loop data: a first visit) can only be false posi
     auc_pr      area under the PR curve (average precision, step-wise)
     recall_at_k a correct ref among the first k answers, over queries that have a match
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -66,6 +67,11 @@ def auc_pr(ranked: np.ndarray, scores: np.ndarray, gt: np.ndarray) -> float:
 
 def summary(ranked: np.ndarray, scores: np.ndarray, gt: np.ndarray) -> dict:
     """Every metric of one method on one dataset."""
-    return {'p_at_100r': p_at_100r(ranked, gt), 'r_at_100p': r_at_100p(ranked, scores, gt),
-            'auc_pr': auc_pr(ranked, scores, gt), 'r_at_1': recall_at_k(ranked, gt, 1),
-            'r_at_5': recall_at_k(ranked, gt, 5), 'r_at_10': recall_at_k(ranked, gt, 10)}
+    return {
+        'p_at_100r': p_at_100r(ranked, gt),
+        'r_at_100p': r_at_100p(ranked, scores, gt),
+        'auc_pr': auc_pr(ranked, scores, gt),
+        'r_at_1': recall_at_k(ranked, gt, 1),
+        'r_at_5': recall_at_k(ranked, gt, 5),
+        'r_at_10': recall_at_k(ranked, gt, 10),
+    }

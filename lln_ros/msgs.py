@@ -29,6 +29,7 @@ Every malformed message ends in lln_ros.errors.MessageError with a message namin
 Decoders that take limits (max_rows, limits, max_pixels; see lln_ros.limits) check the sizes a
 message declares before allocating anything from them, and raise LimitError (a MessageError).
 """
+
 from __future__ import annotations
 
 import array as _array
@@ -40,8 +41,8 @@ import numpy as np
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
-from .errors import DescriptorError, MessageError
 from .core.landmarks import LandmarkSet
+from .errors import DescriptorError, MessageError
 from .limits import LimitError, check_pixels
 
 # PointField datatype <-> little-endian numpy scalar type
@@ -55,27 +56,52 @@ _DATATYPES = {
     PointField.FLOAT32: np.dtype('<f4'),
     PointField.FLOAT64: np.dtype('<f8'),
 }
-_DATATYPE_NAMES = {PointField.INT8: 'INT8', PointField.UINT8: 'UINT8', PointField.INT16: 'INT16',
-                   PointField.UINT16: 'UINT16', PointField.INT32: 'INT32', PointField.UINT32: 'UINT32',
-                   PointField.FLOAT32: 'FLOAT32', PointField.FLOAT64: 'FLOAT64'}
+_DATATYPE_NAMES = {
+    PointField.INT8: 'INT8',
+    PointField.UINT8: 'UINT8',
+    PointField.INT16: 'INT16',
+    PointField.UINT16: 'UINT16',
+    PointField.INT32: 'INT32',
+    PointField.UINT32: 'UINT32',
+    PointField.FLOAT32: 'FLOAT32',
+    PointField.FLOAT64: 'FLOAT64',
+}
 _KIND_SIZE_TO_DATATYPE = {(dt.kind, dt.itemsize): code for code, dt in _DATATYPES.items()}
 
-LANDMARK_FIELDS = (('u', PointField.FLOAT32, 1), ('v', PointField.FLOAT32, 1),
-                   ('w', PointField.FLOAT32, 1), ('h', PointField.FLOAT32, 1),
-                   ('score', PointField.FLOAT32, 1))  # + ('descriptor', FLOAT32, D)
-CANDIDATE_FIELDS = (('keyframe_id', PointField.UINT32, 1), ('score', PointField.FLOAT32, 1),
-                    ('holistic_score', PointField.FLOAT32, 1), ('stamp_sec', PointField.INT32, 1),
-                    ('stamp_nanosec', PointField.UINT32, 1))
-KEYPOINT_FIELDS = (('u', PointField.FLOAT32, 1), ('v', PointField.FLOAT32, 1),
-                   ('size', PointField.FLOAT32, 1), ('angle', PointField.FLOAT32, 1),
-                   ('response', PointField.FLOAT32, 1), ('octave', PointField.INT32, 1),
-                   ('descriptor', PointField.UINT8, 32))  # ORB: 256-bit binary descriptor
+LANDMARK_FIELDS = (
+    ('u', PointField.FLOAT32, 1),
+    ('v', PointField.FLOAT32, 1),
+    ('w', PointField.FLOAT32, 1),
+    ('h', PointField.FLOAT32, 1),
+    ('score', PointField.FLOAT32, 1),
+)  # + ('descriptor', FLOAT32, D)
+CANDIDATE_FIELDS = (
+    ('keyframe_id', PointField.UINT32, 1),
+    ('score', PointField.FLOAT32, 1),
+    ('holistic_score', PointField.FLOAT32, 1),
+    ('stamp_sec', PointField.INT32, 1),
+    ('stamp_nanosec', PointField.UINT32, 1),
+)
+KEYPOINT_FIELDS = (
+    ('u', PointField.FLOAT32, 1),
+    ('v', PointField.FLOAT32, 1),
+    ('size', PointField.FLOAT32, 1),
+    ('angle', PointField.FLOAT32, 1),
+    ('response', PointField.FLOAT32, 1),
+    ('octave', PointField.INT32, 1),
+    ('descriptor', PointField.UINT8, 32),
+)  # ORB: 256-bit binary descriptor
 MATCH_FIELDS = (('keyframe_id', PointField.UINT32, 1),) + tuple(
-    (name, PointField.FLOAT32, 1) for name in
-    ('query_u', 'query_v', 'map_u', 'map_v', 'cell_w', 'cell_h', 'similarity', 'weight'))
+    (name, PointField.FLOAT32, 1)
+    for name in ('query_u', 'query_v', 'map_u', 'map_v', 'cell_w', 'cell_h', 'similarity', 'weight')
+)
 
 IMAGE_ENCODINGS = {  # encoding -> (channels, channel order)
-    'rgb8': (3, 'rgb'), 'bgr8': (3, 'bgr'), 'mono8': (1, 'rgb'), 'rgba8': (4, 'rgb'), 'bgra8': (4, 'bgr'),
+    'rgb8': (3, 'rgb'),
+    'bgr8': (3, 'bgr'),
+    'mono8': (1, 'rgb'),
+    'rgba8': (4, 'rgb'),
+    'bgra8': (4, 'bgr'),
 }
 
 
@@ -99,6 +125,7 @@ def stamp_to_ns(stamp) -> int:
 # --------------------------------------------------------------------------------------------
 # generic tables
 
+
 def dtype_to_fields(dtype: np.dtype) -> list[PointField]:
     """PointFields describing a structured dtype (offsets as laid out in the dtype)."""
     if dtype.names is None:
@@ -106,10 +133,9 @@ def dtype_to_fields(dtype: np.dtype) -> list[PointField]:
     fields = []
     for name in dtype.names:
         sub, offset = dtype.fields[name][:2]
-        base, shape = (sub.subdtype if sub.subdtype is not None else (sub, ()))
+        base, shape = sub.subdtype if sub.subdtype is not None else (sub, ())
         if len(shape) > 1:
-            raise MessageError(f'field {name!r} has shape {shape}; only scalar or 1-D array fields fit '
-                               'a PointField')
+            raise MessageError(f'field {name!r} has shape {shape}; only scalar or 1-D array fields fit a PointField')
         code = _KIND_SIZE_TO_DATATYPE.get((base.kind, base.itemsize))
         if code is None:
             raise MessageError(f'field {name!r} has dtype {base}, which no PointField datatype can hold')
@@ -122,10 +148,14 @@ def dtype_to_fields(dtype: np.dtype) -> list[PointField]:
 
 def _little_endian(dtype: np.dtype) -> np.dtype:
     """The same layout with every field little-endian."""
-    return np.dtype({'names': list(dtype.names),
-                     'formats': [dtype.fields[n][0].newbyteorder('<') for n in dtype.names],
-                     'offsets': [dtype.fields[n][1] for n in dtype.names],
-                     'itemsize': dtype.itemsize})
+    return np.dtype(
+        {
+            'names': list(dtype.names),
+            'formats': [dtype.fields[n][0].newbyteorder('<') for n in dtype.names],
+            'offsets': [dtype.fields[n][1] for n in dtype.names],
+            'itemsize': dtype.itemsize,
+        }
+    )
 
 
 def array_to_cloud(records: np.ndarray, header: Header | None = None) -> PointCloud2:
@@ -163,14 +193,15 @@ def _fields_to_dtype(msg: PointCloud2, what: str) -> np.dtype:
         base = _DATATYPES[f.datatype]
         size = base.itemsize * f.count
         if f.offset + size > msg.point_step:
-            raise MessageError(f'{what}: field {f.name!r} (offset {f.offset}, {size} bytes) does not fit '
-                               f'in point_step {msg.point_step}')
+            raise MessageError(
+                f'{what}: field {f.name!r} (offset {f.offset}, {size} bytes) does not fit '
+                f'in point_step {msg.point_step}'
+            )
         names.append(f.name)
         formats.append(base if f.count == 1 else np.dtype((base, (f.count,))))
         offsets.append(f.offset)
     try:
-        return np.dtype({'names': names, 'formats': formats, 'offsets': offsets,
-                         'itemsize': int(msg.point_step)})
+        return np.dtype({'names': names, 'formats': formats, 'offsets': offsets, 'itemsize': int(msg.point_step)})
     except (ValueError, TypeError) as exc:
         raise MessageError(f'{what}: fields cannot be laid out in point_step {msg.point_step}: {exc}') from exc
 
@@ -182,17 +213,20 @@ def check_fields(msg: PointCloud2, required: Sequence[tuple], what: str = 'cloud
     for name, datatype, count in required:
         f = present.get(name)
         if f is None:
-            raise MessageError(f'{what}: required field {name!r} is missing '
-                               f'(fields present: {sorted(present) or "none"})')
+            raise MessageError(
+                f'{what}: required field {name!r} is missing (fields present: {sorted(present) or "none"})'
+            )
         if f.datatype != datatype:
-            raise MessageError(f'{what}: field {name!r} is {datatype_name(f.datatype)}, '
-                               f'expected {datatype_name(datatype)}')
+            raise MessageError(
+                f'{what}: field {name!r} is {datatype_name(f.datatype)}, expected {datatype_name(datatype)}'
+            )
         if count is not None and f.count != count:
             raise MessageError(f'{what}: field {name!r} has count {f.count}, expected {count}')
 
 
-def cloud_to_array(msg: PointCloud2, required: Sequence[tuple] = (), what: str = 'cloud',
-                   max_rows: int | None = None) -> np.ndarray:
+def cloud_to_array(
+    msg: PointCloud2, required: Sequence[tuple] = (), what: str = 'cloud', max_rows: int | None = None
+) -> np.ndarray:
     """Structured array (width * height records, every field of the cloud) from a PointCloud2.
 
     Checks the required fields (see check_fields), refuses big-endian clouds, and checks that
@@ -218,18 +252,23 @@ def cloud_to_array(msg: PointCloud2, required: Sequence[tuple] = (), what: str =
             raise MessageError(f'{what}: width x height is 0 but data holds {nbytes} bytes')
         return np.zeros(0, dtype)
     if row_step < point_step * width:
-        raise MessageError(f'{what}: row_step {row_step} is smaller than point_step x width = '
-                           f'{point_step} x {width} = {point_step * width}')
+        raise MessageError(
+            f'{what}: row_step {row_step} is smaller than point_step x width = '
+            f'{point_step} x {width} = {point_step * width}'
+        )
     expected = row_step * height
     if nbytes < expected:
-        raise MessageError(f'{what}: data is truncated: {nbytes} bytes, expected row_step x height = '
-                           f'{row_step} x {height} = {expected}')
+        raise MessageError(
+            f'{what}: data is truncated: {nbytes} bytes, expected row_step x height = '
+            f'{row_step} x {height} = {expected}'
+        )
     if nbytes > expected:
-        raise MessageError(f'{what}: data holds {nbytes} bytes, more than row_step x height = '
-                           f'{row_step} x {height} = {expected}')
+        raise MessageError(
+            f'{what}: data holds {nbytes} bytes, more than row_step x height = {row_step} x {height} = {expected}'
+        )
     raw = np.frombuffer(data, np.uint8)
     if row_step != point_step * width:  # padded rows: drop the padding
-        raw = raw.reshape(height, row_step)[:, :point_step * width]
+        raw = raw.reshape(height, row_step)[:, : point_step * width]
     return np.array(raw, np.uint8, copy=True).reshape(-1).view(dtype)
 
 
@@ -267,6 +306,7 @@ def _records(rows, fields: Sequence[tuple], what: str) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # landmarks
 
+
 def landmarks_to_cloud(lset: LandmarkSet, header: Header | None = None) -> PointCloud2:
     """The extractor's output. Row 0: the whole image (global descriptor, u/v the image centre,
     w/h the image size, score the total LLN activation); rows 1..n: the landmarks in the set's
@@ -276,8 +316,9 @@ def landmarks_to_cloud(lset: LandmarkSet, header: Header | None = None) -> Point
     meta['total_activation'] when present, else the sum of the landmark scores."""
     d = lset.dim
     n = len(lset)
-    table = np.zeros(n + 1, [('u', '<f4'), ('v', '<f4'), ('w', '<f4'), ('h', '<f4'), ('score', '<f4'),
-                             ('descriptor', '<f4', (d,))])
+    table = np.zeros(
+        n + 1, [('u', '<f4'), ('v', '<f4'), ('w', '<f4'), ('h', '<f4'), ('score', '<f4'), ('descriptor', '<f4', (d,))]
+    )
     image_w, image_h = (float(x) for x in lset.image_size)
     if lset.activation is not None:
         total = float(np.sum(lset.activation))
@@ -294,8 +335,9 @@ def landmarks_to_cloud(lset: LandmarkSet, header: Header | None = None) -> Point
     return array_to_cloud(table, header)
 
 
-def cloud_to_landmarks(msg: PointCloud2, expected_dim: int | None = None,
-                       descriptor_space: str = '', limits: Mapping | None = None) -> LandmarkSet:
+def cloud_to_landmarks(
+    msg: PointCloud2, expected_dim: int | None = None, descriptor_space: str = '', limits: Mapping | None = None
+) -> LandmarkSet:
     """LandmarkSet from a landmarks cloud (see landmarks_to_cloud).
 
     Cells are rebuilt as col = floor(u / w), row = floor(v / h), the grid as
@@ -316,11 +358,14 @@ def cloud_to_landmarks(msg: PointCloud2, expected_dim: int | None = None,
     check_fields(msg, LANDMARK_FIELDS + (('descriptor', PointField.FLOAT32, None),), what)
     dim = next(f.count for f in msg.fields if f.name == 'descriptor')
     if limits is not None and dim > limits['max_descriptor_dim']:
-        raise LimitError(f'{what}: descriptors have D={dim}, more than max_descriptor_dim '
-                         f'{limits["max_descriptor_dim"]}')
+        raise LimitError(
+            f'{what}: descriptors have D={dim}, more than max_descriptor_dim {limits["max_descriptor_dim"]}'
+        )
     if expected_dim is not None and dim != int(expected_dim):
-        raise MessageError(f'{what}: descriptors have D={dim}, expected D={int(expected_dim)} '
-                           '(extractor and matcher use different models?)')
+        raise MessageError(
+            f'{what}: descriptors have D={dim}, expected D={int(expected_dim)} '
+            '(extractor and matcher use different models?)'
+        )
     table = cloud_to_array(msg, what=what)
     if len(table) == 0:
         raise MessageError(f'{what}: no rows (row 0, the whole image, is required)')
@@ -334,16 +379,17 @@ def cloud_to_landmarks(msg: PointCloud2, expected_dim: int | None = None,
     lm = table[1:]
     cell_w, cell_h = float(lm['w'][0]), float(lm['h'][0])
     if min(image_w, image_h, cell_w, cell_h) <= 0:
-        raise MessageError(f'{what}: sizes must be positive (image {image_w}x{image_h}, '
-                           f'cell {cell_w}x{cell_h})')
+        raise MessageError(f'{what}: sizes must be positive (image {image_w}x{image_h}, cell {cell_w}x{cell_h})')
     if not (np.allclose(lm['w'], cell_w, rtol=1e-5) and np.allclose(lm['h'], cell_h, rtol=1e-5)):
         raise MessageError(f'{what}: landmark rows disagree on the grid cell size')
     rows, cols = int(round(image_h / cell_h)), int(round(image_w / cell_w))
-    cells = np.stack([np.floor(lm['u'].astype(np.float64) / cell_w),
-                      np.floor(lm['v'].astype(np.float64) / cell_h)], axis=1)
+    cells = np.stack(
+        [np.floor(lm['u'].astype(np.float64) / cell_w), np.floor(lm['v'].astype(np.float64) / cell_h)], axis=1
+    )
     if (cells < 0).any() or (cells[:, 0] >= cols).any() or (cells[:, 1] >= rows).any():
-        raise MessageError(f'{what}: landmark centres fall outside the {cols}x{rows} grid '
-                           f'of a {image_w:g}x{image_h:g} image')
+        raise MessageError(
+            f'{what}: landmark centres fall outside the {cols}x{rows} grid of a {image_w:g}x{image_h:g} image'
+        )
     # descriptors not of unit length (another sender, or huge finite values that would become inf
     # in the float16 map) are normalised in float64; unit ones pass through bit for bit
     desc = np.array(table['descriptor'], np.float32).reshape(len(table), dim)
@@ -374,13 +420,16 @@ def cloud_to_landmarks(msg: PointCloud2, expected_dim: int | None = None,
 # --------------------------------------------------------------------------------------------
 # keypoints
 
+
 def keypoints_to_cloud(kps, header: Header | None = None) -> PointCloud2:
     """ORB keypoints of one image (reloc.Keypoints, 32-byte descriptors), published beside its
     landmarks with the same header."""
     desc = np.asarray(kps.descriptors)
     if desc.dtype != np.uint8 or desc.ndim != 2 or desc.shape[1] != 32 or len(desc) != len(kps.uv):
         raise MessageError(f'keypoints cloud: descriptors must be uint8 (N, 32) (ORB), got {desc.dtype} {desc.shape}')
-    table = np.zeros(len(desc), [(n, _DATATYPES[dt]) for n, dt, _ in KEYPOINT_FIELDS[:-1]] + [('descriptor', 'u1', (32,))])
+    table = np.zeros(
+        len(desc), [(n, _DATATYPES[dt]) for n, dt, _ in KEYPOINT_FIELDS[:-1]] + [('descriptor', 'u1', (32,))]
+    )
     table['u'], table['v'] = kps.uv[:, 0], kps.uv[:, 1]
     for name in ('size', 'angle', 'response', 'octave'):
         table[name] = getattr(kps, name)
@@ -394,20 +443,27 @@ def cloud_to_keypoints(msg: PointCloud2, image_size=(0, 0), scale: float = 1.0, 
     missing or mistyped fields and non-finite values, LimitError for more than max_rows keypoints;
     zero rows is a valid (textureless) image."""
     from .reloc import Keypoints
+
     what = 'keypoints cloud'
     table = cloud_to_array(msg, KEYPOINT_FIELDS, what, max_rows=max_rows)
     for name in ('u', 'v', 'size', 'angle', 'response'):
         if not np.isfinite(table[name]).all():
             raise MessageError(f'{what}: field {name!r} contains NaN or inf')
-    return Keypoints(uv=np.stack([table['u'], table['v']], axis=1).astype(np.float32),
-                     size=table['size'].astype(np.float32), angle=table['angle'].astype(np.float32),
-                     response=table['response'].astype(np.float32), octave=table['octave'].astype(np.int32),
-                     descriptors=np.ascontiguousarray(table['descriptor'], np.uint8).reshape(len(table), 32),
-                     scale=float(scale), image_size=tuple(int(v) for v in image_size))
+    return Keypoints(
+        uv=np.stack([table['u'], table['v']], axis=1).astype(np.float32),
+        size=table['size'].astype(np.float32),
+        angle=table['angle'].astype(np.float32),
+        response=table['response'].astype(np.float32),
+        octave=table['octave'].astype(np.int32),
+        descriptors=np.ascontiguousarray(table['descriptor'], np.uint8).reshape(len(table), 32),
+        scale=float(scale),
+        image_size=tuple(int(v) for v in image_size),
+    )
 
 
 # --------------------------------------------------------------------------------------------
 # candidates and matches
+
 
 def candidates_to_cloud(rows, header: Header | None = None, extra_fields: Sequence[str] = ()) -> PointCloud2:
     """The matcher's candidates, in the given order (best first). `rows`: a sequence of mappings
@@ -415,8 +471,11 @@ def candidates_to_cloud(rows, header: Header | None = None, extra_fields: Sequen
     FLOAT32 fields, e.g. inliers, sequence_score), or a structured array with those fields.
     extra_fields: FLOAT32 fields a zero-row answer carries too, so its layout matches the others'."""
     if not isinstance(rows, np.ndarray) and not len(rows) and extra_fields:
-        rows = np.zeros(0, [(name, _DATATYPES[dt]) for name, dt, _ in CANDIDATE_FIELDS]
-                        + [(name, np.dtype('<f4')) for name in extra_fields])
+        rows = np.zeros(
+            0,
+            [(name, _DATATYPES[dt]) for name, dt, _ in CANDIDATE_FIELDS]
+            + [(name, np.dtype('<f4')) for name in extra_fields],
+        )
     return array_to_cloud(_records(rows, CANDIDATE_FIELDS, 'candidates'), header)
 
 
@@ -460,6 +519,7 @@ def match_rows(keyframe_id: int, regions: Mapping) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # images
 
+
 def image_to_array(msg: Image, max_pixels: int | None = None) -> tuple[np.ndarray, str]:
     """uint8 array and its channel order ('rgb' or 'bgr') from a sensor_msgs/Image.
 
@@ -481,12 +541,14 @@ def image_to_array(msg: Image, max_pixels: int | None = None) -> tuple[np.ndarra
         check_pixels(w, h, {'max_image_pixels': max_pixels}, what)
     row_bytes = w * channels
     if step < row_bytes:
-        raise MessageError(f'{what}: step {step} is smaller than width x channels = {w} x {channels} = '
-                           f'{row_bytes} for {enc}')
+        raise MessageError(
+            f'{what}: step {step} is smaller than width x channels = {w} x {channels} = {row_bytes} for {enc}'
+        )
     nbytes = len(msg.data)
     if nbytes < step * h:
-        raise MessageError(f'{what}: data is truncated: {nbytes} bytes, expected step x height = '
-                           f'{step} x {h} = {step * h}')
+        raise MessageError(
+            f'{what}: data is truncated: {nbytes} bytes, expected step x height = {step} x {h} = {step * h}'
+        )
     raw = np.frombuffer(msg.data, np.uint8, count=step * h).reshape(h, step)[:, :row_bytes]
     shape = (h, w) if channels == 1 else (h, w, channels)
     return np.ascontiguousarray(raw).reshape(shape), order
@@ -513,14 +575,14 @@ def compressed_size(data) -> tuple[str, int, int]:
         if view[i] != 0xFF:
             raise MessageError(f'JPEG marker expected at byte {i}')
         marker = view[i + 1]
-        if marker == 0xFF:                      # fill byte
+        if marker == 0xFF:  # fill byte
             i += 1
             continue
-        if marker == 0x01 or 0xD0 <= marker <= 0xD8:   # standalone markers
+        if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # standalone markers
             i += 2
             continue
         if marker in (0xD9, 0xDA):
-            break                               # end of image / start of scan before any frame header
+            break  # end of image / start of scan before any frame header
         length = (view[i + 2] << 8) | view[i + 3]
         if length < 2:
             raise MessageError(f'JPEG segment of length {length} at byte {i}')
@@ -552,17 +614,21 @@ def compressed_to_array(msg: CompressedImage, max_pixels: int | None = None) -> 
         try:
             kind, w, h = compressed_size(msg.data)
         except MessageError as e:
-            raise MessageError(f'{what}: cannot decode {len(msg.data)} bytes of format {msg.format!r}: {e} '
-                               '(jpeg and png are supported)') from None
+            raise MessageError(
+                f'{what}: cannot decode {len(msg.data)} bytes of format {msg.format!r}: {e} '
+                '(jpeg and png are supported)'
+            ) from None
         check_pixels(w, h, {'max_image_pixels': max_pixels}, f'{what} ({kind} header)')
     try:
         image = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_COLOR)
     except cv2.error as e:  # e.g. above OpenCV's own OPENCV_IO_MAX_IMAGE_PIXELS
-        raise MessageError(f'{what}: cannot decode {len(msg.data)} bytes of format {msg.format!r}: '
-                           f'{str(e).strip().splitlines()[-1]}') from None
+        raise MessageError(
+            f'{what}: cannot decode {len(msg.data)} bytes of format {msg.format!r}: {str(e).strip().splitlines()[-1]}'
+        ) from None
     if image is None or image.size == 0:
-        raise MessageError(f'{what}: cannot decode {len(msg.data)} bytes of format {msg.format!r} '
-                           '(jpeg and png are supported)')
+        raise MessageError(
+            f'{what}: cannot decode {len(msg.data)} bytes of format {msg.format!r} (jpeg and png are supported)'
+        )
     if max_pixels is not None:
         check_pixels(image.shape[1], image.shape[0], {'max_image_pixels': max_pixels}, what)
     return image, 'bgr'
@@ -578,8 +644,10 @@ def array_to_image(image: np.ndarray, encoding: str = 'rgb8', header: Header | N
         image = image[:, :, 0]
     expected = 2 if channels == 1 else 3
     if image.dtype != np.uint8 or image.ndim != expected or (channels > 1 and image.shape[2] != channels):
-        raise MessageError(f'{encoding} needs a uint8 array of shape (H, W{"" if channels == 1 else f", {channels}"}), '
-                           f'got {image.dtype} {image.shape}')
+        raise MessageError(
+            f'{encoding} needs a uint8 array of shape (H, W{"" if channels == 1 else f", {channels}"}), '
+            f'got {image.dtype} {image.shape}'
+        )
     h, w = image.shape[:2]
     if h == 0 or w == 0:
         raise MessageError(f'empty image ({w}x{h})')
@@ -592,8 +660,9 @@ def array_to_image(image: np.ndarray, encoding: str = 'rgb8', header: Header | N
     return msg
 
 
-def array_to_compressed(image: np.ndarray, header: Header | None = None, fmt: str = 'jpeg',
-                        channel_order: str = 'bgr', quality: int = 95) -> CompressedImage:
+def array_to_compressed(
+    image: np.ndarray, header: Header | None = None, fmt: str = 'jpeg', channel_order: str = 'bgr', quality: int = 95
+) -> CompressedImage:
     """sensor_msgs/CompressedImage (jpeg or png) from a uint8 (H, W) or (H, W, 3) array."""
     if fmt not in ('jpeg', 'png'):
         raise MessageError(f"compressed format must be 'jpeg' or 'png', got {fmt!r}")

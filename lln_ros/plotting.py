@@ -1,4 +1,5 @@
 """Pictures of landmark matches: two images side by side, activation heatmaps, linked regions."""
+
 from __future__ import annotations
 
 import matplotlib
@@ -8,12 +9,20 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import ConnectionPatch, Rectangle  # noqa: E402
 
-from .io.image import heatmap  # noqa: E402
 from .core.landmarks import LandmarkSet  # noqa: E402
+from .io.image import heatmap  # noqa: E402
 
 
-def plot_matches(image_a: np.ndarray, image_b: np.ndarray, a: LandmarkSet, b: LandmarkSet,
-                 pairs: dict, path: str, title: str = '', max_links: int = 60) -> None:
+def plot_matches(
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    a: LandmarkSet,
+    b: LandmarkSet,
+    pairs: dict,
+    path: str,
+    title: str = '',
+    max_links: int = 60,
+) -> None:
     """Write a PNG: RGB images side by side with activation overlays, every landmark outlined,
     mutual pairs linked, line opacity = offset weight."""
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.8), dpi=110)
@@ -22,7 +31,7 @@ def plot_matches(image_a: np.ndarray, image_b: np.ndarray, a: LandmarkSet, b: La
         if s.activation is not None:
             heat = heatmap(s.activation, (img.shape[1], img.shape[0]))
             ax.imshow(heat, cmap='jet', alpha=0.5 * heat)  # transparent where the head is silent
-        for (u, v) in s.centers:
+        for u, v in s.centers:
             w, h = s.cell_size
             ax.add_patch(Rectangle((u - w / 2, v - h / 2), w, h, fill=False, lw=0.5, ec='white', alpha=0.5))
         ax.set_axis_off()
@@ -36,9 +45,17 @@ def plot_matches(image_a: np.ndarray, image_b: np.ndarray, a: LandmarkSet, b: La
             w, h = s.cell_size
             u, v = s.centers[i]
             ax.add_patch(Rectangle((u - w / 2, v - h / 2), w, h, fill=False, lw=1.5, ec=colour))
-        fig.add_artist(ConnectionPatch(xyA=tuple(a.centers[qa]), coordsA=axes[0].transData,
-                                       xyB=tuple(b.centers[mb]), coordsB=axes[1].transData,
-                                       color=colour, lw=1.0, alpha=max(0.15, wgt)))
+        fig.add_artist(
+            ConnectionPatch(
+                xyA=tuple(a.centers[qa]),
+                coordsA=axes[0].transData,
+                xyB=tuple(b.centers[mb]),
+                coordsB=axes[1].transData,
+                color=colour,
+                lw=1.0,
+                alpha=max(0.15, wgt),
+            )
+        )
     if title:
         fig.suptitle(title)
     fig.tight_layout()
@@ -46,8 +63,9 @@ def plot_matches(image_a: np.ndarray, image_b: np.ndarray, a: LandmarkSet, b: La
     plt.close(fig)
 
 
-def plot_keypoint_matches(image_a: np.ndarray, image_b: np.ndarray, rows: list[dict], path: str,
-                          title: str = '', max_lines: int = 300) -> None:
+def plot_keypoint_matches(
+    image_a: np.ndarray, image_b: np.ndarray, rows: list[dict], path: str, title: str = '', max_lines: int = 300
+) -> None:
     """Write a PNG with one row per keypoint pipeline: RGB images side by side, the pipeline's
     RANSAC inliers linked (green) and, when given, its region boxes outlined.
 

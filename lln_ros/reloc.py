@@ -15,6 +15,7 @@ verified (no texture, regions outside the image, too few or collinear matches, R
 gives a RelocResult with verified=False and a `reason`, never an exception: a node calls this on
 every query. Bad *arguments* (unknown detector, malformed K) raise RelocError.
 """
+
 from __future__ import annotations
 
 import time
@@ -27,20 +28,20 @@ from .errors import LLNError
 from .io.image import check_image
 
 default_conf = {
-    'detector': 'orb',          # orb | sift | akaze
-    'max_keypoints': 1000,      # per image (ORB-SLAM's default for 512x384-ish frames)
-    'min_height': 288,          # shorter images are upsampled (INTER_LINEAR) to this height to detect
-    'fast_threshold': 20,       # ORB's FAST corner threshold (OpenCV's default); upsampled tiny
-                                # images are blurry: 5 gives Nordland ~240 keypoints instead of ~6
-    'ratio': 0.8,               # Lowe ratio: best / second-best descriptor distance
-    'margin': 1.0,              # region box = matched cell grown by this many cells on each side
-    'ransac_px': 2.0,           # inlier threshold in detection pixels (F: epipolar distance)
+    'detector': 'orb',  # orb | sift | akaze
+    'max_keypoints': 1000,  # per image (ORB-SLAM's default for 512x384-ish frames)
+    'min_height': 288,  # shorter images are upsampled (INTER_LINEAR) to this height to detect
+    'fast_threshold': 20,  # ORB's FAST corner threshold (OpenCV's default); upsampled tiny
+    # images are blurry: 5 gives Nordland ~240 keypoints instead of ~6
+    'ratio': 0.8,  # Lowe ratio: best / second-best descriptor distance
+    'margin': 1.0,  # region box = matched cell grown by this many cells on each side
+    'ransac_px': 2.0,  # inlier threshold in detection pixels (F: epipolar distance)
     'confidence': 0.999,
     'max_iters': 2000,
-    'min_matches': 8,           # fewer ratio-test matches than this: not verified (8-point F)
-    'min_inliers': 15,          # fewer RANSAC inliers than this: not verified
-    'min_spread': 0.02,         # inliers whose 2nd principal extent is below this fraction of the
-                                # 1st lie on a line: F/E are not determined by them
+    'min_matches': 8,  # fewer ratio-test matches than this: not verified (8-point F)
+    'min_inliers': 15,  # fewer RANSAC inliers than this: not verified
+    'min_spread': 0.02,  # inliers whose 2nd principal extent is below this fraction of the
+    # 1st lie on a line: F/E are not determined by them
 }
 
 DETECTORS = ('orb', 'sift', 'akaze')
@@ -57,6 +58,7 @@ class Keypoints:
     uv (N, 2) float32, size (N,) float32 (diameter, original pixels), angle (N,) float32 degrees,
     response (N,) float32, octave (N,) int32, descriptors (N, B) uint8 (ORB/AKAZE, binary) or
     float32 (SIFT); scale = detection pixels per original pixel; image_size (width, height)."""
+
     uv: np.ndarray
     size: np.ndarray
     angle: np.ndarray
@@ -76,8 +78,16 @@ class Keypoints:
     @classmethod
     def empty(cls, image_size=(0, 0), bytes_per_descriptor: int = 32) -> 'Keypoints':
         z = np.zeros(0, np.float32)
-        return cls(np.zeros((0, 2), np.float32), z, z, z, np.zeros(0, np.int32),
-                   np.zeros((0, bytes_per_descriptor), np.uint8), 1.0, tuple(image_size))
+        return cls(
+            np.zeros((0, 2), np.float32),
+            z,
+            z,
+            z,
+            np.zeros(0, np.int32),
+            np.zeros((0, bytes_per_descriptor), np.uint8),
+            1.0,
+            tuple(image_size),
+        )
 
 
 @dataclass
@@ -85,11 +95,12 @@ class Matches:
     """Putative matches after the ratio test, one per query and per map keypoint.
 
     query_index (M,), map_index (M,) int64, distance (M,) float32; ms = matching time."""
+
     query_index: np.ndarray
     map_index: np.ndarray
     distance: np.ndarray
     ms: float = 0.0
-    reason: str = ''   # why there are none, when that is known (e.g. regions outside the image)
+    reason: str = ''  # why there are none, when that is known (e.g. regions outside the image)
 
     def __len__(self) -> int:
         return len(self.query_index)
@@ -105,6 +116,7 @@ class RelocResult:
     matrix (3, 3) F or E or None; R (3, 3), t (3,) unit-norm relative pose (map camera -> query
     camera, x_q = R x_m + t) when E was estimated and recoverPose succeeded, else None; ms = time
     of verification alone."""
+
     verified: bool
     reason: str
     matches: Matches
@@ -126,11 +138,18 @@ class RelocResult:
 
     def summary(self) -> dict:
         """JSON-friendly numbers (no arrays but the pose)."""
-        return {'verified': self.verified, 'reason': self.reason, 'matches': len(self.matches),
-                'inliers': self.inliers, 'inlier_ratio': self.inlier_ratio, 'model': self.model,
-                'R': None if self.R is None else self.R.tolist(),
-                't': None if self.t is None else self.t.tolist(),
-                'ms_match': self.matches.ms, 'ms_verify': self.ms}
+        return {
+            'verified': self.verified,
+            'reason': self.reason,
+            'matches': len(self.matches),
+            'inliers': self.inliers,
+            'inlier_ratio': self.inlier_ratio,
+            'model': self.model,
+            'R': None if self.R is None else self.R.tolist(),
+            't': None if self.t is None else self.t.tolist(),
+            'ms_match': self.matches.ms,
+            'ms_verify': self.ms,
+        }
 
 
 # ------------------------------------------------------------------------------------- intrinsics
@@ -165,6 +184,7 @@ def camera_matrix(source) -> np.ndarray:
 def load_camera_yaml(path) -> dict:
     """A ROS camera-calibration YAML (camera_calibration / camera_info_manager format) as a dict."""
     import yaml
+
     try:
         with open(path) as f:
             data = yaml.safe_load(f)
@@ -193,8 +213,10 @@ def pair_boxes(query, keyframe, pairs: dict, margin: float) -> tuple[np.ndarray,
     the landmark cells scaled back to the original image size, grown by `margin` cells."""
     qi = np.asarray(pairs.get('query_index', ()), np.int64)
     mi = np.asarray(pairs.get('map_index', ()), np.int64)
-    return (region_boxes(query.centers[qi], query.cell_size, margin),
-            region_boxes(keyframe.centers[mi], keyframe.cell_size, margin))
+    return (
+        region_boxes(query.centers[qi], query.cell_size, margin),
+        region_boxes(keyframe.centers[mi], keyframe.cell_size, margin),
+    )
 
 
 def _inside(uv: np.ndarray, boxes: np.ndarray) -> np.ndarray:
@@ -225,8 +247,10 @@ class Relocalizer:
             self.detector = cv2.SIFT_create(nfeatures=n)
         else:
             if not hasattr(cv2, 'AKAZE_create'):
-                raise RelocError(f'this OpenCV ({cv2.__version__}) has no AKAZE (OpenCV 5 moved it to '
-                                 'opencv-contrib); use orb or sift')
+                raise RelocError(
+                    f'this OpenCV ({cv2.__version__}) has no AKAZE (OpenCV 5 moved it to '
+                    'opencv-contrib); use orb or sift'
+                )
             self.detector = cv2.AKAZE_create()
         self.name = name
         self.norm = cv2.NORM_L2 if name == 'sift' else cv2.NORM_HAMMING
@@ -244,20 +268,30 @@ class Relocalizer:
         if desc is None or not kps:
             return Keypoints.empty((w, h), 32 if self.name == 'orb' else 0)
         if self.name == 'akaze':
-            k = min(len(kps), int(self.conf['max_keypoints']))   # AKAZE has no nfeatures: keep the strongest
+            k = min(len(kps), int(self.conf['max_keypoints']))  # AKAZE has no nfeatures: keep the strongest
             keep = np.argsort([-p.response for p in kps], kind='stable')[:k]
             kps, desc = [kps[i] for i in keep], desc[keep]
         uv = np.array([p.pt for p in kps], np.float32).reshape(-1, 2)
         # detection pixel centres -> original pixel centres (pixel centre at +0.5 in both grids)
         uv = (uv + 0.5) / np.float32(scale) - 0.5
-        return Keypoints(uv=uv, size=np.array([p.size for p in kps], np.float32) / scale,
-                         angle=np.array([p.angle for p in kps], np.float32),
-                         response=np.array([p.response for p in kps], np.float32),
-                         octave=np.array([p.octave for p in kps], np.int32),
-                         descriptors=np.ascontiguousarray(desc), scale=scale, image_size=(w, h))
+        return Keypoints(
+            uv=uv,
+            size=np.array([p.size for p in kps], np.float32) / scale,
+            angle=np.array([p.angle for p in kps], np.float32),
+            response=np.array([p.response for p in kps], np.float32),
+            octave=np.array([p.octave for p in kps], np.int32),
+            descriptors=np.ascontiguousarray(desc),
+            scale=scale,
+            image_size=(w, h),
+        )
 
-    def match(self, query: Keypoints, keyframe: Keypoints, query_boxes: np.ndarray | None = None,
-              map_boxes: np.ndarray | None = None) -> Matches:
+    def match(
+        self,
+        query: Keypoints,
+        keyframe: Keypoints,
+        query_boxes: np.ndarray | None = None,
+        map_boxes: np.ndarray | None = None,
+    ) -> Matches:
         """Ratio-test matches. Without boxes: every query keypoint against every keyframe keypoint
         (the unconstrained baseline). With boxes (M, 4) each (region pair m): query keypoints in
         query_boxes[m] only against keyframe keypoints in map_boxes[m] (mLLN); a keypoint in
@@ -266,10 +300,14 @@ class Relocalizer:
         t0 = time.perf_counter()
         if not len(query) or not len(keyframe):
             return _matches([], [], [], t0, 'no keypoints (textureless image?)')
-        if query.descriptors.dtype != keyframe.descriptors.dtype or \
-                query.descriptors.shape[1] != keyframe.descriptors.shape[1]:
-            raise RelocError(f'keypoint descriptors differ: {query.descriptors.dtype}x{query.descriptors.shape[1]} '
-                             f'vs {keyframe.descriptors.dtype}x{keyframe.descriptors.shape[1]}')
+        if (
+            query.descriptors.dtype != keyframe.descriptors.dtype
+            or query.descriptors.shape[1] != keyframe.descriptors.shape[1]
+        ):
+            raise RelocError(
+                f'keypoint descriptors differ: {query.descriptors.dtype}x{query.descriptors.shape[1]} '
+                f'vs {keyframe.descriptors.dtype}x{keyframe.descriptors.shape[1]}'
+            )
         if query_boxes is None:
             qi, mi, d = self._ratio_match(query.descriptors, keyframe.descriptors)
             return _matches(qi, mi, d, t0)
@@ -277,12 +315,18 @@ class Relocalizer:
         mb = np.asarray(map_boxes, np.float32).reshape(-1, 4)
         if len(qb) != len(mb):
             raise RelocError(f'{len(qb)} query regions but {len(mb)} keyframe regions')
-        in_q, in_m = _inside(query.uv, qb), _inside(keyframe.uv, mb)          # (M, Nq), (M, Nm)
+        in_q, in_m = _inside(query.uv, qb), _inside(keyframe.uv, mb)  # (M, Nq), (M, Nm)
         if not (in_q.any(1) & in_m.any(1)).any():
-            outside = not len(qb) or not (_overlaps(qb, query.image_size).any()
-                                          and _overlaps(mb, keyframe.image_size).any())
-            return _matches([], [], [], t0, 'the matched regions lie outside the images' if outside
-                            else 'no keypoints inside the matched regions')
+            outside = not len(qb) or not (
+                _overlaps(qb, query.image_size).any() and _overlaps(mb, keyframe.image_size).any()
+            )
+            return _matches(
+                [],
+                [],
+                [],
+                t0,
+                'the matched regions lie outside the images' if outside else 'no keypoints inside the matched regions',
+            )
         # (Nq, Nm) which pairs share a region pair; the matcher skips the rest (no distance computed).
         # Filled block by block: a float GEMM here hits BLAS thread start-up (~20 ms on a busy CPU)
         allowed = np.zeros((len(query), len(keyframe)), bool)
@@ -296,18 +340,19 @@ class Relocalizer:
         keypoint with a single allowed partner has no second neighbour and passes (its regions
         hold one keypoint). Returns query idx, map idx, distance."""
         mask = None if allowed is None else allowed.astype(np.uint8)
-        knn = self.matcher.knnMatch(da, db, k=2, mask=mask) if mask is not None else \
-            self.matcher.knnMatch(da, db, k=2)
+        knn = self.matcher.knnMatch(da, db, k=2, mask=mask) if mask is not None else self.matcher.knnMatch(da, db, k=2)
         ratio = float(self.conf['ratio'])
-        rows = [(m[0].queryIdx, m[0].trainIdx, m[0].distance) for m in knn
-                if len(m) == 1 or (len(m) == 2 and m[0].distance < ratio * m[1].distance)]
+        rows = [
+            (m[0].queryIdx, m[0].trainIdx, m[0].distance)
+            for m in knn
+            if len(m) == 1 or (len(m) == 2 and m[0].distance < ratio * m[1].distance)
+        ]
         if not rows:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
         r = np.array(rows, np.float64)
         return r[:, 0].astype(np.int64), r[:, 1].astype(np.int64), r[:, 2].astype(np.float32)
 
-    def verify(self, query: Keypoints, keyframe: Keypoints, matches: Matches, K=None,
-               K_map=None) -> RelocResult:
+    def verify(self, query: Keypoints, keyframe: Keypoints, matches: Matches, K=None, K_map=None) -> RelocResult:
         """RANSAC on the putative matches: the fundamental matrix, or with intrinsics K (query
         camera; K_map for the keyframe camera, default K) the essential matrix and relative pose.
         Never raises for degenerate input: verified=False with a reason."""
@@ -323,8 +368,9 @@ class Relocalizer:
             return RelocResult(False, reason, matches, mask, model, ms=_ms(t0), **kw)
 
         if m < int(conf['min_matches']):
-            return fail(matches.reason or f'{m} matches after the ratio test; at least '
-                        f'{conf["min_matches"]} are needed')
+            return fail(
+                matches.reason or f'{m} matches after the ratio test; at least {conf["min_matches"]} are needed'
+            )
         pq = query.uv[matches.query_index].astype(np.float64)
         pm = keyframe.uv[matches.map_index].astype(np.float64)
         if _collinear(pq, conf['min_spread']) or _collinear(pm, conf['min_spread']):
@@ -334,38 +380,46 @@ class Relocalizer:
         R = t = None
         try:
             if kq is None:
-                mat, mask = cv2.findFundamentalMat(pm, pq, cv2.FM_RANSAC, px, float(conf['confidence']),
-                                                   int(conf['max_iters']))
+                mat, mask = cv2.findFundamentalMat(
+                    pm, pq, cv2.FM_RANSAC, px, float(conf['confidence']), int(conf['max_iters'])
+                )
             else:
                 # normalised coordinates let the two cameras differ; the threshold follows the focal length
                 nq = cv2.undistortPoints(pq.reshape(-1, 1, 2), kq, None).reshape(-1, 2)
                 nm = cv2.undistortPoints(pm.reshape(-1, 1, 2), km, None).reshape(-1, 2)
                 f = 0.25 * (kq[0, 0] + kq[1, 1] + km[0, 0] + km[1, 1])
-                mat, mask = cv2.findEssentialMat(nm, nq, np.eye(3), cv2.RANSAC, float(conf['confidence']),
-                                                 px / f, int(conf['max_iters']))
+                mat, mask = cv2.findEssentialMat(
+                    nm, nq, np.eye(3), cv2.RANSAC, float(conf['confidence']), px / f, int(conf['max_iters'])
+                )
         except cv2.error as e:
             return fail(f'RANSAC failed: {str(e).strip().splitlines()[-1]}')
         if mat is None or mask is None or mat.shape[0] < 3:
             return fail('RANSAC found no model')
-        mat = mat[:3]   # several 3x3 solutions may be stacked; RANSAC's mask belongs to the first
+        mat = mat[:3]  # several 3x3 solutions may be stacked; RANSAC's mask belongs to the first
         inl = mask.ravel().astype(bool)
         if kq is not None and inl.sum() >= 5:
             n_good, R, t, pose_mask = cv2.recoverPose(mat, nm, nq, np.eye(3), mask=mask.copy())
             if n_good > 0:
-                inl = inl & (pose_mask.ravel() > 0)   # cheirality: points in front of both cameras
+                inl = inl & (pose_mask.ravel() > 0)  # cheirality: points in front of both cameras
                 t = t.ravel()
             else:
                 R = t = None
         n = int(inl.sum())
         if n < int(conf['min_inliers']):
-            return fail(f'{n} RANSAC inliers of {m} matches; at least {conf["min_inliers"]} are needed',
-                        inl, matrix=mat, R=R, t=t)
+            return fail(
+                f'{n} RANSAC inliers of {m} matches; at least {conf["min_inliers"]} are needed',
+                inl,
+                matrix=mat,
+                R=R,
+                t=t,
+            )
         if _collinear(pq[inl], conf['min_spread']) or _collinear(pm[inl], conf['min_spread']):
             return fail('RANSAC inliers lie on a line (degenerate geometry)', inl, matrix=mat)
         return RelocResult(True, '', matches, inl, model, mat, R, t, ms=_ms(t0))
 
-    def relocalize(self, query: Keypoints, keyframe: Keypoints, query_boxes=None, map_boxes=None,
-                   K=None, K_map=None) -> RelocResult:
+    def relocalize(
+        self, query: Keypoints, keyframe: Keypoints, query_boxes=None, map_boxes=None, K=None, K_map=None
+    ) -> RelocResult:
         """match + verify; with boxes the region-constrained (mLLN) pipeline, else unconstrained."""
         return self.verify(query, keyframe, self.match(query, keyframe, query_boxes, map_boxes), K, K_map)
 
@@ -408,8 +462,9 @@ def detection_scale(image_height: float, min_height: float) -> float:
     return max(1.0, float(min_height) / float(image_height)) if image_height > 0 else 1.0
 
 
-def verify_candidates(reloc: Relocalizer, query: Keypoints, query_cell_size, candidates: list,
-                      keyframe_keypoints) -> list[tuple]:
+def verify_candidates(
+    reloc: Relocalizer, query: Keypoints, query_cell_size, candidates: list, keyframe_keypoints
+) -> list[tuple]:
     """Region-constrained verification of map candidates (mapstore.MapCandidate: keyframe_id,
     score, image_size, pairs with query_u/v, map_u/v, cell_w/h), re-ranked by inliers.
 
@@ -425,9 +480,16 @@ def verify_candidates(reloc: Relocalizer, query: Keypoints, query_cell_size, can
             continue
         p = c.pairs
         qb = region_boxes(np.stack([p['query_u'], p['query_v']], axis=1), query_cell_size, margin)
-        mb = region_boxes(np.stack([p['map_u'], p['map_v']], axis=1),
-                          np.stack([p['cell_w'], p['cell_h']], axis=1), margin)
+        mb = region_boxes(
+            np.stack([p['map_u'], p['map_v']], axis=1), np.stack([p['cell_w'], p['cell_h']], axis=1), margin
+        )
         out.append((c, reloc.relocalize(query, km, qb, mb), rank))
-    out.sort(key=lambda x: (x[1] is None, not (x[1] is not None and x[1].verified),
-                            -(x[1].inliers if x[1] is not None else 0), x[2]))
+    out.sort(
+        key=lambda x: (
+            x[1] is None,
+            not (x[1] is not None and x[1].verified),
+            -(x[1].inliers if x[1] is not None else 0),
+            x[2],
+        )
+    )
     return [(c, r) for c, r, _ in out]

@@ -12,6 +12,7 @@ stamps start over from the new stamp (counted as `out_of_order`), and so does a 
 `max_gap` periods (a paused bag or a new stream, not losses). A rate that halves for good counts about
 window / 2 frames as missing before the median learns it.
 """
+
 from __future__ import annotations
 
 from collections import deque
@@ -60,7 +61,7 @@ class Window:
     """Counter increases between calls: what happened during the last diagnostics period."""
 
     def __init__(self, snapshot):
-        self.snapshot = snapshot   # () -> {name: count}
+        self.snapshot = snapshot  # () -> {name: count}
         self.previous = dict(snapshot())
 
     def delta(self) -> dict:

@@ -28,6 +28,7 @@ cells unchanged (its convs pad with zeros too), and padded cells are never selec
 Validation is a list of evaluation datasets; the kept head (best.pt) is the one with the best MEAN
 P@100%R over them, so no single set decides (the per-set figures are in history.json).
 """
+
 from __future__ import annotations
 
 import copy
@@ -43,30 +44,30 @@ import torch
 from tqdm import tqdm
 
 from . import metrics
-from .io.datasets import list_images
-from .errors import DatasetError
-from .io.features import FeatureCache
 from .core.landmarks import l2_normalize, stack_landmarks
 from .core.lln import LLNHead, save_checkpoint
 from .core.retrieval import rank_all
 from .core.similarity import cross_match, offset_mode, offset_weights
+from .errors import DatasetError
+from .io.datasets import list_images
+from .io.features import FeatureCache
 
 default_conf = {
-    'objective': 'rerank',     # rerank (train on the test-time score) | triplet (the paper's loss)
+    'objective': 'rerank',  # rerank (train on the test-time score) | triplet (the paper's loss)
     'epochs': 10,
-    'lr': 1e-3,                # the paper's 1e-6 (TensorFlow, SfM-120k) barely moves this head: see docs
-    'batch_size': 10,          # tuples per optimiser step
-    'negatives': 4,            # hard negatives per tuple (K)
+    'lr': 1e-3,  # the paper's 1e-6 (TensorFlow, SfM-120k) barely moves this head: see docs
+    'batch_size': 10,  # tuples per optimiser step
+    'negatives': 4,  # hard negatives per tuple (K)
     'margin': 0.3,
     'tuples_per_epoch': 1000,  # queries drawn (without replacement) per epoch; 0 = all
-    'train_size': 288,         # input height, aspect kept (as at test time); (W, H) squashes (paper: 352x352)
-    'neg_margin': 10,          # route data: refs within this many frames of a positive are not negatives
+    'train_size': 288,  # input height, aspect kept (as at test time); (W, H) squashes (paper: 352x352)
+    'neg_margin': 10,  # route data: refs within this many frames of a positive are not negatives
     'seed': 0,
-    'head': {},                # LLNHead conf overrides
+    'head': {},  # LLNHead conf overrides
     'val_top_n': 50,
-    'val_prefilter_k': 30,     # also the rerank objective's holistic candidates per query
-    'tau': 0.05,               # rerank: softmax temperature on S~ (S~ is in [0, 1])
-    'soft_temp': 1.0,          # rerank: width T of the soft top-n membership, in logit units
+    'val_prefilter_k': 30,  # also the rerank objective's holistic candidates per query
+    'tau': 0.05,  # rerank: softmax temperature on S~ (S~ is in [0, 1])
+    'soft_temp': 1.0,  # rerank: width T of the soft top-n membership, in logit units
 }
 PAD_LOGIT = -1e4  # logit of a padded (not real) cell: never in the soft top-n
 OBJECTIVES = ('rerank', 'triplet')
@@ -75,6 +76,7 @@ OBJECTIVES = ('rerank', 'triplet')
 @dataclass
 class PairSet:
     """Training pairs. positive / negative (Q, R) bool: ref r is a positive / negative of query q."""
+
     name: str
     query_paths: list
     ref_paths: list
@@ -137,9 +139,15 @@ def pairs_from_sfm(pickle_path: str | os.PathLike, ims_root: str | os.PathLike, 
         raise DatasetError(f'SfM pickle not found: {pickle_path}') from None
     except (KeyError, TypeError, pickle.UnpicklingError, EOFError) as e:
         raise DatasetError(f'{pickle_path} is not a Retrieval-SfM-120k pickle with split {split!r}: {e}') from e
-    if len(cluster) != len(cids) or len(qidxs) != len(pidxs) or (len(qidxs) and max(qidxs.max(), pidxs.max()) >= len(cids)):
-        raise DatasetError(f'{pickle_path}: inconsistent {split} lists (cids {len(cids)}, cluster {len(cluster)}, '
-                           f'qidxs {len(qidxs)}, pidxs {len(pidxs)})')
+    if (
+        len(cluster) != len(cids)
+        or len(qidxs) != len(pidxs)
+        or (len(qidxs) and max(qidxs.max(), pidxs.max()) >= len(cids))
+    ):
+        raise DatasetError(
+            f'{pickle_path}: inconsistent {split} lists (cids {len(cids)}, cluster {len(cluster)}, '
+            f'qidxs {len(qidxs)}, pidxs {len(pidxs)})'
+        )
     paths = [sfm_image_path(ims_root, c) for c in cids]
     missing = [str(p) for p in paths if not p.is_file()]
     if missing:
@@ -159,11 +167,16 @@ def combine(sets: list[PairSet]) -> PairSet:
     pos, neg = np.zeros((q, r), bool), np.zeros((q, r), bool)
     qo = ro = 0
     for s in sets:
-        pos[qo:qo + len(s.query_paths), ro:ro + len(s.ref_paths)] = s.positive
-        neg[qo:qo + len(s.query_paths), ro:ro + len(s.ref_paths)] = s.negative
+        pos[qo : qo + len(s.query_paths), ro : ro + len(s.ref_paths)] = s.positive
+        neg[qo : qo + len(s.query_paths), ro : ro + len(s.ref_paths)] = s.negative
         qo, ro = qo + len(s.query_paths), ro + len(s.ref_paths)
-    return PairSet('+'.join(s.name for s in sets), sum((s.query_paths for s in sets), []),
-                   sum((s.ref_paths for s in sets), []), pos, neg)
+    return PairSet(
+        '+'.join(s.name for s in sets),
+        sum((s.query_paths for s in sets), []),
+        sum((s.ref_paths for s in sets), []),
+        pos,
+        neg,
+    )
 
 
 def pad_stack(feats: list, grid: tuple | None = None) -> tuple[torch.Tensor, np.ndarray]:
@@ -174,14 +187,14 @@ def pad_stack(feats: list, grid: tuple | None = None) -> tuple[torch.Tensor, np.
     out = np.zeros((len(feats), d, h, w), feats[0].dtype)
     valid = np.zeros((len(feats), h, w), bool)
     for i, f in enumerate(feats):
-        out[i, :, :f.shape[1], :f.shape[2]] = f
-        valid[i, :f.shape[1], :f.shape[2]] = True
+        out[i, :, : f.shape[1], : f.shape[2]] = f
+        valid[i, : f.shape[1], : f.shape[2]] = True
     return torch.from_numpy(out), valid.reshape(len(feats), h * w)
 
 
 def embed(head: LLNHead, feats: torch.Tensor) -> torch.Tensor:
     """feats (B, D, h, w) -> F (B, D): LLN-weighted sum of L2-normalised local features, L2-normalised."""
-    w = head(feats)                                                      # (B, h, w)
+    w = head(feats)  # (B, h, w)
     f = torch.nn.functional.normalize(feats, dim=1)
     return torch.nn.functional.normalize((f * w[:, None]).sum((2, 3)) + 1e-8, dim=1)
 
@@ -192,8 +205,9 @@ def soft_selection(logits: torch.Tensor, n: int, temp: float) -> torch.Tensor:
     return torch.sigmoid((logits - kth) / temp)
 
 
-def soft_similarity(a_q: torch.Tensor, a_c: torch.Tensor, partner: torch.Tensor, value: torch.Tensor,
-                    n: int) -> torch.Tensor:
+def soft_similarity(
+    a_q: torch.Tensor, a_c: torch.Tensor, partner: torch.Tensor, value: torch.Tensor, n: int
+) -> torch.Tensor:
     """S~ of B queries against C candidates each.
 
     a_q (B, N), a_c (B, C, N) soft memberships; partner (B, C, N) long: the mutual partner of query
@@ -202,8 +216,14 @@ def soft_similarity(a_q: torch.Tensor, a_c: torch.Tensor, partner: torch.Tensor,
     return (a_q[:, None] * torch.gather(a_c, 2, partner) * value).sum(2) / n
 
 
-def match_tables(fq: np.ndarray, fc: np.ndarray, cells: np.ndarray, scale: float = 1.0,
-                 valid_q: np.ndarray | None = None, valid_c: np.ndarray | None = None):
+def match_tables(
+    fq: np.ndarray,
+    fc: np.ndarray,
+    cells: np.ndarray,
+    scale: float = 1.0,
+    valid_q: np.ndarray | None = None,
+    valid_c: np.ndarray | None = None,
+):
     """Mutual matches of every cell of one query against C candidates, with their offset weights.
 
     fq (N, D), fc (C, N, D) L2-normalised; cells (N, 2) (col, row); valid_q (N,), valid_c (C, N)
@@ -229,8 +249,8 @@ def rerank_loss(scores: torch.Tensor, n_pos: torch.Tensor, valid: torch.Tensor, 
 
 def triplet_loss(fq: torch.Tensor, fp: torch.Tensor, fn: torch.Tensor, margin: float) -> torch.Tensor:
     """fq, fp (B, D); fn (B, K, D). Sum over negatives of the hinge, mean over tuples."""
-    d_pos = (fq - fp).norm(dim=1)                                        # (B,)
-    d_neg = (fq[:, None] - fn).norm(dim=2)                               # (B, K)
+    d_pos = (fq - fp).norm(dim=1)  # (B,)
+    d_neg = (fq[:, None] - fn).norm(dim=2)  # (B, K)
     return torch.relu(d_pos[:, None] + margin - d_neg).sum(1).mean()
 
 
@@ -242,8 +262,16 @@ class Trainer:
     precision at 100% recall over the val sets, as an lln_ros checkpoint).
     """
 
-    def __init__(self, extractor, pairs: PairSet, val=None, conf: dict | None = None,
-                 cache_dir: str = 'cache/features', out_dir: str = 'out/train', meta: dict | None = None):
+    def __init__(
+        self,
+        extractor,
+        pairs: PairSet,
+        val=None,
+        conf: dict | None = None,
+        cache_dir: str = 'cache/features',
+        out_dir: str = 'out/train',
+        meta: dict | None = None,
+    ):
         self.conf = conf = {**default_conf, **(conf or {})}
         self.extractor = extractor
         self.pairs = pairs
@@ -256,7 +284,7 @@ class Trainer:
         self.meta = meta or {}
         self.cache = FeatureCache(cache_dir, extractor)
         if conf['objective'] not in OBJECTIVES:
-            raise DatasetError(f"unknown objective {conf['objective']!r}; choose one of {OBJECTIVES}")
+            raise DatasetError(f'unknown objective {conf["objective"]!r}; choose one of {OBJECTIVES}')
         self.queries = pairs.usable()
         if not len(self.queries):
             raise DatasetError(f'{pairs.name}: no query has both a positive and a negative')
@@ -274,21 +302,28 @@ class Trainer:
         size = self.conf['train_size']
         size = size if isinstance(size, int) else tuple(size)
         q = self.cache.load(self.pairs.query_paths, size, progress='train features (queries)')
-        r = q if self.pairs.ref_paths is self.pairs.query_paths else \
-            self.cache.load(self.pairs.ref_paths, size, progress='train features (refs)')
+        r = (
+            q
+            if self.pairs.ref_paths is self.pairs.query_paths
+            else self.cache.load(self.pairs.ref_paths, size, progress='train features (refs)')
+        )
         # one grid for queries and refs (the triplet step batches them together)
         grid = (max(f.shape[1] for f in q + r), max(f.shape[2] for f in q + r))
         self.fq, self.q_valid = pad_stack(q, grid)
         self.fr, self.r_valid = (self.fq, self.q_valid) if r is q else pad_stack(r, grid)
         h = int(self.extractor.conf['input_height'])
-        self.val_feats = [(self.cache.load(v.query_paths, h, progress=f'val features {v.name} (queries)'),
-                           self.cache.load(v.ref_paths, h, progress=f'val features {v.name} (refs)'))
-                          for v in self.vals]
+        self.val_feats = [
+            (
+                self.cache.load(v.query_paths, h, progress=f'val features {v.name} (queries)'),
+                self.cache.load(v.ref_paths, h, progress=f'val features {v.name} (refs)'),
+            )
+            for v in self.vals
+        ]
 
     @torch.no_grad()
     def embed_all(self, feats: torch.Tensor, batch: int = 256) -> torch.Tensor:
         self.head.eval()
-        return torch.cat([embed(self.head, feats[i:i + batch].float()) for i in range(0, len(feats), batch)])
+        return torch.cat([embed(self.head, feats[i : i + batch].float()) for i in range(0, len(feats), batch)])
 
     # ------------------------------------------------------------------ loop
 
@@ -304,7 +339,7 @@ class Trainer:
         losses = []
         bs = self.conf['batch_size']
         for start in tqdm(range(0, len(tuples), bs), desc=f'epoch {self.epoch + 1}', leave=False, unit='batch'):
-            loss = step(tuples[start:start + bs])
+            loss = step(tuples[start : start + bs])
             self.optimizer.zero_grad()
             loss.backward()
             self.optimizer.step()
@@ -319,7 +354,7 @@ class Trainer:
         k = self.conf['negatives']
         eq = self.embed_all(self.fq[chosen])
         er = self.embed_all(self.fr)
-        sims = (eq @ er.T).numpy()                                                   # (T, R)
+        sims = (eq @ er.T).numpy()  # (T, R)
         pos = np.where(self.pairs.positive[chosen], sims, -np.inf).argmax(1)
         neg_s = np.where(self.pairs.negative[chosen], sims, -np.inf)
         negs = np.argsort(-neg_s, axis=1, kind='stable')[:, :k]
@@ -333,7 +368,7 @@ class Trainer:
         feats = torch.cat([self.fq[t[:, 0]], self.fr[t[:, 1]], self.fr[t[:, 2:].ravel()]]).float()
         e = embed(self.head, feats)
         b = len(t)
-        return triplet_loss(e[:b], e[b:2 * b], e[2 * b:].view(b, k, -1), self.conf['margin'])
+        return triplet_loss(e[:b], e[b : 2 * b], e[2 * b :].view(b, k, -1), self.conf['margin'])
 
     # ------------------------------------------------------------------ rerank objective
 
@@ -352,15 +387,17 @@ class Trainer:
 
         qv = self.q_valid[self.queries]
         lq, lr = local(self.fq[self.queries]), local(self.fr)
-        hol = holistic(self.fq[self.queries], qv) @ holistic(self.fr, self.r_valid).T   # (U, R)
+        hol = holistic(self.fq[self.queries], qv) @ holistic(self.fr, self.r_valid).T  # (U, R)
         cells = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 2)
         k = int(self.conf['val_prefilter_k'])
         rows = []
         for u, q in enumerate(tqdm(self.queries, desc='match tables', leave=False, unit='query')):
             top = np.argsort(-hol[u], kind='stable')[:k]
             cand = np.concatenate([np.flatnonzero(self.pairs.positive[q]), top[self.pairs.negative[q, top]]])
-            rows.append((cand, int(self.pairs.positive[q].sum()))
-                        + match_tables(lq[u], lr[cand], cells, valid_q=qv[u], valid_c=self.r_valid[cand]))
+            rows.append(
+                (cand, int(self.pairs.positive[q].sum()))
+                + match_tables(lq[u], lr[cand], cells, valid_q=qv[u], valid_c=self.r_valid[cand])
+            )
         c = max(len(r[0]) for r in rows)
         u, n = len(rows), h * w
         self.rr_cand = np.full((u, c), -1, np.int64)
@@ -368,8 +405,11 @@ class Trainer:
         self.rr_value = np.zeros((u, c, n), np.float32)
         self.rr_npos = np.array([r[1] for r in rows])
         for i, (cand, _, partner, value) in enumerate(rows):
-            self.rr_cand[i, :len(cand)], self.rr_partner[i, :len(cand)], self.rr_value[i, :len(cand)] = \
-                cand, partner, value
+            self.rr_cand[i, : len(cand)], self.rr_partner[i, : len(cand)], self.rr_value[i, : len(cand)] = (
+                cand,
+                partner,
+                value,
+            )
         self.rr_row = {int(q): i for i, q in enumerate(self.queries)}
 
     def _logits(self, feats: torch.Tensor, valid: np.ndarray) -> torch.Tensor:
@@ -384,7 +424,7 @@ class Trainer:
         q = self.queries[rows]
         a_q = soft_selection(self._logits(self.fq[q], self.q_valid[q]), n, temp)
         a_r = soft_selection(self._logits(self.fr[refs], self.r_valid[refs]), n, temp)
-        a_c = a_r[torch.from_numpy(inv.reshape(cand.shape))]                          # (B, C', N)
+        a_c = a_r[torch.from_numpy(inv.reshape(cand.shape))]  # (B, C', N)
         pick = (rows[:, None], np.maximum(cols, 0))
         partner = torch.from_numpy(self.rr_partner[pick].astype(np.int64))
         return soft_similarity(a_q, a_c, partner, torch.from_numpy(self.rr_value[pick]), n)
@@ -400,15 +440,15 @@ class Trainer:
         out[:, 0] = rows
         cols_all = np.arange(self.rr_cand.shape[1])
         for start in range(0, len(rows), batch):
-            r = rows[start:start + batch]
+            r = rows[start : start + batch]
             cols = np.where(self.rr_cand[r] >= 0, cols_all[None], -1)
             s = self.soft_scores(r, cols).numpy()
             for j, row in enumerate(r):
                 npos, valid = self.rr_npos[row], cols[j] >= 0
                 neg = np.flatnonzero(valid & (cols_all >= npos))
                 hard = neg[np.argsort(-s[j, neg], kind='stable')[:k]]
-                out[start + j, 1:1 + npos] = cols_all[:npos]
-                out[start + j, 1 + npos:1 + npos + len(hard)] = hard
+                out[start + j, 1 : 1 + npos] = cols_all[:npos]
+                out[start + j, 1 + npos : 1 + npos + len(hard)] = hard
         return out
 
     def rerank_step(self, t: np.ndarray) -> torch.Tensor:
@@ -455,31 +495,56 @@ class Trainer:
             loss = self.train_epoch(tuples)
             self.epoch += 1
             score, per_set = self.validate()
-            row = {'epoch': self.epoch, 'loss': loss, 'val_p_at_100r': score, 'val_per_set': per_set,
-                   'seconds': time.perf_counter() - t0}
+            row = {
+                'epoch': self.epoch,
+                'loss': loss,
+                'val_p_at_100r': score,
+                'val_per_set': per_set,
+                'seconds': time.perf_counter() - t0,
+            }
             self.history.append(row)
             improved = self.val is None or score > self.best
             if improved:
                 self.best = score if self.val is not None else self.best
                 self._save_best(per_set)
             self._save_last()  # after best.pt: an interruption never leaves last ahead of best
-            print(f'epoch {self.epoch}: loss {loss:.4f}, val P@100R {score:.3f} {_fmt(per_set)}'
-                  f'{" (best)" if improved else ""}, {row["seconds"]:.0f} s', flush=True)
+            print(
+                f'epoch {self.epoch}: loss {loss:.4f}, val P@100R {score:.3f} {_fmt(per_set)}'
+                f'{" (best)" if improved else ""}, {row["seconds"]:.0f} s',
+                flush=True,
+            )
         return {'best_val_p_at_100r': self.best, 'history': self.history}
 
     # ------------------------------------------------------------------ files
 
     def _save_best(self, per_set: dict | None = None) -> None:
         bb = self.extractor.conf['backbone']
-        save_checkpoint(str(self.out / 'best.pt'), self.head, bb['name'], self.extractor.backbone.layer,
-                        trained=self.epoch > 0, epoch=self.epoch, val_p_at_100r=self.best, train_conf=_jsonable(self.conf),
-                        train_data=self.pairs.name, val_data=[v.name for v in self.vals] or None,
-                        val_per_set=per_set or {}, **self.meta)
+        save_checkpoint(
+            str(self.out / 'best.pt'),
+            self.head,
+            bb['name'],
+            self.extractor.backbone.layer,
+            trained=self.epoch > 0,
+            epoch=self.epoch,
+            val_p_at_100r=self.best,
+            train_conf=_jsonable(self.conf),
+            train_data=self.pairs.name,
+            val_data=[v.name for v in self.vals] or None,
+            val_per_set=per_set or {},
+            **self.meta,
+        )
 
     def _save_last(self) -> None:
-        state = {'head': self.head.state_dict(), 'optimizer': self.optimizer.state_dict(), 'epoch': self.epoch,
-                 'rng': self.rng.bit_generator.state, 'torch_rng': torch.get_rng_state(),
-                 'history': self.history, 'best': self.best, 'conf': _jsonable(self.conf)}
+        state = {
+            'head': self.head.state_dict(),
+            'optimizer': self.optimizer.state_dict(),
+            'epoch': self.epoch,
+            'rng': self.rng.bit_generator.state,
+            'torch_rng': torch.get_rng_state(),
+            'history': self.history,
+            'best': self.best,
+            'conf': _jsonable(self.conf),
+        }
         tmp = self.out / 'last.pt.tmp'
         torch.save(state, tmp)
         os.replace(tmp, self.out / 'last.pt')
@@ -488,11 +553,14 @@ class Trainer:
     def _restore(self, path: Path) -> None:
         state = torch.load(path, map_location='cpu', weights_only=False)
         # only the number of epochs may change on resume (to extend a run)
-        same = {k: v for k, v in state['conf'].items() if k != 'epochs'} == \
-            {k: v for k, v in _jsonable(self.conf).items() if k != 'epochs'}
+        same = {k: v for k, v in state['conf'].items() if k != 'epochs'} == {
+            k: v for k, v in _jsonable(self.conf).items() if k != 'epochs'
+        }
         if not same:
-            raise DatasetError(f'{path} was written with another training configuration; use a new --out '
-                               f'or remove it (was {state["conf"]}, now {_jsonable(self.conf)})')
+            raise DatasetError(
+                f'{path} was written with another training configuration; use a new --out '
+                f'or remove it (was {state["conf"]}, now {_jsonable(self.conf)})'
+            )
         self.head.load_state_dict(state['head'])
         self.optimizer.load_state_dict(state['optimizer'])
         self.epoch, self.history, self.best = state['epoch'], state['history'], state['best']

@@ -5,14 +5,19 @@
 One table per first stage (holistic top-K). A head column is marked `ok` where the issue's targets
 hold on that set (LLN >= ACT, LLN >= RAND, LLN >= ALL - 2 points), `MISS` where one fails.
 """
+
 import json
 import sys
 from pathlib import Path
 
 SETS = ('nordland', 'rtabmap', 'essex', 'tum')
 # what each head saw of each set (the LOO heads never saw the set they are evaluated on)
-SHIPPED_STATUS = {'nordland': 'test split 0.7:1 unseen (trained on 0:0.6 of this route)',
-                  'rtabmap': 'held out', 'essex': 'held out', 'tum': 'held out'}
+SHIPPED_STATUS = {
+    'nordland': 'test split 0.7:1 unseen (trained on 0:0.6 of this route)',
+    'rtabmap': 'held out',
+    'essex': 'held out',
+    'tum': 'held out',
+}
 
 
 def row_p(methods: dict, row: str):
@@ -26,7 +31,9 @@ def verdict(lln, act, rand, all_):
 
 
 def main(root: Path) -> None:
-    ks = sorted({p.name.rsplit('-k', 1)[1].split('-')[0] for p in root.glob('eval-*-k*')}, key=lambda k: int(k) or 10 ** 9)
+    ks = sorted(
+        {p.name.rsplit('-k', 1)[1].split('-')[0] for p in root.glob('eval-*-k*')}, key=lambda k: int(k) or 10**9
+    )
     for k in ks:
         runs = {}
         for s in SETS:  # eval-S-kK/ and any eval-S-kK-EXTRA/ (heads evaluated later, --methods lln)
@@ -37,37 +44,44 @@ def main(root: Path) -> None:
                 if s not in runs:
                     runs[s] = res
                 else:
-                    (_, into), = runs[s]['datasets'].items()
-                    (_, more), = res['datasets'].items()
+                    ((_, into),) = runs[s]['datasets'].items()
+                    ((_, more),) = res['datasets'].items()
                     into['methods'].update(more['methods'])
                     runs[s]['parameters']['heads'].update(res['parameters']['heads'])
         if not runs:
             continue
         heads = list(dict.fromkeys(h for r in runs.values() for h in r['parameters']['heads']))
-        first = 'holistic top-30' if k == '30' else ('exhaustive (every reference)' if k == '0' else f'holistic top-{k}')
+        first = (
+            'holistic top-30' if k == '30' else ('exhaustive (every reference)' if k == '0' else f'holistic top-{k}')
+        )
         print(f'\n### First stage: {first} (`--prefilter-k {k}`)\n')
-        print('| held-out set | queries | holistic | ACT | RAND | ALL | ' +
-              ' | '.join(f'LLN[{h}]' for h in heads) + ' |')
+        print(
+            '| held-out set | queries | holistic | ACT | RAND | ALL | ' + ' | '.join(f'LLN[{h}]' for h in heads) + ' |'
+        )
         print('|---|---:|---:|---:|---:|---:|' + '---:|' * len(heads))
         for s, res in runs.items():
-            (name, d), = res['datasets'].items()
+            ((name, d),) = res['datasets'].items()
             m = d['methods']
             act, rand, all_ = row_p(m, 'act'), row_p(m, 'rand'), row_p(m, 'all')
             cells = []
             for h in heads:
                 v = row_p(m, f'lln[{h}]')
                 cells.append('n/a' if v is None else f'{v:.1f} {verdict(v, act, rand, all_)}')
-            print(f'| {name} | {d["queries_with_match"]} | {row_p(m, "holistic"):.1f} | {act:.1f} | {rand:.1f} | '
-                  f'{all_:.1f} | ' + ' | '.join(cells) + ' |')
+            print(
+                f'| {name} | {d["queries_with_match"]} | {row_p(m, "holistic"):.1f} | {act:.1f} | {rand:.1f} | '
+                f'{all_:.1f} | ' + ' | '.join(cells) + ' |'
+            )
     cand = root / 'candidates-nordland-k30' / 'results.json'
     base = root / 'eval-nordland-k30' / 'results.json'
     if cand.is_file() and base.is_file():
-        (name, d), = json.loads(cand.read_text())['datasets'].items()
-        (_, b), = json.loads(base.read_text())['datasets'].items()
+        ((name, d),) = json.loads(cand.read_text())['datasets'].items()
+        ((_, b),) = json.loads(base.read_text())['datasets'].items()
         act, rand, all_ = (row_p(b['methods'], r) for r in ('act', 'rand', 'all'))
         print('\n### Candidates for the shipped head: every recipe on every set (Nordland: its training part only)\n')
-        print(f'Held out: {name} only (holistic top-30). ACT {act:.1f}, RAND {rand:.1f}, ALL {all_:.1f}, '
-              f'shipped {row_p(b["methods"], "lln[shipped]"):.1f}.\n')
+        print(
+            f'Held out: {name} only (holistic top-30). ACT {act:.1f}, RAND {rand:.1f}, ALL {all_:.1f}, '
+            f'shipped {row_p(b["methods"], "lln[shipped]"):.1f}.\n'
+        )
         print('| head | P@100%R | targets |')
         print('|---|---:|---|')
         for row, m in d['methods'].items():

@@ -11,6 +11,7 @@ score, holistic_score, inliers, regions} lines: what a pose-graph back end needs
 poses by stamp and register them (regions = matched region pairs, pixels) before adding the edge.
 On Ctrl-C it prints how many answers were accepted and why the others were not.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -20,13 +21,18 @@ import sys
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    ros_args = argv[argv.index('--ros-args'):] if '--ros-args' in argv else []
-    own = argv[:len(argv) - len(ros_args)]
+    ros_args = argv[argv.index('--ros-args') :] if '--ros-args' in argv else []
+    own = argv[: len(argv) - len(ros_args)]
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('--min-score', type=float, default=0.0, help='S of the best candidate (default 0: any)')
     p.add_argument('--min-inliers', type=int, default=0, help='verify mode: RANSAC inliers (default 0: any)')
-    p.add_argument('--min-gap', type=float, default=0.0, metavar='S',
-                   help='seconds between query and keyframe stamps below which it is odometry, not a loop')
+    p.add_argument(
+        '--min-gap',
+        type=float,
+        default=0.0,
+        metavar='S',
+        help='seconds between query and keyframe stamps below which it is odometry, not a loop',
+    )
     p.add_argument('--out', help='append the lines to this file instead of stdout')
     p.add_argument('--count', type=int, default=0, help='exit after this many answers (default 0: run until Ctrl-C)')
     args = p.parse_args(own)
@@ -38,8 +44,9 @@ def main(argv=None) -> int:
     from lln_ros import msgs
     from lln_ros.loop_closure import LoopClosureFilter
 
-    select = LoopClosureFilter({'min_score': args.min_score, 'min_inliers': args.min_inliers,
-                                'min_gap_s': args.min_gap})
+    select = LoopClosureFilter(
+        {'min_score': args.min_score, 'min_inliers': args.min_inliers, 'min_gap_s': args.min_gap}
+    )
     out = open(args.out, 'a') if args.out else sys.stdout
     rclpy.init(args=['loop_closure_client', *ros_args])
     node = rclpy.create_node('lln_loop_closure_client')
@@ -75,8 +82,11 @@ def main(argv=None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        print(f"loop_closure_client: {state['answers']} answers, {state['accepted']} loop closures accepted, "
-              f"rejected: {select.rejected}", file=sys.stderr)
+        print(
+            f'loop_closure_client: {state["answers"]} answers, {state["accepted"]} loop closures accepted, '
+            f'rejected: {select.rejected}',
+            file=sys.stderr,
+        )
         node.destroy_node()
         rclpy.try_shutdown()
         if args.out:

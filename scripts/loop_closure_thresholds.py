@@ -7,6 +7,7 @@ query against the ground-truth matrix. Prints the table docs/slam_integration.md
 Same code path as the matcher node (MapStore.query, then add, with its defaults); every query is
 answered, so precision counts wrong answers of frames that revisit nothing (rtabmap_loop frames 1-40).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,8 +27,8 @@ def main() -> int:
     p.add_argument('--exclude-recent', type=int, default=10)
     p.add_argument('--prefilter-k', type=int, default=30)
     args = p.parse_args()
-    from lln_ros.io.datasets import loop
     from lln_ros.core.extractor import Extractor
+    from lln_ros.io.datasets import loop
     from lln_ros.io.image import load_image
     from lln_ros.loop_closure import threshold_table
     from lln_ros.mapstore import MapStore
@@ -46,15 +47,21 @@ def main() -> int:
                 correct.append(bool(ds.gt[i, found[0].keyframe_id - 1]))  # ids 1.. in storage order
         store.close()
     positives = int(ds.gt.any(1).sum())
-    print(f'{ds.name}: {len(ds.query_paths)} frames, {len(scores)} answered, {positives} revisit an earlier '
-          f'place; exclude_recent {args.exclude_recent}, prefilter_k {args.prefilter_k}')
-    print(f'top-1 correct on the revisits: {sum(correct)}; score of right answers median '
-          f'{np.median([s for s, c in zip(scores, correct) if c]):.2f}, wrong answers median '
-          f'{np.median([s for s, c in zip(scores, correct) if not c]):.2f}')
+    print(
+        f'{ds.name}: {len(ds.query_paths)} frames, {len(scores)} answered, {positives} revisit an earlier '
+        f'place; exclude_recent {args.exclude_recent}, prefilter_k {args.prefilter_k}'
+    )
+    print(
+        f'top-1 correct on the revisits: {sum(correct)}; score of right answers median '
+        f'{np.median([s for s, c in zip(scores, correct) if c]):.2f}, wrong answers median '
+        f'{np.median([s for s, c in zip(scores, correct) if not c]):.2f}'
+    )
     print('| target precision | min_score (S) | precision | recall |')
     print('|---|---|---|---|')
     for row in threshold_table(np.array(scores), np.array(correct), positives):
-        print(f"| {row['precision_target']:.2f} | {row['threshold']:.2f} | {row['precision']:.3f} | {row['recall']:.3f} |")
+        print(
+            f'| {row["precision_target"]:.2f} | {row["threshold"]:.2f} | {row["precision"]:.3f} | {row["recall"]:.3f} |'
+        )
     return 0
 
 

@@ -6,6 +6,7 @@ figures (computed here, never typed in), then lln-eval's own tables with links t
 The first folder is the paper's protocol (holistic top-30 prefilter, Nordland test split and
 rtabmap_loop); the optional second is Nordland with every reference scored (--prefilter-k 0).
 """
+
 import json
 import os
 import platform
@@ -32,8 +33,10 @@ def exhaustive_cost(exhaustive: dict) -> str:
     nord = nordland(exhaustive)
     pair_ms = nord['methods']['lln[trained]']['match_ms_per_pair']
     seq_ms = nord['methods']['lln[trained]+seq']['sequence_ms_per_query']
-    return (f'That costs lln[trained] {pair_ms:.4f} ms per pair x {nord["refs"]} references = '
-            f'{pair_ms * nord["refs"]:.1f} ms of matching per query (the sequence search adds {seq_ms:.2f} ms).')
+    return (
+        f'That costs lln[trained] {pair_ms:.4f} ms per pair x {nord["refs"]} references = '
+        f'{pair_ms * nord["refs"]:.1f} ms of matching per query (the sequence search adds {seq_ms:.2f} ms).'
+    )
 
 
 def targets(res: dict, exhaustive: dict | None = None) -> list[str]:
@@ -45,12 +48,24 @@ def targets(res: dict, exhaustive: dict | None = None) -> list[str]:
     rows = [
         ('3', 'Nordland test: LLN >= ACT + 3 pts (P@100%R)', f'{pct(lln)} vs {pct(m["act"])}', lln >= m['act'] + 0.03),
         ('3', 'Nordland test: LLN >= RAND + 3 pts', f'{pct(lln)} vs {pct(m["rand"])}', lln >= m['rand'] + 0.03),
-        ('3', 'Nordland test: LLN within 2 pts of ALL (or above)', f'{pct(lln)} vs {pct(m["all"])}',
-         lln >= m['all'] - 0.02),
-        ('3', 'Nordland test: LLN >= Holistic + 10 pts', f'{pct(lln)} vs {pct(m["holistic"])}',
-         lln >= m['holistic'] + 0.10),
-        ('3', 'Nordland test: trained head clearly above untrained', f'{pct(lln)} vs {pct(m["lln[untrained]"])}',
-         lln >= m['lln[untrained]'] + 0.03),
+        (
+            '3',
+            'Nordland test: LLN within 2 pts of ALL (or above)',
+            f'{pct(lln)} vs {pct(m["all"])}',
+            lln >= m['all'] - 0.02,
+        ),
+        (
+            '3',
+            'Nordland test: LLN >= Holistic + 10 pts',
+            f'{pct(lln)} vs {pct(m["holistic"])}',
+            lln >= m['holistic'] + 0.10,
+        ),
+        (
+            '3',
+            'Nordland test: trained head clearly above untrained',
+            f'{pct(lln)} vs {pct(m["lln[untrained]"])}',
+            lln >= m['lln[untrained]'] + 0.03,
+        ),
     ]
     if exhaustive:
         # the same issue-3 comparisons when no holistic prefilter caps the rerank (informational:
@@ -58,17 +73,38 @@ def targets(res: dict, exhaustive: dict | None = None) -> list[str]:
         e = {k: v['p_at_100r'] for k, v in nordland(exhaustive)['methods'].items()}
         le = e['lln[trained]']
         rows += [
-            ('3', f'Nordland test, exhaustive: LLN >= {other} + 3 pts', f'{pct(le)} vs {pct(e[key])}',
-             le >= e[key] + 0.03) for other, key in (('ACT', 'act'), ('RAND', 'rand'))
-        ] + [('3', 'Nordland test, exhaustive: LLN within 2 pts of ALL (or above)', f'{pct(le)} vs {pct(e["all"])}',
-              le >= e['all'] - 0.02)]
-        rows.append(('7', 'Nordland test, exhaustive (prefilter_k 0, as seqslam compares every map frame): '
-                     'lln+seq above seqslam (P@100%R)', f'{pct(e["lln[trained]+seq"])} vs {pct(e["seqslam"])}',
-                     e['lln[trained]+seq'] > e['seqslam']))
+            (
+                '3',
+                f'Nordland test, exhaustive: LLN >= {other} + 3 pts',
+                f'{pct(le)} vs {pct(e[key])}',
+                le >= e[key] + 0.03,
+            )
+            for other, key in (('ACT', 'act'), ('RAND', 'rand'))
+        ] + [
+            (
+                '3',
+                'Nordland test, exhaustive: LLN within 2 pts of ALL (or above)',
+                f'{pct(le)} vs {pct(e["all"])}',
+                le >= e['all'] - 0.02,
+            )
+        ]
+        rows.append(
+            (
+                '7',
+                'Nordland test, exhaustive (prefilter_k 0, as seqslam compares every map frame): '
+                'lln+seq above seqslam (P@100%R)',
+                f'{pct(e["lln[trained]+seq"])} vs {pct(e["seqslam"])}',
+                e['lln[trained]+seq'] > e['seqslam'],
+            )
+        )
     if 'seqslam' in m and 'lln[trained]+seq' in m:
         rows += [
-            ('7', 'Nordland test, holistic top-30 prefilter: lln+seq above seqslam (P@100%R)',
-             f'{pct(m["lln[trained]+seq"])} vs {pct(m["seqslam"])}', m['lln[trained]+seq'] > m['seqslam']),
+            (
+                '7',
+                'Nordland test, holistic top-30 prefilter: lln+seq above seqslam (P@100%R)',
+                f'{pct(m["lln[trained]+seq"])} vs {pct(m["seqslam"])}',
+                m['lln[trained]+seq'] > m['seqslam'],
+            ),
             ('7', 'Nordland test: single-frame lln not below sad', f'{pct(lln)} vs {pct(m["sad"])}', lln >= m['sad']),
         ]
         lm = loop['methods']
@@ -80,14 +116,31 @@ def targets(res: dict, exhaustive: dict | None = None) -> list[str]:
         if r:
             reg, al = r['regions'], r['all']
             if reg['success_rate'] == al['success_rate'] == 0:  # a tie at zero says nothing
-                rows.append(('5', f'{name}: relocalization (neither pipeline verifies any query here)',
-                             f'0 of {r["queries"]}', None))
+                rows.append(
+                    (
+                        '5',
+                        f'{name}: relocalization (neither pipeline verifies any query here)',
+                        f'0 of {r["queries"]}',
+                        None,
+                    )
+                )
                 continue
-            rows.append(('5', f'{name}: region-constrained matching at least as successful as all keypoints',
-                         f'{pct(reg["success_rate"])} vs {pct(al["success_rate"])} %',
-                         reg['success_rate'] >= al['success_rate']))
-            rows.append(('5', f'{name}: region-constrained matching faster', f'{reg["ms_per_query"]:.1f} vs '
-                         f'{al["ms_per_query"]:.1f} ms/query', reg['ms_per_query'] < al['ms_per_query']))
+            rows.append(
+                (
+                    '5',
+                    f'{name}: region-constrained matching at least as successful as all keypoints',
+                    f'{pct(reg["success_rate"])} vs {pct(al["success_rate"])} %',
+                    reg['success_rate'] >= al['success_rate'],
+                )
+            )
+            rows.append(
+                (
+                    '5',
+                    f'{name}: region-constrained matching faster',
+                    f'{reg["ms_per_query"]:.1f} vs {al["ms_per_query"]:.1f} ms/query',
+                    reg['ms_per_query'] < al['ms_per_query'],
+                )
+            )
     out = ['| issue | target | measured | |', '|---|---|---|---|']
     out += [f'| {i} | {t} | {v} | {verdict(ok)} |' for i, t, v, ok in rows]
     return out
@@ -106,18 +159,28 @@ def body_of(src: Path, dst: str, title: str) -> str:
 def main(dst: str, src: str, exhaustive_src: str | None = None, default_src: str | None = None) -> None:
     src = Path(src)
     res = json.loads((src / 'results.json').read_text())
-    body = body_of(src, dst, 'lln-eval output: the paper\'s protocol (holistic top-30 prefilter)')
+    body = body_of(src, dst, "lln-eval output: the paper's protocol (holistic top-30 prefilter)")
     exhaustive = None
     if exhaustive_src:
         exhaustive = json.loads((Path(exhaustive_src) / 'results.json').read_text())
-        body += '\n' + body_of(Path(exhaustive_src), dst, 'lln-eval output: Nordland with every reference '
-                                                          'scored (--prefilter-k 0)')
+        body += '\n' + body_of(
+            Path(exhaustive_src), dst, 'lln-eval output: Nordland with every reference scored (--prefilter-k 0)'
+        )
     if default_src:
-        body += '\n' + body_of(Path(default_src), dst, 'lln-eval output: the shipped defaults (landmark first '
-                                                        'stage, `--prefilter landmarks`)')
+        body += '\n' + body_of(
+            Path(default_src),
+            dst,
+            'lln-eval output: the shipped defaults (landmark first stage, `--prefilter landmarks`)',
+        )
     k = int(res['parameters']['prefilter_k'])
-    cpu = next((line.split(':', 1)[1].strip() for line in open('/proc/cpuinfo') if line.startswith('model name')),
-               platform.processor()) if Path('/proc/cpuinfo').exists() else platform.processor()
+    cpu = (
+        next(
+            (line.split(':', 1)[1].strip() for line in open('/proc/cpuinfo') if line.startswith('model name')),
+            platform.processor(),
+        )
+        if Path('/proc/cpuinfo').exists()
+        else platform.processor()
+    )
     head = [
         '# Results',
         '',
@@ -131,11 +194,19 @@ def main(dst: str, src: str, exhaustive_src: str | None = None, default_src: str
         '`lln[untrained]` is the same architecture at its seeded Xavier initialisation. `X+seq` is row X',
         'through the sequence search (L = 10) that the matcher runs online with `sequence_length: 10`.',
         '',
-        *([f'The first tables follow the paper: every local method reranks the holistic top-{k}. On Nordland that',
-           f'prefilter holds a true match for only {pct(nordland(res)["recall_at_k_holistic"][k - 1])}% of the '
-           'queries, so the second run scores every reference',
-           '(`--prefilter-k 0`, what the matcher does with `prefilter_k: 0`), as seqslam compares every map frame.',
-           exhaustive_cost(exhaustive), ''] if exhaustive else []),
+        *(
+            [
+                f'The first tables follow the paper: every local method reranks the holistic top-{k}. On Nordland that',
+                f'prefilter holds a true match for only {pct(nordland(res)["recall_at_k_holistic"][k - 1])}% of the '
+                'queries, so the second run scores every reference',
+                '(`--prefilter-k 0`, what the matcher does with `prefilter_k: 0`), '
+                'as seqslam compares every map frame.',
+                exhaustive_cost(exhaustive),
+                '',
+            ]
+            if exhaustive
+            else []
+        ),
         '## Targets',
         '',
         *targets(res, exhaustive),

@@ -6,6 +6,7 @@ tells a camera user to set.
 
     python camera_publisher.py W H COUNT HZ [--stamp-start SEC]
 """
+
 import argparse
 import sys
 import time

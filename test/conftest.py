@@ -1,5 +1,6 @@
 """Shared fixtures. Real data lives in ../shared/data next to the repo; tests that need it skip
 with a reason when it is absent (a user's fresh machine)."""
+
 import os
 import signal
 from pathlib import Path
@@ -35,6 +36,7 @@ def shared_data(*parts) -> Path:
 @pytest.fixture(scope='session')
 def extractor():
     from lln_ros.core.extractor import Extractor
+
     return Extractor({'num_threads': 2})
 
 
@@ -44,6 +46,7 @@ def photo() -> np.ndarray:
     import matplotlib.cbook as cbook
 
     from lln_ros.io.image import load_image
+
     with cbook.get_sample_data('grace_hopper.jpg') as f:
         path = f.name
     return load_image(path)
@@ -54,6 +57,7 @@ def colcon_install(tmp_path_factory, extractor):
     """The package built by colcon into a fresh workspace, as a ROS user builds it. After the
     session extractor, which exports the ONNX graph into the cache: nodes then start without it."""
     from ros_harness import colcon_build
+
     return colcon_build(tmp_path_factory.mktemp('ws'))
 
 
@@ -63,11 +67,14 @@ def milvus_server():
     Only inside a network namespace that has nothing but lo (the server listens on every interface):
     test_milvus_server.py::test_real_server_suite re-runs the milvus_server tests in one."""
     from milvus_loopback import LoopbackMilvus, milvus_version, only_loopback
+
     if milvus_version() is None:
         pytest.skip('the PyPI package `milvus` (a Milvus 2.3.5 standalone server) is not installed')
     if not only_loopback():
-        pytest.skip('a real Milvus server runs only in a loopback-only network namespace: '
-                    'test_milvus_server.py::test_real_server_suite runs this test in one')
+        pytest.skip(
+            'a real Milvus server runs only in a loopback-only network namespace: '
+            'test_milvus_server.py::test_real_server_suite runs this test in one'
+        )
     server = LoopbackMilvus().start()
     yield server
     server.close()
@@ -78,7 +85,9 @@ def milvus_map(milvus_server, request):
     """A fresh map URI on the real server (database lln_test, a map name of this test's own);
     its collections are dropped afterwards (an idle server's CPU climbs with every loaded one)."""
     import re
+
     name = 't' + re.sub(r'[^0-9a-zA-Z]', '_', request.node.name)[-40:] + f'_{id(request) % 10000}'
     yield f'{milvus_server.uri}/lln_test?map={name}'
     from milvus_loopback import drop_maps
+
     drop_maps(milvus_server, 'lln_test', name + '_')

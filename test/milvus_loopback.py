@@ -23,6 +23,7 @@ any thread. The server's binaries are unpacked once (~250 MB, ~40 s) into a cach
 (LLN_MILVUS_CACHE, default ~/.cache/lln_ros/milvus-server-VERSION) that every server shares; each
 server gets its own data directory (~140 MB fresh), deleted when it stops.
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -39,7 +40,7 @@ import urllib.request
 
 CLONE_NEWNET, CLONE_NEWUSER = 0x40000000, 0x10000000
 SIOCGIFFLAGS, SIOCSIFFLAGS, IFF_UP = 0x8913, 0x8914, 0x1
-PORT = 19530          # inside the namespace nothing else listens, so the default ports are free
+PORT = 19530  # inside the namespace nothing else listens, so the default ports are free
 METRICS_PORT = 9091
 
 
@@ -58,10 +59,11 @@ def enter_loopback_namespace() -> None:
     libc = ctypes.CDLL(None, use_errno=True)
     if libc.unshare(CLONE_NEWNET) != 0:
         err = ctypes.get_errno()
-        uid, gid = os.getuid(), os.getgid()   # unprivileged: a user namespace first, mapping us to root
+        uid, gid = os.getuid(), os.getgid()  # unprivileged: a user namespace first, mapping us to root
         if libc.unshare(CLONE_NEWUSER | CLONE_NEWNET) != 0:
-            raise OSError(err, f'unshare(CLONE_NEWNET) failed: {os.strerror(err)} (needs root or '
-                               f'unprivileged user namespaces)')
+            raise OSError(
+                err, f'unshare(CLONE_NEWNET) failed: {os.strerror(err)} (needs root or unprivileged user namespaces)'
+            )
         for name, text in (('setgroups', 'deny'), ('uid_map', f'0 {uid} 1'), ('gid_map', f'0 {gid} 1')):
             with open(f'/proc/self/{name}', 'w') as f:
                 f.write(text)
@@ -87,6 +89,7 @@ def _bind_reusing(port: int):
 def milvus_version() -> str | None:
     try:
         from importlib.metadata import version
+
         return version('milvus')
     except Exception:
         return None
@@ -98,9 +101,12 @@ class LoopbackMilvus:
 
     def __init__(self, data_dir: str | None = None):
         if not only_loopback():
-            raise RuntimeError('refusing to start a Milvus server outside a loopback-only network '
-                               'namespace: it listens on every interface (run under test/milvus_loopback.py)')
+            raise RuntimeError(
+                'refusing to start a Milvus server outside a loopback-only network '
+                'namespace: it listens on every interface (run under test/milvus_loopback.py)'
+            )
         import milvus
+
         self._milvus = milvus
         self.version = milvus_version()
         self.own_dir = data_dir is None
@@ -113,11 +119,12 @@ class LoopbackMilvus:
     def _link_binaries(self) -> None:
         """Unpack the server's binaries once into the shared cache; the data dir links to them."""
         cache = os.environ.get('LLN_MILVUS_CACHE') or os.path.expanduser(
-            f'~/.cache/lln_ros/milvus-server-{self.version}')
+            f'~/.cache/lln_ros/milvus-server-{self.version}'
+        )
         os.makedirs(cache, exist_ok=True)
         lock = os.open(os.path.join(cache, '.lock'), os.O_CREAT | os.O_RDWR)
         try:
-            fcntl.flock(lock, fcntl.LOCK_EX)   # two runs unpacking at once would corrupt the files
+            fcntl.flock(lock, fcntl.LOCK_EX)  # two runs unpacking at once would corrupt the files
             self._milvus._initialize_data_files(cache)
         finally:
             os.close(lock)
@@ -138,13 +145,15 @@ class LoopbackMilvus:
         self.server = server
         if server.listen_port != PORT or server.webservice_port != METRICS_PORT:
             self.stop()
-            raise RuntimeError(f'Milvus server got ports {server.listen_port}/{server.webservice_port}, '
-                               f'not {PORT}/{METRICS_PORT}')
+            raise RuntimeError(
+                f'Milvus server got ports {server.listen_port}/{server.webservice_port}, not {PORT}/{METRICS_PORT}'
+            )
         url = f'http://127.0.0.1:{server.webservice_port}/healthz'
         while time.monotonic() - t < timeout:
             if server.server_proc.poll() is not None:
-                raise RuntimeError(f'Milvus server exited with {server.server_proc.returncode} while starting; '
-                                   f'log: {self.log_tail()}')
+                raise RuntimeError(
+                    f'Milvus server exited with {server.server_proc.returncode} while starting; log: {self.log_tail()}'
+                )
             try:
                 with urllib.request.urlopen(url, timeout=2) as resp:
                     if b'OK' in resp.read():
@@ -170,7 +179,7 @@ class LoopbackMilvus:
             proc.kill()
             proc.wait(timeout=10)
         server.server_proc = None
-        server.stop()   # closes its log files
+        server.stop()  # closes its log files
 
     def restart(self, kill: bool = False) -> None:
         self.stop(kill=kill)
@@ -202,6 +211,7 @@ class LoopbackMilvus:
 def drop_maps(server: LoopbackMilvus, db: str, prefix: str) -> list[str]:
     """Drop the collections of database db whose names start with prefix (a test's maps)."""
     from pymilvus import MilvusClient
+
     client = MilvusClient(uri=server.uri.replace('milvus://', 'http://'), timeout=60)
     try:
         if db not in client.list_databases():
@@ -217,11 +227,11 @@ def drop_maps(server: LoopbackMilvus, db: str, prefix: str) -> list[str]:
 
 
 def main(argv: list[str]) -> int:
-    server_wanted = '--server' in argv[:argv.index('--')] if '--' in argv else False
+    server_wanted = '--server' in argv[: argv.index('--')] if '--' in argv else False
     if '--' not in argv or argv.index('--') == len(argv) - 1:
         print(__doc__.strip().splitlines()[2].strip(), file=sys.stderr)
         return 2
-    cmd = argv[argv.index('--') + 1:]
+    cmd = argv[argv.index('--') + 1 :]
     if not only_loopback():
         try:
             enter_loopback_namespace()
@@ -232,12 +242,17 @@ def main(argv: list[str]) -> int:
     server = None
     if server_wanted:
         if milvus_version() is None:
-            print('milvus_loopback: the PyPI package `milvus` is not installed (pip install milvus==2.3.5)',
-                  file=sys.stderr)
+            print(
+                'milvus_loopback: the PyPI package `milvus` is not installed (pip install milvus==2.3.5)',
+                file=sys.stderr,
+            )
             return 3
         server = LoopbackMilvus().start()
-        print(f'milvus_loopback: Milvus {server.version} on {server.uri} (started in {server.started_s:.1f} s, '
-              f'data {server.data_dir})', file=sys.stderr)
+        print(
+            f'milvus_loopback: Milvus {server.version} on {server.uri} (started in {server.started_s:.1f} s, '
+            f'data {server.data_dir})',
+            file=sys.stderr,
+        )
         env.update(LLN_MILVUS_URI=server.uri, LLN_MILVUS_DATA_DIR=server.data_dir)
     try:
         return subprocess.call(cmd, env=env)

@@ -4,6 +4,7 @@ in-process probe node (its own rclpy Context) that publishes, collects and calls
 
 What is test-only stays here: a colcon build of the working tree, and the environment a sourced
 install gives. Children start without preexec_fn (vfork, see lln_ros/ros/supervisor.py, conftest.py)."""
+
 from __future__ import annotations
 
 import itertools
@@ -36,15 +37,35 @@ def colcon_build(ws: Path) -> Path:
     if not colcon.exists():
         raise RuntimeError('colcon is not installed in the test environment (scripts/setup.sh installs it)')
     src = ws / 'src' / 'lln_ros'
-    files = subprocess.run(['git', 'ls-files', '--cached', '--others', '--exclude-standard'], cwd=REPO,
-                           capture_output=True, text=True, check=True).stdout.split()
+    files = subprocess.run(
+        ['git', 'ls-files', '--cached', '--others', '--exclude-standard'],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.split()
     for f in files:
         if (REPO / f).is_file():
             (src / f).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(REPO / f, src / f)
-    out = subprocess.run([str(colcon), '--log-base', str(ws / 'log'), 'build', '--base-paths', str(ws / 'src'),
-                          '--build-base', str(ws / 'build'), '--install-base', str(ws / 'install')],
-                         cwd=ws, capture_output=True, text=True, timeout=600)
+    out = subprocess.run(
+        [
+            str(colcon),
+            '--log-base',
+            str(ws / 'log'),
+            'build',
+            '--base-paths',
+            str(ws / 'src'),
+            '--build-base',
+            str(ws / 'build'),
+            '--install-base',
+            str(ws / 'install'),
+        ],
+        cwd=ws,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     if out.returncode:
         raise RuntimeError(f'colcon build failed:\n{out.stdout}\n{out.stderr}')
     return ws / 'install'
@@ -56,7 +77,8 @@ def installed_env(install: Path, env: dict) -> dict:
     env = dict(env)
     env['AMENT_PREFIX_PATH'] = os.pathsep.join(p for p in (str(prefix), env.get('AMENT_PREFIX_PATH', '')) if p)
     env['PYTHONPATH'] = os.pathsep.join(
-        p for p in (str(prefix / 'lib' / 'python3.11' / 'site-packages'), env.get('PYTHONPATH', '')) if p)
+        p for p in (str(prefix / 'lib' / 'python3.11' / 'site-packages'), env.get('PYTHONPATH', '')) if p
+    )
     return env
 
 

@@ -1,4 +1,5 @@
 """The backbone registry: every entry builds on the paper's 12x9 grid, bad configs fail clearly."""
+
 import pytest
 import torch
 
@@ -6,10 +7,15 @@ from lln_ros.core.backbones import ResNet101Block3, build_backbone
 from lln_ros.errors import ModelError
 
 
-@pytest.mark.parametrize('name, layer, dim', [
-    ('efficientnet_lite0', 'stage6', 192), ('efficientnet_lite0', 'stage7', 320),
-    ('efficientnet_lite0', 'head', 1280), ('efficientnet_lite2', 'stage7', 352),
-])
+@pytest.mark.parametrize(
+    'name, layer, dim',
+    [
+        ('efficientnet_lite0', 'stage6', 192),
+        ('efficientnet_lite0', 'stage7', 320),
+        ('efficientnet_lite0', 'head', 1280),
+        ('efficientnet_lite2', 'stage7', 352),
+    ],
+)
 def test_efficientnet_stride32_grid(name, layer, dim):
     net = build_backbone({'name': name, 'layer': layer})
     assert net.dim == dim and not any(p.requires_grad for p in net.parameters())
@@ -22,7 +28,9 @@ def test_efficientnet_weights_are_the_imagenet_ones():
     """The shipped weights classify: a flat grey image and a real photo get different top classes,
     and the photo's logits are confident (random weights would be near uniform)."""
     import matplotlib.cbook as cbook
+
     from lln_ros.io.image import load_image
+
     with cbook.get_sample_data('grace_hopper.jpg') as f:
         img = load_image(f.name)
     net = build_backbone({'name': 'efficientnet_lite0', 'layer': 'head'}).net

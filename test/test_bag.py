@@ -1,5 +1,6 @@
 """lln_ros.io.bag and lln-bag: MCAP bags from image folders, read back with rosbags and with the
 `mcap` reader, `info`, and `play` into a real subscriber in another process (real rclpy, real DDS)."""
+
 from __future__ import annotations
 
 import hashlib
@@ -15,16 +16,17 @@ import pytest
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CompressedImage, Image
 
-from lln_ros.io import bag
 from lln_ros import msgs
-from lln_ros.io.datasets import natural_key
 from lln_ros.cli.bag import main
 from lln_ros.errors import ImageError
+from lln_ros.io import bag
+from lln_ros.io.datasets import natural_key
 from ros_harness import ros_env
 
 DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
 RTABMAP = DATA / 'rtabmap_loop'
 PY = sys.executable
+
 
 def make_images(folder: Path, count: int = 12, size=(64, 48), suffix='.png') -> list[Path]:
     """Distinct, deterministic images named 1..count (so natural and text order differ)."""
@@ -48,26 +50,29 @@ def cli(*args) -> int:
 def mcap_messages(bag_dir: Path) -> list:
     """(schema name, schema encoding, topic, message encoding, log_time, data) via the mcap package."""
     from mcap.reader import make_reader
+
     files = sorted(bag_dir.glob('*.mcap'))
     assert len(files) == 1, files
     with open(files[0], 'rb') as f:
         reader = make_reader(f)
         summary = reader.get_summary()
-        out = [(s.name, s.encoding, c.topic, c.message_encoding, m.log_time, bytes(m.data))
-               for s, c, m in reader.iter_messages(log_time_order=True)]
+        out = [
+            (s.name, s.encoding, c.topic, c.message_encoding, m.log_time, bytes(m.data))
+            for s, c, m in reader.iter_messages(log_time_order=True)
+        ]
     assert summary.statistics.message_count == len(out)
     return out
 
 
 # ---------------------------------------------------------------- from-images
 
+
 def test_natural_sort_and_list_images(tmp_path):
     make_images(tmp_path, 12)
     (tmp_path / 'notes.txt').write_text('not an image')
     names = [p.name for p in bag.list_images(tmp_path)]
     assert names == [f'{i}.png' for i in range(1, 13)]
-    assert sorted(['a10.png', 'a2.png', 'a1.png', 'b.png'], key=natural_key) == \
-        ['a1.png', 'a2.png', 'a10.png', 'b.png']
+    assert sorted(['a10.png', 'a2.png', 'a1.png', 'b.png'], key=natural_key) == ['a1.png', 'a2.png', 'a10.png', 'b.png']
     assert [p.name for p in bag.list_images(tmp_path, '1*.png')] == ['1.png', '10.png', '11.png', '12.png']
 
 
@@ -99,8 +104,9 @@ def test_from_images_raw_roundtrip(tmp_path, capsys):
 def test_from_images_compressed(tmp_path):
     paths = make_images(tmp_path / 'imgs', 5, suffix='.jpg')
     out = tmp_path / 'bag'
-    stamps = bag.write_image_bag(paths, out, topic='/cam/compressed', rate=30.0, compressed=True,
-                                 start_ns=5_000_000_123)
+    stamps = bag.write_image_bag(
+        paths, out, topic='/cam/compressed', rate=30.0, compressed=True, start_ns=5_000_000_123
+    )
     assert stamps[0] == 5_000_000_123 and stamps[1] - stamps[0] == 33_333_333
     got = list(bag.read_messages(out))
     assert [t for t, _, _ in got] == ['/cam/compressed'] * 5
@@ -134,21 +140,32 @@ def test_info(tmp_path, capsys):
 def test_write_bag_any_message_type(tmp_path):
     """write_bag takes any rclpy messages: an image topic and a landmarks cloud topic together."""
     from lln_ros.core.landmarks import LandmarkSet, l2_normalize
+
     rng = np.random.default_rng(0)
     cells = np.array([[3, 2], [0, 0], [11, 8]], np.int32)
     cell_size = np.array([512 / 12, 384 / 9], np.float32)
-    lset = LandmarkSet(l2_normalize(rng.random(8)).astype(np.float32),
-                       l2_normalize(rng.random((3, 8))).astype(np.float32), cells,
-                       ((cells + 0.5) * cell_size).astype(np.float32), np.array([3, 2, 1], np.float32),
-                       cell_size, np.array([512, 384], np.float32), (9, 12)).validate()
+    lset = LandmarkSet(
+        l2_normalize(rng.random(8)).astype(np.float32),
+        l2_normalize(rng.random((3, 8))).astype(np.float32),
+        cells,
+        ((cells + 0.5) * cell_size).astype(np.float32),
+        np.array([3, 2, 1], np.float32),
+        cell_size,
+        np.array([512, 384], np.float32),
+        (9, 12),
+    ).validate()
     image = msgs.array_to_image(np.zeros((48, 64, 3), np.uint8), 'rgb8', msgs.make_header(10, 'camera'))
     cloud = msgs.landmarks_to_cloud(lset, msgs.make_header(10, 'camera'))
     out = tmp_path / 'bag'
-    assert bag.write_bag(out, [('/camera/image_raw', image, 10), ('/lln/landmarks', cloud, 10),
-                               ('/camera/image_raw', image, 20)]) == 3
+    assert (
+        bag.write_bag(
+            out, [('/camera/image_raw', image, 10), ('/lln/landmarks', cloud, 10), ('/camera/image_raw', image, 20)]
+        )
+        == 3
+    )
     info = bag.bag_info(out)
     assert info['topics']['/lln/landmarks'] == {'type': 'sensor_msgs/msg/PointCloud2', 'count': 1}
-    (_, back, _), = bag.read_messages(out, topics=['/lln/landmarks'])
+    ((_, back, _),) = bag.read_messages(out, topics=['/lln/landmarks'])
     np.testing.assert_array_equal(msgs.cloud_to_landmarks(back).descriptors, lset.descriptors)
 
 
@@ -178,10 +195,11 @@ def test_from_images_without_glob_warns_about_mixed_folder(tmp_path, capsys):
     make_images(tmp_path / 'imgs', 3, suffix='.jpg')
     cv2.imwrite(str(tmp_path / 'imgs' / 'gt.bmp'), np.zeros((8, 8), np.uint8))
     assert cli('from-images', tmp_path / 'imgs', tmp_path / 'bag') == 0
-    assert "mixes .bmp, .jpg" in capsys.readouterr().err
+    assert 'mixes .bmp, .jpg' in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------- errors
+
 
 def assert_cli_error(capsys, args, match):
     assert cli(*args) == 2
@@ -194,8 +212,9 @@ def test_from_images_errors(tmp_path, capsys):
     (tmp_path / 'empty').mkdir()
     (tmp_path / 'empty' / 'readme.txt').write_text('x')
     assert_cli_error(capsys, ['from-images', tmp_path / 'empty', tmp_path / 'b2'], 'holds no images')
-    assert_cli_error(capsys, ['from-images', tmp_path / 'empty', tmp_path / 'b2', '--glob', '*.jpg'],
-                     "no images matching '*.jpg'")
+    assert_cli_error(
+        capsys, ['from-images', tmp_path / 'empty', tmp_path / 'b2', '--glob', '*.jpg'], "no images matching '*.jpg'"
+    )
     make_images(tmp_path / 'bad', 4)
     (tmp_path / 'bad' / '3.png').write_bytes(b'this is not a png')
     assert_cli_error(capsys, ['from-images', tmp_path / 'bad', tmp_path / 'b3'], 'cannot decode image')
@@ -220,7 +239,7 @@ def test_bag_errors(tmp_path, capsys):
     corrupt.mkdir()
     (corrupt / 'metadata.yaml').write_text((good / 'metadata.yaml').read_text())
     mcap_file = next(good.glob('*.mcap'))
-    (corrupt / mcap_file.name).write_bytes(mcap_file.read_bytes()[:len(mcap_file.read_bytes()) // 2])
+    (corrupt / mcap_file.name).write_bytes(mcap_file.read_bytes()[: len(mcap_file.read_bytes()) // 2])
     assert_cli_error(capsys, ['info', corrupt], 'cannot open bag')
     assert_cli_error(capsys, ['play', corrupt], 'cannot open bag')
     assert_cli_error(capsys, ['play', tmp_path / 'nope'], 'does not exist')
@@ -230,7 +249,7 @@ def test_bag_errors(tmp_path, capsys):
 
 # ---------------------------------------------------------------- play
 
-SUBSCRIBER = r'''
+SUBSCRIBER = r"""
 import hashlib, json, sys, time
 import rclpy
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -255,19 +274,39 @@ while len(got) < expected and time.monotonic() < deadline:
 print(json.dumps(got), flush=True)
 node.destroy_node()
 rclpy.shutdown()
-'''
+"""
 
 
 def run_play(tmp_path, bag_dir, topic, msgtype, expected, play_args, reliability='reliable', timeout=30.0):
     """Start a subscriber process, then `lln-bag play` in another; return what the subscriber got."""
     env = ros_env(tmp_path)
-    sub = subprocess.Popen([PY, '-c', SUBSCRIBER, topic, msgtype, str(expected), str(timeout), reliability],
-                           env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    sub = subprocess.Popen(
+        [PY, '-c', SUBSCRIBER, topic, msgtype, str(expected), str(timeout), reliability],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert sub.stdout.readline().strip() == 'READY', sub.stderr.read()
-        play = subprocess.run([PY, '-m', 'lln_ros.cli.bag', 'play', str(bag_dir), '--wait-subscribers', '1',
-                               '--wait-timeout', '20', *map(str, play_args)],
-                              env=env, capture_output=True, text=True, timeout=timeout + 30)
+        play = subprocess.run(
+            [
+                PY,
+                '-m',
+                'lln_ros.cli.bag',
+                'play',
+                str(bag_dir),
+                '--wait-subscribers',
+                '1',
+                '--wait-timeout',
+                '20',
+                *map(str, play_args),
+            ],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=timeout + 30,
+        )
         assert play.returncode == 0, play.stderr
         out, err = sub.communicate(timeout=timeout + 10)
     finally:
@@ -279,8 +318,14 @@ def run_play(tmp_path, bag_dir, topic, msgtype, expected, play_args, reliability
 
 
 def expected_messages(bag_dir):
-    return [{'stamp': [msg.header.stamp.sec, msg.header.stamp.nanosec], 'frame_id': msg.header.frame_id,
-             'sha1': hashlib.sha1(bytes(msg.data)).hexdigest()} for _, msg, _ in bag.read_messages(bag_dir)]
+    return [
+        {
+            'stamp': [msg.header.stamp.sec, msg.header.stamp.nanosec],
+            'frame_id': msg.header.frame_id,
+            'sha1': hashlib.sha1(bytes(msg.data)).hexdigest(),
+        }
+        for _, msg, _ in bag.read_messages(bag_dir)
+    ]
 
 
 def test_play_into_subscriber_in_order(tmp_path):
@@ -289,14 +334,20 @@ def test_play_into_subscriber_in_order(tmp_path):
     bag.folder_to_bag(tmp_path / 'imgs', out, rate=2.0)  # 4.5 s of recording
     want = expected_messages(out)
     t0 = time.monotonic()
-    got, log = run_play(tmp_path, out, '/replayed/image', 'sensor_msgs/msg/Image', 10,
-                        ['--rate', 10, '--topic-remap', '/camera/image_raw:=/replayed/image'])
+    got, log = run_play(
+        tmp_path,
+        out,
+        '/replayed/image',
+        'sensor_msgs/msg/Image',
+        10,
+        ['--rate', 10, '--topic-remap', '/camera/image_raw:=/replayed/image'],
+    )
     assert time.monotonic() - t0 < 60
     assert [{k: g[k] for k in ('stamp', 'frame_id', 'sha1')} for g in got] == want
     assert all(g['size'] == [160, 120] for g in got)
     span = got[-1]['t'] - got[0]['t']
     assert span >= 4.5 / 10 * 0.8, span  # recorded timing divided by the rate, never faster
-    assert span < 4.5 / 2, span          # and clearly faster than real time
+    assert span < 4.5 / 2, span  # and clearly faster than real time
     assert 'published 10 messages' in log
 
 
@@ -305,8 +356,15 @@ def test_play_compressed_best_effort(tmp_path):
     out = tmp_path / 'bag'
     bag.folder_to_bag(tmp_path / 'imgs', out, rate=20.0, compressed=True, topic='/cam/compressed')
     want = expected_messages(out)
-    got, _ = run_play(tmp_path, out, '/cam/compressed', 'sensor_msgs/msg/CompressedImage', 5,
-                      ['--qos', 'best_effort', '--start-delay', '0.5'], reliability='best_effort')
+    got, _ = run_play(
+        tmp_path,
+        out,
+        '/cam/compressed',
+        'sensor_msgs/msg/CompressedImage',
+        5,
+        ['--qos', 'best_effort', '--start-delay', '0.5'],
+        reliability='best_effort',
+    )
     # best effort may drop on a busy machine; what arrives is in order and intact
     got = [{k: g[k] for k in ('stamp', 'frame_id', 'sha1')} for g in got]
     assert got and all(g in want for g in got)
@@ -317,14 +375,18 @@ def test_play_times_out_without_subscribers(tmp_path):
     make_images(tmp_path / 'imgs', 2)
     out = tmp_path / 'bag'
     bag.folder_to_bag(tmp_path / 'imgs', out)
-    play = subprocess.run([PY, '-m', 'lln_ros.cli.bag', 'play', str(out), '--wait-subscribers', '1',
-                           '--wait-timeout', '0.5'], env=ros_env(tmp_path), capture_output=True, text=True,
-                          timeout=60)
+    play = subprocess.run(
+        [PY, '-m', 'lln_ros.cli.bag', 'play', str(out), '--wait-subscribers', '1', '--wait-timeout', '0.5'],
+        env=ros_env(tmp_path),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert play.returncode == 2
     assert 'timed out after 0.5 s waiting for 1 subscriber' in play.stderr
 
 
-SIM_TIME_SUBSCRIBER = r'''
+SIM_TIME_SUBSCRIBER = r"""
 import json, sys, time
 import rclpy
 from rclpy.parameter import Parameter
@@ -339,7 +401,9 @@ def on_image(msg):
     now = node.get_clock().now().nanoseconds
     got.append({'stamp': msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec, 'now': now,
                 'wall': time.monotonic()})
-node.create_subscription(Image, '/camera/image_raw', on_image, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+node.create_subscription(
+    Image, '/camera/image_raw', on_image, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+)
 node.create_subscription(Clock, '/clock', lambda m: clocks.append(m.clock.sec * 10**9 + m.clock.nanosec),
                          QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
 print('READY', flush=True)
@@ -349,7 +413,7 @@ while len(got) < expected and time.monotonic() < deadline:
 print(json.dumps({'got': got, 'clocks': clocks}), flush=True)
 node.destroy_node()
 rclpy.shutdown()
-'''
+"""
 
 
 def test_play_clock_drives_sim_time_faster_than_real_time(tmp_path):
@@ -359,13 +423,32 @@ def test_play_clock_drives_sim_time_faster_than_real_time(tmp_path):
     out = tmp_path / 'bag'
     stamps = bag.folder_to_bag(tmp_path / 'imgs', out, rate=2.0)
     env = ros_env(tmp_path)
-    sub = subprocess.Popen([PY, '-c', SIM_TIME_SUBSCRIBER, '10', '40'], env=env, stdout=subprocess.PIPE,
-                           stderr=subprocess.PIPE, text=True)
+    sub = subprocess.Popen(
+        [PY, '-c', SIM_TIME_SUBSCRIBER, '10', '40'], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     try:
         assert sub.stdout.readline().strip() == 'READY', sub.stderr.read()
-        play = subprocess.run([PY, '-m', 'lln_ros.cli.bag', 'play', str(out), '--wait-subscribers', '1',
-                               '--wait-timeout', '20', '--rate', '5', '--clock', '50'],
-                              env=env, capture_output=True, text=True, timeout=90)
+        play = subprocess.run(
+            [
+                PY,
+                '-m',
+                'lln_ros.cli.bag',
+                'play',
+                str(out),
+                '--wait-subscribers',
+                '1',
+                '--wait-timeout',
+                '20',
+                '--rate',
+                '5',
+                '--clock',
+                '50',
+            ],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=90,
+        )
         assert play.returncode == 0, play.stderr
         assert 'bag time on /clock at 50 Hz' in play.stdout, play.stdout
         result, err = sub.communicate(timeout=60)

@@ -1,4 +1,5 @@
 """lln-match as a person runs it: the installed console script, real image files."""
+
 import json
 import subprocess
 import sys

@@ -1,5 +1,6 @@
 """lln-reloc on real image files, as a subprocess (the module entry point: a new console script
 only exists after the package is reinstalled, and the module is what it runs)."""
+
 import json
 import subprocess
 import sys
@@ -12,8 +13,9 @@ from conftest import shared_data
 
 
 def run(*args):
-    return subprocess.run([sys.executable, '-m', 'lln_ros.cli.reloc', *map(str, args)],
-                          capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, '-m', 'lln_ros.cli.reloc', *map(str, args)], capture_output=True, text=True, timeout=300
+    )
 
 
 @pytest.fixture(scope='module')
@@ -34,7 +36,7 @@ def test_json_has_both_pipelines(views):
     assert r['verified_regions'] and r['verified_all']
     assert 15 <= r['inliers_regions'] <= r['regions']['matches']
     assert r['inliers_all'] >= 15 and r['ms_regions'] > 0 and r['ms_all'] > 0
-    assert r['region_pairs'] > 0 and r['regions']['R'] is None   # no intrinsics: F only
+    assert r['region_pairs'] > 0 and r['regions']['R'] is None  # no intrinsics: F only
 
 
 def test_text_plot_and_intrinsics(tmp_path):

@@ -1,19 +1,23 @@
 """Dataset readers: tiny folders made here, and the real layouts in ../shared/data."""
+
 import cv2
 import numpy as np
 import pytest
 
 from conftest import shared_data
-from lln_ros.io import datasets
 from lln_ros.errors import DatasetError
+from lln_ros.io import datasets
 
 
 def write_images(folder, n, blank=(), size=(40, 30)):
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(len(str(folder)))
     for i in range(n):
-        img = np.full((size[1], size[0]), 90, np.uint8) if i in blank else \
-            rng.integers(0, 256, (size[1], size[0]), dtype=np.uint8)
+        img = (
+            np.full((size[1], size[0]), 90, np.uint8)
+            if i in blank
+            else rng.integers(0, 256, (size[1], size[0]), dtype=np.uint8)
+        )
         assert cv2.imwrite(str(folder / f'images-{i * 10:05d}.png'), img)
     return folder
 
@@ -73,9 +77,9 @@ def test_vprbench_layout_clips_missing_refs(tmp_path):
 def test_loop_protocol(tmp_path):
     seq = write_images(tmp_path / 'seq', 30)
     gt = np.zeros((30, 30), np.uint8)
-    gt[25, 3] = gt[25, 20] = 255   # 20 is too recent (gap 10): not an answer
+    gt[25, 3] = gt[25, 20] = 255  # 20 is too recent (gap 10): not an answer
     cv2.imwrite(str(seq / 'zz_gt.bmp'), gt)
-    ds = datasets.loop(seq, seq / 'zz_gt.bmp')   # the matrix in the same folder is not a frame
+    ds = datasets.loop(seq, seq / 'zz_gt.bmp')  # the matrix in the same folder is not a frame
     assert len(ds.ref_paths) == 30
     assert ds.candidates[25, 15] and not ds.candidates[25, 16]
     assert ds.gt[25, 3] and not ds.gt[25, 20] and ds.queries_with_match == 1
@@ -120,8 +124,9 @@ def write_pose_sequence(root, poses, times=None, rate=10.0):
     write_images(root / 'rgb', len(poses))
     frames = sorted((root / 'rgb').iterdir(), key=datasets.natural_key)
     times = np.arange(len(poses)) / rate if times is None else np.asarray(times)
-    (root / 'rgb.txt').write_text('# color images\n# timestamp filename\n' + ''.join(
-        f'{t:.6f} rgb/{f.name}\n' for t, f in zip(times, frames)))
+    (root / 'rgb.txt').write_text(
+        '# color images\n# timestamp filename\n' + ''.join(f'{t:.6f} rgb/{f.name}\n' for t, f in zip(times, frames))
+    )
     # poses at 10x the frame rate, each a little off the frame's time, as motion capture is
     lines = ['# ground truth trajectory', '# timestamp tx ty tz qx qy qz qw']
     for t, p in zip(times, poses):
@@ -137,8 +142,14 @@ def yaw(deg):
 
 def test_pose_sequence_same_place_from_rotation_distance_and_time_gap(tmp_path):
     # frames 0..5: yaw 0, 40, 80, 12, 0 (1 m away), 50 deg, 1 s apart
-    poses = [[0, 0, 0] + yaw(0), [0, 0, 0] + yaw(40), [0, 0, 0] + yaw(80), [0.1, 0, 0] + yaw(12),
-             [1.0, 0, 0] + yaw(0), [0, 0, 0] + yaw(50)]
+    poses = [
+        [0, 0, 0] + yaw(0),
+        [0, 0, 0] + yaw(40),
+        [0, 0, 0] + yaw(80),
+        [0.1, 0, 0] + yaw(12),
+        [1.0, 0, 0] + yaw(0),
+        [0, 0, 0] + yaw(50),
+    ]
     write_pose_sequence(tmp_path, poses, rate=1.0)
     ds = datasets.parse_spec(f'poses:{tmp_path}')  # 15 deg, 0.3 m, 2 s
     assert len(ds.query_paths) == 6 and ds.ref_paths == ds.query_paths

@@ -1,6 +1,7 @@
 """lln-demo, the README's first command: a tiny aligned dataset (crops of a real photograph) through
 the real nodes (two extractors and the matcher as separate processes over DDS), online figures equal
 to the offline evaluator's; outputs; bad input; clean-up on Ctrl-C; the default dataset."""
+
 import json
 import os
 import signal
@@ -33,6 +34,7 @@ def tiny_dataset(tmp_path_factory) -> str:
     """Two 'traverses' of one photograph: map frames are 10 crops; query frames are the same places
     shifted by a few pixels, darker, with sensor noise (same index = same place, tolerance 0)."""
     import matplotlib.cbook as cbook
+
     root = tmp_path_factory.mktemp('tiny')
     (root / 'map').mkdir()
     (root / 'query').mkdir()
@@ -44,8 +46,8 @@ def tiny_dataset(tmp_path_factory) -> str:
     assert len(places) == FRAMES
     for i, (y, x) in enumerate(places):
         yq, xq = min(y + 9, bgr.shape[0] - h), min(x + 14, bgr.shape[1] - w)
-        query = bgr[yq:yq + h, xq:xq + w].astype(np.float32) * 0.75 + 10 + rng.normal(0, 4, (h, w, 3))
-        cv2.imwrite(str(root / 'map' / f'{i:03d}.png'), bgr[y:y + h, x:x + w])
+        query = bgr[yq : yq + h, xq : xq + w].astype(np.float32) * 0.75 + 10 + rng.normal(0, 4, (h, w, 3))
+        cv2.imwrite(str(root / 'map' / f'{i:03d}.png'), bgr[y : y + h, x : x + w])
         cv2.imwrite(str(root / 'query' / f'{i:03d}.png'), np.clip(query, 0, 255).astype(np.uint8))
     return f'aligned:{root / "map"},{root / "query"},0'
 
@@ -55,11 +57,16 @@ def tiny_run(tiny_dataset, tmp_path_factory):
     out = tmp_path_factory.mktemp('demo') / 'out'
     done = run_demo('--dataset', tiny_dataset, '--out', str(out))
     assert done.returncode == 0, f'{done.stdout}\n{done.stderr}'
-    return {'out': out, 'stdout': done.stdout, 'stderr': done.stderr,
-            'results': json.loads((out / 'results_online.json').read_text())}
+    return {
+        'out': out,
+        'stdout': done.stdout,
+        'stderr': done.stderr,
+        'results': json.loads((out / 'results_online.json').read_text()),
+    }
 
 
 # ------------------------------------------------------------------------------------ the real run
+
 
 def test_online_equals_offline(tiny_run):
     r = tiny_run['results']
@@ -110,14 +117,24 @@ def test_nodes_ran_as_ros2_run_would_and_stopped_cleanly(tiny_run):
 
 def test_outputs_exist(tiny_run):
     from lln_ros.io import bag
+
     out = tiny_run['out']
-    for name in ('results_online.json', 'results_online.md', 'answers_online.csv', 'pr_online.png',
-                 'map.db', 'offline/results.json', 'offline/results.md', 'logs/matcher.log'):
+    for name in (
+        'results_online.json',
+        'results_online.md',
+        'answers_online.csv',
+        'pr_online.png',
+        'map.db',
+        'offline/results.json',
+        'offline/results.md',
+        'logs/matcher.log',
+    ):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     for name in ('map_bag', 'query_bag'):
         info = bag.bag_info(out / name)
         assert info['storage'] == 'mcap' and info['topics'] == {
-            '/camera/image_raw': {'type': 'sensor_msgs/msg/Image', 'count': FRAMES}}
+            '/camera/image_raw': {'type': 'sensor_msgs/msg/Image', 'count': FRAMES}
+        }
     examples = tiny_run['results']['figures']['examples']
     assert examples and all((out / ex['file']).stat().st_size > 10_000 and ex['pairs'] > 0 for ex in examples)
     assert cv2.imread(str(out / 'pr_online.png')) is not None
@@ -129,18 +146,32 @@ def test_outputs_exist(tiny_run):
 
 # ----------------------------------------------------------------------------------- bad input
 
-@pytest.mark.parametrize('args, message', [
-    (['--dataset', 'aligned:/nonexistent/a,/nonexistent/b'], 'does not exist'),
-    (['--dataset', 'nordland:x'], 'cannot parse dataset'),
-    (['--dataset', 'loop:/x,/y.bmp'], 'two traverses'),
-    (['--dataset', 'gardenspoint:/nonexistent/gp'], 'add --download'),
-    (['--range', '1:0.5'], '--range'),
-    (['--range', 'half'], '--range'),
-    (['--top-n', '0'], '--top-n'),
-    (['--prefilter-k', '-1'], '--prefilter-k'),
-    (['--weights', '/nonexistent.pt'], '--weights'),
-], ids=['missing-folders', 'unknown-kind', 'loop', 'gardenspoint-no-download', 'range-order', 'range-text',
-        'top-n', 'prefilter-k', 'weights'])
+
+@pytest.mark.parametrize(
+    'args, message',
+    [
+        (['--dataset', 'aligned:/nonexistent/a,/nonexistent/b'], 'does not exist'),
+        (['--dataset', 'nordland:x'], 'cannot parse dataset'),
+        (['--dataset', 'loop:/x,/y.bmp'], 'two traverses'),
+        (['--dataset', 'gardenspoint:/nonexistent/gp'], 'add --download'),
+        (['--range', '1:0.5'], '--range'),
+        (['--range', 'half'], '--range'),
+        (['--top-n', '0'], '--top-n'),
+        (['--prefilter-k', '-1'], '--prefilter-k'),
+        (['--weights', '/nonexistent.pt'], '--weights'),
+    ],
+    ids=[
+        'missing-folders',
+        'unknown-kind',
+        'loop',
+        'gardenspoint-no-download',
+        'range-order',
+        'range-text',
+        'top-n',
+        'prefilter-k',
+        'weights',
+    ],
+)
 def test_bad_input_exits_2_before_anything_runs(tiny_dataset, tmp_path, capsys, args, message):
     out = tmp_path / 'out'
     argv = ['--out', str(out)] + (args if '--dataset' in args else ['--dataset', tiny_dataset] + args)
@@ -150,8 +181,11 @@ def test_bad_input_exits_2_before_anything_runs(tiny_dataset, tmp_path, capsys, 
     assert not out.exists(), 'nothing is written for bad input'
 
 
-@pytest.mark.parametrize('args', [['--rate', '0'], ['--rate', '-3'], ['--method', 'nope'], []],
-                         ids=['rate-zero', 'rate-negative', 'method', 'no-out'])
+@pytest.mark.parametrize(
+    'args',
+    [['--rate', '0'], ['--rate', '-3'], ['--method', 'nope'], []],
+    ids=['rate-zero', 'rate-negative', 'method', 'no-out'],
+)
 def test_bad_arguments_exit_2(tmp_path, capsys, args):
     argv = args + (['--out', str(tmp_path / 'o')] if args else [])
     with pytest.raises(SystemExit) as e:
@@ -185,6 +219,7 @@ def test_download_calls_fetch_gardenspoint(tmp_path, monkeypatch, capsys):
     """--download on a Gardens Point folder that lacks its traverses fetches it (here a stub that
     writes a tiny copy; the download itself is tested against a loopback server elsewhere)."""
     import lln_ros.io.download as download
+
     calls = []
 
     def fake_fetch(root, url, progress=True, **kw):
@@ -195,15 +230,30 @@ def test_download_calls_fetch_gardenspoint(tmp_path, monkeypatch, capsys):
             for i in range(3):
                 cv2.imwrite(str(Path(root) / sub / f'{i}.png'), rng.integers(0, 255, (64, 96, 3), np.uint8))
         return ['day_right', 'night_right']
+
     monkeypatch.setattr(download, 'fetch_gardenspoint', fake_fetch)
     root = tmp_path / 'gp'
-    assert demo.main(['--dataset', f'gardenspoint:{root}', '--download', '--download-url', 'http://127.0.0.1:9/x.zip',
-                      '--out', str(tmp_path / 'o'), '--check']) == 0
+    assert (
+        demo.main(
+            [
+                '--dataset',
+                f'gardenspoint:{root}',
+                '--download',
+                '--download-url',
+                'http://127.0.0.1:9/x.zip',
+                '--out',
+                str(tmp_path / 'o'),
+                '--check',
+            ]
+        )
+        == 0
+    )
     assert calls == [(str(root), 'http://127.0.0.1:9/x.zip')]
     assert '3 map frames, 3 queries' in capsys.readouterr().out
 
 
 # ------------------------------------------------------------------------------- executables, reruns
+
 
 def test_executables_from_the_ament_prefix_first(tmp_path, monkeypatch):
     prefix = tmp_path / 'install' / 'lln_ros'
@@ -234,6 +284,7 @@ def test_rerun_replaces_only_its_own_outputs(tmp_path):
 
 # ------------------------------------------------------------------------------------------ Ctrl-C
 
+
 def _children(pid: int) -> list[int]:
     out = []
     for stat in Path('/proc').glob('[0-9]*/stat'):
@@ -256,9 +307,13 @@ def _gone(pid: int) -> bool:
 
 def test_ctrl_c_stops_every_node(tiny_dataset, tmp_path):
     # played at 1 Hz, so the run lasts long enough for the interrupt to land mid-run on any machine
-    proc = subprocess.Popen([*DEMO, '--dataset', tiny_dataset, '--out', str(tmp_path / 'out'), '--no-offline',
-                             '--rate', '1'],
-                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [*DEMO, '--dataset', tiny_dataset, '--out', str(tmp_path / 'out'), '--no-offline', '--rate', '1'],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         deadline = time.monotonic() + 120
         kids = []
@@ -278,6 +333,7 @@ def test_ctrl_c_stops_every_node(tiny_dataset, tmp_path):
 
 
 # ------------------------------------------------------------------------------ the default dataset
+
 
 def test_default_dataset_is_the_nordland_test_split(tmp_path):
     shared_data('nordland_trimmed')

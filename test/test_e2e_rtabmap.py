@@ -1,6 +1,7 @@
 """End to end, real processes and real DDS: rtabmap_loop as an MCAP bag, played into the
 colcon-installed extractor and matcher (mapping mode: online loop-closure detection), every
 `candidates` message scored against samples_GT.bmp."""
+
 import json
 import subprocess
 
@@ -11,8 +12,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import PointCloud2
 
 from conftest import shared_data
-from lln_ros.io import bag
 from lln_ros import msgs
+from lln_ros.io import bag
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 
 # the extractor keeps only the newest waiting frame (by design: bounded latency), so at a fixed rate a
@@ -49,41 +50,89 @@ def play_rtabmap(colcon_install, tmp, matcher_params: list) -> dict:
     stamps = bag.write_image_bag(frames, tmp / 'rtabmap_bag', topic='/camera/image_raw', rate=RATE_HZ)
     env = installed_env(colcon_install, ros_env(tmp))
     lib = colcon_install / 'lln_ros' / 'lib' / 'lln_ros'
-    matcher = RosProcess(lib / 'matcher', ['-p', f'map_path:={tmp / "map.db"}', '-p', 'mode:=mapping',
-                                           '-p', f'exclude_recent:={GAP - 1}', *matcher_params,
-                                           '-r', 'query:=landmarks'], env, tmp / 'matcher.log')
-    extractor = RosProcess(lib / 'extractor', ['-p', 'reliability:=reliable', '-p', 'num_threads:=1',
-                                               '-r', 'image:=/camera/image_raw'], env, tmp / 'extractor.log')
+    matcher = RosProcess(
+        lib / 'matcher',
+        [
+            '-p',
+            f'map_path:={tmp / "map.db"}',
+            '-p',
+            'mode:=mapping',
+            '-p',
+            f'exclude_recent:={GAP - 1}',
+            *matcher_params,
+            '-r',
+            'query:=landmarks',
+        ],
+        env,
+        tmp / 'matcher.log',
+    )
+    extractor = RosProcess(
+        lib / 'extractor',
+        ['-p', 'reliability:=reliable', '-p', 'num_threads:=1', '-r', 'image:=/camera/image_raw'],
+        env,
+        tmp / 'extractor.log',
+    )
     try:
         with Probe(env) as probe:
-            got = probe.collect(PointCloud2, 'candidates', lambda m: (msgs.stamp_to_ns(m.header),
-                                                                       msgs.cloud_to_candidates(m)))
+            got = probe.collect(
+                PointCloud2, 'candidates', lambda m: (msgs.stamp_to_ns(m.header), msgs.cloud_to_candidates(m))
+            )
             diag = {}  # the nodes' latest counters, to say where a missing answer was lost
-            probe.node.create_subscription(DiagnosticArray, '/diagnostics', lambda m: diag.update(
-                {st.name: {kv.key: kv.value for kv in st.values} for st in m.status}), 50)
-            probe.spin_until(lambda: probe.node.count_publishers('candidates') > 0
-                             and probe.node.count_subscribers('/camera/image_raw') > 0
-                             and probe.node.count_subscribers('landmarks') > 0, 300, 'both nodes up')
+            probe.node.create_subscription(
+                DiagnosticArray,
+                '/diagnostics',
+                lambda m: diag.update({st.name: {kv.key: kv.value for kv in st.values} for st in m.status}),
+                50,
+            )
+            probe.spin_until(
+                lambda: (
+                    probe.node.count_publishers('candidates') > 0
+                    and probe.node.count_subscribers('/camera/image_raw') > 0
+                    and probe.node.count_subscribers('landmarks') > 0
+                ),
+                300,
+                'both nodes up',
+            )
             # the graph shows the matcher's subscription before the extractor's publisher has matched
             # it; a frame published in between would be lost, so let endpoint matching settle
             probe.spin_for(2.0)
             # played by a separate process, as `ros2 bag play` would be
-            play = subprocess.Popen([str(lib / 'lln-bag'), 'play', str(tmp / 'rtabmap_bag'), '--wait-subscribers',
-                                     '1', '--wait-timeout', '30', '--pace', 'landmarks', '--pace-timeout', '60'],
-                                    env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            play = subprocess.Popen(
+                [
+                    str(lib / 'lln-bag'),
+                    'play',
+                    str(tmp / 'rtabmap_bag'),
+                    '--wait-subscribers',
+                    '1',
+                    '--wait-timeout',
+                    '30',
+                    '--pace',
+                    'landmarks',
+                    '--pace-timeout',
+                    '60',
+                ],
+                env=env,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+            )
             try:
-                probe.spin_until(lambda: len(got) >= len(frames) or play.poll() not in (None, 0), 600,
-                                 'an answer for every frame')
+                probe.spin_until(
+                    lambda: len(got) >= len(frames) or play.poll() not in (None, 0), 600, 'an answer for every frame'
+                )
             except TimeoutError as e:
                 answered = {t for t, _ in got}
                 missing = [i for i, t in enumerate(stamps) if t not in answered]
-                raise TimeoutError(f'{e}: {len(got)} answers of {len(frames)}, frames {missing[:10]} unanswered; '
-                                   f'player: {play.poll()}; counters {diag}\nmatcher log:\n{matcher.log()}'
-                                   f'\nextractor log:\n{extractor.log()}') from None
+                raise TimeoutError(
+                    f'{e}: {len(got)} answers of {len(frames)}, frames {missing[:10]} unanswered; '
+                    f'player: {play.poll()}; counters {diag}\nmatcher log:\n{matcher.log()}'
+                    f'\nextractor log:\n{extractor.log()}'
+                ) from None
             played = play.communicate(timeout=30)[0]
             assert play.returncode == 0, played
             probe.spin_for(1.0)
             from std_srvs.srv import Trigger
+
             info = json.loads(probe.call(Trigger, '/lln_matcher/info').message)
         assert matcher.alive() and extractor.alive()
     finally:
@@ -122,8 +171,10 @@ def test_loop_detection_against_ground_truth(rtabmap_run):
     loop_rows = np.array(rows) >= 40
     top1 = correct[loop_rows].sum() / positives
     recall = recall_at_precision(correct, scores, positives, 0.95)
-    print(f'\nrtabmap_loop online: top-1 correct on loop rows {correct[loop_rows].sum()}/{positives} '
-          f'({top1:.3f}); recall {recall:.3f} at precision >= 0.95 over all {len(rows)} answered queries')
+    print(
+        f'\nrtabmap_loop online: top-1 correct on loop rows {correct[loop_rows].sum()}/{positives} '
+        f'({top1:.3f}); recall {recall:.3f} at precision >= 0.95 over all {len(rows)} answered queries'
+    )
     # issue 4's target, with the shipped (trained) head and single-frame matching: recall >= 0.85
     # at precision >= 0.95, counting answers to the 40 loop-free rows as false detections
     assert top1 >= 0.85

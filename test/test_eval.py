@@ -1,5 +1,6 @@
 """lln-eval and lln_ros.eval on real pixels: a tiny aligned set cut from the photograph matplotlib
 ships, the Gardens Point download against a loopback HTTP server, bad input, and rtabmap_loop."""
+
 import functools
 import http.server
 import json
@@ -14,18 +15,17 @@ import numpy as np
 import pytest
 
 from conftest import shared_data
-from lln_ros.io import datasets
 from lln_ros.cli.eval import main
-from lln_ros.io.download import fetch_gardenspoint
-from lln_ros.eval import METHODS, REPORT_KEYS, Head, evaluate, parse_head
-from lln_ros.eval.methods import variant
 from lln_ros.core.landmarks import stack_landmarks
-from lln_ros.eval.report import markdown
 from lln_ros.core.lln import LLNHead, head_fingerprint, save_checkpoint
 from lln_ros.core.retrieval import rank_all
+from lln_ros.eval import METHODS, REPORT_KEYS, Head, evaluate, parse_head
+from lln_ros.eval.methods import variant
+from lln_ros.eval.report import markdown
+from lln_ros.io import datasets
+from lln_ros.io.download import fetch_gardenspoint
 
-REQUIRED = {'p_at_100r', 'r_at_1', 'r_at_5', 'r_at_10', 'auc_pr', 'r_at_100p', 'extract_ms',
-            'match_ms_per_pair', 'n'}
+REQUIRED = {'p_at_100r', 'r_at_1', 'r_at_5', 'r_at_10', 'auc_pr', 'r_at_100p', 'extract_ms', 'match_ms_per_pair', 'n'}
 FRACTIONS = ('p_at_100r', 'r_at_1', 'r_at_5', 'r_at_10', 'auc_pr', 'r_at_100p')
 
 
@@ -35,6 +35,7 @@ def one_torch_thread(extractor):
     run ~10x slower. torch's setting is process-wide (the session `extractor` sets it when built,
     hence built first), so it is restored for the other test files."""
     import torch
+
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     yield
@@ -53,7 +54,7 @@ def crops(photo, count=12, shift=(0, 0), gain=1.0, size=(160, 120)):
     for i in range(count):
         r, c = divmod(i, 3)
         y, x = 20 + r * 140 + shift[1], 16 + c * 160 + shift[0]
-        out.append(np.clip(photo[y:y + h, x:x + w].astype(np.float32) * gain, 0, 255).astype(np.uint8))
+        out.append(np.clip(photo[y : y + h, x : x + w].astype(np.float32) * gain, 0, 255).astype(np.uint8))
     return out
 
 
@@ -71,6 +72,7 @@ def tiny(tmp_path_factory, photo):
 def other_head(extractor, tmp_path_factory):
     """A head checkpoint that stands in for a trained head: the Xavier init (seed 0), then moved."""
     import torch
+
     head = LLNHead(extractor.backbone.dim)
     generator = torch.Generator().manual_seed(1)
     with torch.no_grad():
@@ -85,10 +87,23 @@ def other_head(extractor, tmp_path_factory):
 def tiny_run(tiny, extractor, other_head, tmp_path_factory):
     out = tmp_path_factory.mktemp('eval')
     ds = datasets.parse_spec(f'aligned:{tiny / "ref"},{tiny / "query"},0')
-    conf = {'top_n': 20, 'prefilter': 'holistic', 'prefilter_k': 5, 'cache_dir': str(out / 'cache'),
-            'timing_images': 2, 'timing_queries': 4, 'examples': 1}
-    run = evaluate([ds], extractor, conf, [Head('other', str(other_head)), Head('untrained', None)],
-                   out_dir=out / 'results', specs=['tiny'])
+    conf = {
+        'top_n': 20,
+        'prefilter': 'holistic',
+        'prefilter_k': 5,
+        'cache_dir': str(out / 'cache'),
+        'timing_images': 2,
+        'timing_queries': 4,
+        'examples': 1,
+    }
+    run = evaluate(
+        [ds],
+        extractor,
+        conf,
+        [Head('other', str(other_head)), Head('untrained', None)],
+        out_dir=out / 'results',
+        specs=['tiny'],
+    )
     return run, out / 'results', ds
 
 
@@ -96,15 +111,26 @@ def test_landmark_first_stage_reported_for_every_prefilter(tiny_run, extractor):
     """The default first stage (landmarks): every local method reranks its own landmark top-K, and
     the dataset entry reports recall@K and ms/query of the holistic and landmark first stages."""
     _, out, ds = tiny_run
-    run = evaluate([ds], extractor, {'methods': 'holistic,lln', 'top_n': 20, 'prefilter_k': 5, 'plots': False,
-                                     'cache_dir': str(out.parent / 'cache'), 'timing_images': 1,
-                                     'timing_queries': 1, 'timing_repeats': 1})
+    run = evaluate(
+        [ds],
+        extractor,
+        {
+            'methods': 'holistic,lln',
+            'top_n': 20,
+            'prefilter_k': 5,
+            'plots': False,
+            'cache_dir': str(out.parent / 'cache'),
+            'timing_images': 1,
+            'timing_queries': 1,
+            'timing_repeats': 1,
+        },
+    )
     entry = run.results['datasets']['ref-vs-query']
     assert run.results['parameters']['prefilter'] == 'landmarks'
     stages = entry['first_stage']
     assert set(stages) == {'holistic', 'landmarks'}
     for st in stages.values():
-        assert set(st['recall_at']) == {'1', '5', '10'} and st['ms_per_query'] > 0   # 12 refs: K <= 12
+        assert set(st['recall_at']) == {'1', '5', '10'} and st['ms_per_query'] > 0  # 12 refs: K <= 12
         assert 0 <= st['recall_at']['1'] <= st['recall_at']['5'] <= st['recall_at']['10'] <= 1
     ranked, _ = run.datasets['ref-vs-query'].rankings['lln']
     assert ranked.shape == (12, 5) and (ranked >= 0).all()
@@ -157,6 +183,7 @@ def test_every_local_method_reranks_the_same_holistic_top_k(tiny_run):
 def test_rankings_equal_direct_extraction(tiny_run, tiny, extractor):
     """The cached-feature path gives the ranking a plain Extractor gives from the image files."""
     from lln_ros.io.image import load_image
+
     run, _, ds = tiny_run
     v = variant(extractor, 'all', 20)
     qs = v.extract_batch([load_image(str(p)) for p in ds.query_paths])
@@ -208,10 +235,33 @@ def test_cli_trained_vs_untrained_in_one_command(tiny, tiny_run, other_head, tmp
     """--heads and --weights/--label give one lln row per head, next to the head-free baselines."""
     _, results_dir, _ = tiny_run
     cache = results_dir.parent / 'cache'  # features from tiny_run: no backbone pass but the timing
-    rc = run_cli('--dataset', f'aligned:{tiny / "ref"},{tiny / "query"},0', '--methods', 'holistic,lln,all',
-                 '--top-n', 20, '--prefilter-k', 5, '--out', tmp_path / 'a', '--cache', cache,
-                 '--heads', f'trained={other_head},untrained=', '--timing-images', 1, '--timing-queries', 2,
-                 '--examples', 0, '--heatmap-images', 2, '--threads', 1, '--quiet')
+    rc = run_cli(
+        '--dataset',
+        f'aligned:{tiny / "ref"},{tiny / "query"},0',
+        '--methods',
+        'holistic,lln,all',
+        '--top-n',
+        20,
+        '--prefilter-k',
+        5,
+        '--out',
+        tmp_path / 'a',
+        '--cache',
+        cache,
+        '--heads',
+        f'trained={other_head},untrained=',
+        '--timing-images',
+        1,
+        '--timing-queries',
+        2,
+        '--examples',
+        0,
+        '--heatmap-images',
+        2,
+        '--threads',
+        1,
+        '--quiet',
+    )
     assert rc == 0, capsys.readouterr().err
     results = json.loads((tmp_path / 'a' / 'results.json').read_text())
     entry = results['datasets']['ref-vs-query']
@@ -219,10 +269,36 @@ def test_cli_trained_vs_untrained_in_one_command(tiny, tiny_run, other_head, tmp
     assert results['parameters']['command'].startswith('lln-eval --dataset aligned:')
     assert (tmp_path / 'a' / 'ref-vs-query_heatmaps.png').is_file()
 
-    rc = run_cli('--dataset', f'aligned:{tiny / "ref"},{tiny / "query"},0', '--methods', 'lln',
-                 '--top-n', 20, '--prefilter-k', 5, '--out', tmp_path / 'b', '--cache', cache,
-                 '--weights', other_head, '--label', 'mine', '--weights', '', '--label', 'xavier',
-                 '--timing-images', 1, '--timing-queries', 2, '--no-plots', '--threads', 1, '--quiet')
+    rc = run_cli(
+        '--dataset',
+        f'aligned:{tiny / "ref"},{tiny / "query"},0',
+        '--methods',
+        'lln',
+        '--top-n',
+        20,
+        '--prefilter-k',
+        5,
+        '--out',
+        tmp_path / 'b',
+        '--cache',
+        cache,
+        '--weights',
+        other_head,
+        '--label',
+        'mine',
+        '--weights',
+        '',
+        '--label',
+        'xavier',
+        '--timing-images',
+        1,
+        '--timing-queries',
+        2,
+        '--no-plots',
+        '--threads',
+        1,
+        '--quiet',
+    )
     assert rc == 0, capsys.readouterr().err
     methods = json.loads((tmp_path / 'b' / 'results.json').read_text())['datasets']['ref-vs-query']['methods']
     assert list(methods) == ['lln[mine]', 'lln[xavier]']
@@ -234,15 +310,38 @@ def test_cli_exhaustive_prefilter_scores_every_reference(tiny, tiny_run, extract
     """--prefilter-k 0: every local method ranks all 12 references by S (no holistic cap), X+seq too,
     and the report says so."""
     _, results_dir, ds = tiny_run
-    rc = run_cli('--dataset', f'aligned:{tiny / "ref"},{tiny / "query"},0', '--methods', 'holistic,act',
-                 '--top-n', 20, '--prefilter-k', 0, '--sequence', 3, '--out', tmp_path / 'x',
-                 '--cache', results_dir.parent / 'cache', '--timing-images', 1, '--timing-queries', 2,
-                 '--examples', 0, '--no-plots', '--threads', 1, '--quiet')
+    rc = run_cli(
+        '--dataset',
+        f'aligned:{tiny / "ref"},{tiny / "query"},0',
+        '--methods',
+        'holistic,act',
+        '--top-n',
+        20,
+        '--prefilter-k',
+        0,
+        '--sequence',
+        3,
+        '--out',
+        tmp_path / 'x',
+        '--cache',
+        results_dir.parent / 'cache',
+        '--timing-images',
+        1,
+        '--timing-queries',
+        2,
+        '--examples',
+        0,
+        '--no-plots',
+        '--threads',
+        1,
+        '--quiet',
+    )
     assert rc == 0, capsys.readouterr().err
     results = json.loads((tmp_path / 'x' / 'results.json').read_text())
     assert results['parameters']['prefilter_k'] == 0
     assert list(results['datasets']['ref-vs-query']['methods']) == ['holistic', 'act', 'holistic+seq', 'act+seq']
     from lln_ros.io.image import load_image
+
     v = variant(extractor, 'act', 20)
     refs = v.extract_batch([load_image(str(p)) for p in ds.ref_paths])
     queries = v.extract_batch([load_image(str(p)) for p in ds.query_paths])
@@ -251,17 +350,38 @@ def test_cli_exhaustive_prefilter_scores_every_reference(tiny, tiny_run, extract
     top1 = np.mean(ds.gt[np.arange(12), ranked[:, 0]])
     # within one query: features are cached as float16
     assert abs(results['datasets']['ref-vs-query']['methods']['act']['p_at_100r'] - top1) <= 1 / 12 + 1e-9
-    run = evaluate([datasets.parse_spec(f'aligned:{tiny / "ref"},{tiny / "query"},0')], extractor,
-                   {'methods': 'act', 'top_n': 20, 'prefilter_k': 0, 'sequence': 3, 'plots': False,
-                    'cache_dir': str(results_dir.parent / 'cache'), 'timing_images': 1, 'timing_queries': 1})
+    run = evaluate(
+        [datasets.parse_spec(f'aligned:{tiny / "ref"},{tiny / "query"},0')],
+        extractor,
+        {
+            'methods': 'act',
+            'top_n': 20,
+            'prefilter_k': 0,
+            'sequence': 3,
+            'plots': False,
+            'cache_dir': str(results_dir.parent / 'cache'),
+            'timing_images': 1,
+            'timing_queries': 1,
+        },
+    )
     rankings = run.datasets['ref-vs-query'].rankings
     assert rankings['act'][0].shape == rankings['act+seq'][0].shape == (12, 12)
     assert (np.sort(rankings['act'][0], axis=1) == np.arange(12)).all()
     assert (ranked[:, 0] == rankings['act'][0][:, 0]).mean() >= 11 / 12
     md = (tmp_path / 'x' / 'results.md').read_text()
     assert 'scores every reference' in md and 'Exhaustive (prefilter_k 0)' in md
-    assert run_cli('--dataset', f'aligned:{tiny / "ref"},{tiny / "query"},0', '--prefilter-k', -1,
-                   '--out', tmp_path / 'y', '--quiet') == 2
+    assert (
+        run_cli(
+            '--dataset',
+            f'aligned:{tiny / "ref"},{tiny / "query"},0',
+            '--prefilter-k',
+            -1,
+            '--out',
+            tmp_path / 'y',
+            '--quiet',
+        )
+        == 2
+    )
     assert '--prefilter-k at least 0' in capsys.readouterr().err
 
 
@@ -294,8 +414,18 @@ def bad_inputs(tmp_path_factory, photo):
     return root, make_bad_inputs(root, photo)
 
 
-@pytest.mark.parametrize('case', ['missing folder', 'unequal lengths', 'ground truth shape', 'unreadable image',
-                                  'missing vprbench gt', 'unknown kind', 'gardens point layout'])
+@pytest.mark.parametrize(
+    'case',
+    [
+        'missing folder',
+        'unequal lengths',
+        'ground truth shape',
+        'unreadable image',
+        'missing vprbench gt',
+        'unknown kind',
+        'gardens point layout',
+    ],
+)
 def test_bad_dataset_is_one_line_before_any_extraction(case, bad_inputs, tmp_path, capsys):
     root, cases = bad_inputs
     spec, message = cases[case]
@@ -309,29 +439,50 @@ def test_bad_dataset_is_one_line_before_any_extraction(case, bad_inputs, tmp_pat
     assert not (tmp_path / 'cache').exists() and not (tmp_path / 'out').exists()
 
 
-@pytest.mark.parametrize('args, message', [
-    (['--methods', 'lln,delf'], "unknown method(s) ['delf']"),
-    (['--range', '0.5'], '--range must be START:END'),
-    (['--range', '0.7:1.5'], '0 <= START < END <= 1'),
-    (['--label', 'x'], '--label given 1 times'),
-    (['--heads', 'trained'], 'LABEL=CKPT'),
-    (['--heads', 'a=,a=xavier'], 'distinct'),
-    (['--weights', 'missing.pt'], 'checkpoint not found'),
-    (['--top-n', '0'], 'at least 1'),
-])
+@pytest.mark.parametrize(
+    'args, message',
+    [
+        (['--methods', 'lln,delf'], "unknown method(s) ['delf']"),
+        (['--range', '0.5'], '--range must be START:END'),
+        (['--range', '0.7:1.5'], '0 <= START < END <= 1'),
+        (['--label', 'x'], '--label given 1 times'),
+        (['--heads', 'trained'], 'LABEL=CKPT'),
+        (['--heads', 'a=,a=xavier'], 'distinct'),
+        (['--weights', 'missing.pt'], 'checkpoint not found'),
+        (['--top-n', '0'], 'at least 1'),
+    ],
+)
 def test_bad_options_are_one_line(args, message, bad_inputs, tmp_path, capsys):
     root, _ = bad_inputs
-    rc = run_cli('--dataset', f'aligned:{root / "a"},{root / "b"}', '--out', tmp_path / 'out',
-                 '--cache', tmp_path / 'cache', *args)
+    rc = run_cli(
+        '--dataset',
+        f'aligned:{root / "a"},{root / "b"}',
+        '--out',
+        tmp_path / 'out',
+        '--cache',
+        tmp_path / 'cache',
+        *args,
+    )
     err = capsys.readouterr().err
     assert rc == 2 and len(err.strip().splitlines()) == 1 and message in err, err
     assert not (tmp_path / 'cache').exists()
 
 
 def test_module_entry_point_exits_2(tmp_path):
-    out = subprocess.run([sys.executable, '-m', 'lln_ros.cli.eval', '--dataset', f'aligned:{tmp_path / "x"},'
-                          f'{tmp_path / "y"}', '--out', str(tmp_path / 'o')], capture_output=True, text=True,
-                         timeout=120)
+    out = subprocess.run(
+        [
+            sys.executable,
+            '-m',
+            'lln_ros.cli.eval',
+            '--dataset',
+            f'aligned:{tmp_path / "x"},{tmp_path / "y"}',
+            '--out',
+            str(tmp_path / 'o'),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert out.returncode == 2 and 'does not exist' in out.stderr and 'Traceback' not in out.stderr
 
 
@@ -353,8 +504,9 @@ class Server:
                 outer.requests.append(self.path)
                 super().do_GET()
 
-        self.httpd = http.server.ThreadingHTTPServer(('127.0.0.1', 0),
-                                                     functools.partial(Handler, directory=str(folder)))
+        self.httpd = http.server.ThreadingHTTPServer(
+            ('127.0.0.1', 0), functools.partial(Handler, directory=str(folder))
+        )
         self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
         self.thread.start()
         self.url = f'http://127.0.0.1:{self.httpd.server_address[1]}'
@@ -393,10 +545,33 @@ def test_download_then_evaluate(server, tmp_path, capsys):
     root = tmp_path / 'gp'
     url = f'{server.url}/GardensPoint_Walking.zip'
     before = len(server.requests)
-    rc = run_cli('--dataset', f'gardenspoint:{root}', '--download', '--download-url', url, '--methods',
-                 'holistic,all', '--top-n', 10, '--prefilter-k', 3, '--out', tmp_path / 'out',
-                 '--cache', tmp_path / 'cache', '--timing-images', 1, '--timing-queries', 2, '--examples', 1,
-                 '--heatmap-images', 0, '--threads', 1)
+    rc = run_cli(
+        '--dataset',
+        f'gardenspoint:{root}',
+        '--download',
+        '--download-url',
+        url,
+        '--methods',
+        'holistic,all',
+        '--top-n',
+        10,
+        '--prefilter-k',
+        3,
+        '--out',
+        tmp_path / 'out',
+        '--cache',
+        tmp_path / 'cache',
+        '--timing-images',
+        1,
+        '--timing-queries',
+        2,
+        '--examples',
+        1,
+        '--heatmap-images',
+        0,
+        '--threads',
+        1,
+    )
     captured = capsys.readouterr()
     assert rc == 0, captured.err
     assert server.requests[before:] == ['/GardensPoint_Walking.zip']
@@ -409,8 +584,16 @@ def test_download_then_evaluate(server, tmp_path, capsys):
     assert entry['methods']['all']['p_at_100r'] >= 0.75  # +-2 frames of 4: nearly everything is right
 
     # the layout is there now: a second run does not download again
-    rc = run_cli('--dataset', f'gardenspoint:{root},day_left,night_right', '--download', '--download-url', url,
-                 '--out', tmp_path / 'out2', '--check')
+    rc = run_cli(
+        '--dataset',
+        f'gardenspoint:{root},day_left,night_right',
+        '--download',
+        '--download-url',
+        url,
+        '--out',
+        tmp_path / 'out2',
+        '--check',
+    )
     assert rc == 0 and len(server.requests) == before + 1
 
 
@@ -421,15 +604,28 @@ def test_download_nested_archive(server, tmp_path):
     assert len(ds.query_paths) == 4 and ds.gt.shape == (4, 4)
 
 
-@pytest.mark.parametrize('name, message', [
-    ('garbage.zip', 'is not a zip archive'),
-    ('no_night.zip', 'lacks the Gardens Point folders'),
-    ('missing.zip', 'cannot download'),
-])
+@pytest.mark.parametrize(
+    'name, message',
+    [
+        ('garbage.zip', 'is not a zip archive'),
+        ('no_night.zip', 'lacks the Gardens Point folders'),
+        ('missing.zip', 'cannot download'),
+    ],
+)
 def test_download_failures_are_one_line(name, message, server, tmp_path, capsys):
     root = tmp_path / 'gp'
-    rc = run_cli('--dataset', f'gardenspoint:{root}', '--download', '--download-url', f'{server.url}/{name}',
-                 '--out', tmp_path / 'out', '--cache', tmp_path / 'cache', '--quiet')
+    rc = run_cli(
+        '--dataset',
+        f'gardenspoint:{root}',
+        '--download',
+        '--download-url',
+        f'{server.url}/{name}',
+        '--out',
+        tmp_path / 'out',
+        '--cache',
+        tmp_path / 'cache',
+        '--quiet',
+    )
     err = capsys.readouterr().err
     assert rc == 2 and message in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / 'cache').exists() and list(root.iterdir()) == []  # nothing half-written
@@ -438,9 +634,17 @@ def test_download_failures_are_one_line(name, message, server, tmp_path, capsys)
 def test_download_waits_for_every_other_dataset(server, bad_inputs, tmp_path, capsys):
     root, cases = bad_inputs
     before = len(server.requests)
-    rc = run_cli('--dataset', f'gardenspoint:{tmp_path / "gp"}', '--download', '--download-url',
-                 f'{server.url}/GardensPoint_Walking.zip', '--dataset', cases['unequal lengths'][0],
-                 '--out', tmp_path / 'out')
+    rc = run_cli(
+        '--dataset',
+        f'gardenspoint:{tmp_path / "gp"}',
+        '--download',
+        '--download-url',
+        f'{server.url}/GardensPoint_Walking.zip',
+        '--dataset',
+        cases['unequal lengths'][0],
+        '--out',
+        tmp_path / 'out',
+    )
     assert rc == 2 and 'differ in length' in capsys.readouterr().err
     assert len(server.requests) == before  # the bad second dataset stopped the run before any download
 
@@ -452,9 +656,23 @@ def test_rtabmap_loop(tmp_path, capsys):
     """The loop protocol on the real 84-frame sequence: every method, pictures, sane figures."""
     root = shared_data('rtabmap_loop')
     out = tmp_path / 'out'
-    rc = run_cli('--dataset', f'loop:{root},{root / "samples_GT.bmp"}', '--out', out,
-                 '--cache', tmp_path / 'cache', '--timing-images', 2, '--timing-queries', 5, '--examples', 1,
-                 '--heatmap-images', 3, '--quiet')
+    rc = run_cli(
+        '--dataset',
+        f'loop:{root},{root / "samples_GT.bmp"}',
+        '--out',
+        out,
+        '--cache',
+        tmp_path / 'cache',
+        '--timing-images',
+        2,
+        '--timing-queries',
+        5,
+        '--examples',
+        1,
+        '--heatmap-images',
+        3,
+        '--quiet',
+    )
     assert rc == 0, capsys.readouterr().err
     results = json.loads((out / 'results.json').read_text())
     entry = results['datasets']['rtabmap_loop']
@@ -479,13 +697,18 @@ def test_rtabmap_loop(tmp_path, capsys):
 
 
 def test_untrained_head_has_the_checkpoint_architecture(extractor, tmp_path):
-    """"trained vs untrained" must differ only in training: the untrained head copies the architecture
+    """ "trained vs untrained" must differ only in training: the untrained head copies the architecture
     and init seed of the checkpoint it is compared with."""
     from lln_ros.eval import load_heads
+
     dim = extractor.backbone.dim
     path = tmp_path / 'small.pt'
-    save_checkpoint(str(path), LLNHead(dim, {'channels': 16, 'kernel_sizes': (1, 3), 'seed': 3}),
-                    'efficientnet_lite0', extractor.backbone.layer)
+    save_checkpoint(
+        str(path),
+        LLNHead(dim, {'channels': 16, 'kernel_sizes': (1, 3), 'seed': 3}),
+        'efficientnet_lite0',
+        extractor.backbone.layer,
+    )
     trained, untrained = load_heads(extractor, [Head('t', str(path)), Head('u', None)])
     assert untrained.module.conf['channels'] == 16 and untrained.module.conf['kernel_sizes'] == (1, 3)
     assert head_fingerprint(untrained.module) == head_fingerprint(trained.module)  # same init, never trained

@@ -1,4 +1,5 @@
 """lln-eval --reloc: relocalization on the real rtabmap_loop sequence, and its option checks."""
+
 import json
 
 import pytest
@@ -10,6 +11,7 @@ from lln_ros.cli.eval import main
 @pytest.fixture(scope='module', autouse=True)
 def one_torch_thread(extractor):
     import torch
+
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     yield
@@ -19,9 +21,27 @@ def one_torch_thread(extractor):
 def test_reloc_on_rtabmap_loop(tmp_path, capsys):
     root = shared_data('rtabmap_loop')
     out = tmp_path / 'out'
-    rc = main(['--dataset', f'loop:{root},{root / "samples_GT.bmp"}', '--out', str(out), '--methods', 'lln',
-               '--cache', str(tmp_path / 'cache'), '--no-plots', '--quiet', '--timing-images', '1',
-               '--timing-queries', '2', '--reloc', '--reloc-queries', '12'])
+    rc = main(
+        [
+            '--dataset',
+            f'loop:{root},{root / "samples_GT.bmp"}',
+            '--out',
+            str(out),
+            '--methods',
+            'lln',
+            '--cache',
+            str(tmp_path / 'cache'),
+            '--no-plots',
+            '--quiet',
+            '--timing-images',
+            '1',
+            '--timing-queries',
+            '2',
+            '--reloc',
+            '--reloc-queries',
+            '12',
+        ]
+    )
     assert rc == 0, capsys.readouterr().err
     entry = json.loads((out / 'results.json').read_text())['datasets']['rtabmap_loop']
     r = entry['reloc']
@@ -42,6 +62,15 @@ def test_reloc_on_rtabmap_loop(tmp_path, capsys):
 
 def test_reloc_needs_lln(tmp_path, capsys):
     root = shared_data('rtabmap_loop')
-    rc = main(['--dataset', f'loop:{root},{root / "samples_GT.bmp"}', '--out', str(tmp_path),
-               '--methods', 'holistic', '--reloc'])
+    rc = main(
+        [
+            '--dataset',
+            f'loop:{root},{root / "samples_GT.bmp"}',
+            '--out',
+            str(tmp_path),
+            '--methods',
+            'holistic',
+            '--reloc',
+        ]
+    )
     assert rc == 2 and 'add lln to --methods' in capsys.readouterr().err

@@ -1,13 +1,14 @@
 """Landmark extraction on real pixels: shapes, coordinates, methods, determinism, bad input."""
+
 import numpy as np
 import pytest
 import torch
 
-from lln_ros.errors import ImageError, ModelError
 from lln_ros.core.extractor import Extractor
-from lln_ros.io.image import load_image, network_size
 from lln_ros.core.landmarks import select_landmarks
 from lln_ros.core.lln import LLNHead, load_checkpoint, save_checkpoint
+from lln_ros.errors import ImageError, ModelError
+from lln_ros.io.image import load_image, network_size
 
 
 def test_landmark_set_shapes_and_coordinates(extractor, photo):
@@ -87,15 +88,18 @@ def test_select_landmarks():
         select_landmarks(m, 3, 'nope')
 
 
-@pytest.mark.parametrize('bad, message', [
-    (np.zeros((0, 0, 3), np.uint8), 'at least'),
-    (np.zeros((1, 1), np.uint8), 'at least'),
-    (np.zeros((100, 100, 3), np.float32), 'dtype must be uint8'),
-    (np.zeros((100, 100, 2), np.uint8), 'shape'),
-    (np.zeros((100, 100, 3, 1), np.uint8), 'shape'),
-    ([[1, 2], [3, 4]], 'numpy array'),
-    (np.zeros((10, 5000), np.uint8), 'aspect'),
-])
+@pytest.mark.parametrize(
+    'bad, message',
+    [
+        (np.zeros((0, 0, 3), np.uint8), 'at least'),
+        (np.zeros((1, 1), np.uint8), 'at least'),
+        (np.zeros((100, 100, 3), np.float32), 'dtype must be uint8'),
+        (np.zeros((100, 100, 2), np.uint8), 'shape'),
+        (np.zeros((100, 100, 3, 1), np.uint8), 'shape'),
+        ([[1, 2], [3, 4]], 'numpy array'),
+        (np.zeros((10, 5000), np.uint8), 'aspect'),
+    ],
+)
 def test_bad_images_raise_clear_errors(extractor, bad, message):
     with pytest.raises(ImageError, match=message):
         extractor(bad)
@@ -155,6 +159,7 @@ def test_lln_ranks_by_head_logits_not_by_index(extractor, photo):
     """Many cells get activation exactly 0 from the final ReLU; they must be ordered by the head's
     logits, not fall back to raster order (the top rows: ceiling, sky)."""
     from lln_ros.io.image import resize_for_network
+
     feats = extractor.backbone_features(resize_for_network(photo, 288)[None])
     logits = extractor.head.logits(feats)[0].numpy()
     s = extractor(photo)

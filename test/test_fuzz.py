@@ -6,6 +6,7 @@ number; a decoded landmark set given to the Localizer is answered, refused or fa
 counter sums kept. Seeded and bounded: derandomize=True (the same examples on every run), a small
 max_examples per property, no per-example deadline (CI machines are loaded).
 """
+
 import array
 import json
 import struct
@@ -16,17 +17,21 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
-
-from lln_ros import msgs
-from lln_ros.errors import MessageError, ModelError
-from lln_ros.limits import LimitError, default_conf, validate_model
-from lln_ros.core.localizer import Localizer, open_map
 from test_localizer import ask, invariants, keyframe
 from test_mapstore import MODEL, SPACE, make_set
 
-FUZZ = settings(derandomize=True, max_examples=150, deadline=None, database=None,
-                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
-                                       HealthCheck.function_scoped_fixture])
+from lln_ros import msgs
+from lln_ros.core.localizer import Localizer, open_map
+from lln_ros.errors import MessageError, ModelError
+from lln_ros.limits import LimitError, default_conf, validate_model
+
+FUZZ = settings(
+    derandomize=True,
+    max_examples=150,
+    deadline=None,
+    database=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.function_scoped_fixture],
+)
 SMALL = settings(FUZZ, max_examples=60)
 LIMITS = {**default_conf, 'max_landmarks': 64, 'max_descriptor_dim': 512}
 U32 = st.integers(0, 2**32 - 1)
@@ -36,8 +41,12 @@ DATATYPES = st.sampled_from(list(range(0, 10)))
 @st.composite
 def fields(draw):
     names = draw(st.lists(st.sampled_from(['u', 'v', 'w', 'h', 'score', 'descriptor', 'x', '']), max_size=7))
-    return [PointField(name=n, offset=draw(st.integers(0, 64) | U32), datatype=draw(DATATYPES),
-                       count=draw(st.integers(0, 8) | U32)) for n in names]
+    return [
+        PointField(
+            name=n, offset=draw(st.integers(0, 64) | U32), datatype=draw(DATATYPES), count=draw(st.integers(0, 8) | U32)
+        )
+        for n in names
+    ]
 
 
 @st.composite
@@ -56,14 +65,15 @@ def table_cloud(draw, dim: int, n: int) -> PointCloud2:
     """A well-formed landmarks cloud with hostile values: sizes, centres and descriptors drawn freely."""
     floats = st.floats(width=32, allow_nan=True, allow_infinity=True) | st.floats(-1e3, 1e3, width=32)
     table = np.zeros(n, [(k, '<f4') for k in ('u', 'v', 'w', 'h', 'score')] + [('descriptor', '<f4', (dim,))])
-    image = draw(st.sampled_from([(384, 288), (32768, 288), (1e9, 1e9), (1e-3, 1e-3), (64, 32)]) |
-                 st.tuples(floats, floats))
+    image = draw(
+        st.sampled_from([(384, 288), (32768, 288), (1e9, 1e9), (1e-3, 1e-3), (64, 32)]) | st.tuples(floats, floats)
+    )
     cell = draw(st.sampled_from([(32, 32), (1e-3, 1e-3), (32, 1e-6), (1e6, 1e6)]) | st.tuples(floats, floats))
     table['w'][0], table['h'][0] = image
     table['u'][0], table['v'][0] = image[0] / 2, image[1] / 2
     table['w'][1:], table['h'][1:] = cell
     rng = np.random.default_rng(draw(st.integers(0, 1000)))
-    if draw(st.booleans()):   # centres inside the declared grid, so the sizes reach the limits checks
+    if draw(st.booleans()):  # centres inside the declared grid, so the sizes reach the limits checks
         with np.errstate(all='ignore'):
             cols, rows = (np.nan_to_num(np.float64(a) / np.float64(c), posinf=1e12) for a, c in zip(image, cell))
         for name, size, count in (('u', cell[0], cols), ('v', cell[1], rows)):
@@ -135,10 +145,16 @@ def test_image_to_array_any_header(msg):
 
 def png(width: int, height: int, body: bytes = b'') -> bytes:
     """A PNG whose IHDR says width x height (8-bit RGB) followed by `body` as its IDAT."""
+
     def chunk(kind, data):
         return struct.pack('>I', len(data)) + kind + data + struct.pack('>I', zlib.crc32(kind + data))
-    return (b'\x89PNG\r\n\x1a\n' + chunk(b'IHDR', struct.pack('>IIBBBBB', width, height, 8, 2, 0, 0, 0))
-            + chunk(b'IDAT', body) + chunk(b'IEND', b''))
+
+    return (
+        b'\x89PNG\r\n\x1a\n'
+        + chunk(b'IHDR', struct.pack('>IIBBBBB', width, height, 8, 2, 0, 0, 0))
+        + chunk(b'IDAT', body)
+        + chunk(b'IEND', b'')
+    )
 
 
 def jpeg_header(width: int, height: int) -> bytes:
@@ -164,8 +180,9 @@ def compressed(draw):
         data = data[:cut] if draw(st.booleans()) else data
     else:
         data = draw(st.binary(max_size=256))
-    return CompressedImage(format=draw(st.sampled_from(['jpeg', 'png', 'rgb8; compressedDepth', ''])),
-                           data=array.array('B', data))
+    return CompressedImage(
+        format=draw(st.sampled_from(['jpeg', 'png', 'rgb8; compressedDepth', ''])), data=array.array('B', data)
+    )
 
 
 @FUZZ
@@ -182,13 +199,18 @@ def test_compressed_to_array_refuses_from_the_header(msg):
     assert image.shape[0] * image.shape[1] <= 1_000_000
 
 
-JSON = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=20),
-                    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner, max_size=4),
-                    max_leaves=20)
-MODELISH = st.fixed_dictionaries({'descriptor_space': st.sampled_from(['a/b/192', '', 'x', 'a/b/7']) | JSON,
-                                  'descriptor_dim': st.sampled_from([192, 0, -1, 7, 2**70, 1e999, 1e30, 192.5,
-                                                                     '192', True]) | JSON},
-                                 optional={'input_height': st.sampled_from([288, 100, 0, 2**40]) | JSON})
+JSON = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=20),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner, max_size=4),
+    max_leaves=20,
+)
+MODELISH = st.fixed_dictionaries(
+    {
+        'descriptor_space': st.sampled_from(['a/b/192', '', 'x', 'a/b/7']) | JSON,
+        'descriptor_dim': st.sampled_from([192, 0, -1, 7, 2**70, 1e999, 1e30, 192.5, '192', True]) | JSON,
+    },
+    optional={'input_height': st.sampled_from([288, 100, 0, 2**40]) | JSON},
+)
 
 
 @FUZZ
@@ -198,7 +220,7 @@ def test_validate_model_any_json(model):
         out = validate_model(json.loads(json.dumps(model)))
     except ModelError:
         return
-    except ValueError:   # not JSON-serialisable draws (NaN keys etc.) never reach the node
+    except ValueError:  # not JSON-serialisable draws (NaN keys etc.) never reach the node
         return
     assert isinstance(out['descriptor_dim'], int) and 1 <= out['descriptor_dim'] <= default_conf['max_descriptor_dim']
 

@@ -1,5 +1,6 @@
 """The test harness itself: children of the test process must start cleanly even while gRPC, loaded
 by the Milvus tests in this same process, has threads running (the cause of the CI flake of issue 12)."""
+
 from __future__ import annotations
 
 import importlib.util
@@ -16,6 +17,7 @@ HAVE_MILVUS = importlib.util.find_spec('pymilvus') is not None and importlib.uti
 @pytest.mark.skipif(not HAVE_MILVUS, reason='pymilvus / milvus-lite not installed (requirements.txt)')
 def test_children_start_without_fork_handlers_while_grpc_is_busy(tmp_path, capfd):
     from pymilvus import MilvusClient
+
     client = MilvusClient(str(tmp_path / 'busy.db'))
     client.create_collection('busy', dimension=8)
     client.insert('busy', [{'id': i, 'vector': [0.1 * i] * 8} for i in range(50)])

@@ -5,6 +5,7 @@ Bounds (VmHWM of the node process, /proc/PID/status): matcher MATCHER_HWM_MB, ex
 EXTRACTOR_HWM_MB. Before the limits, one query declaring a 32,768 px wide image took 2.1 GB, a
 cell size of 1e-3 asked np.bincount for terabytes, a 16000x16000 PNG took 1.9 GB in the extractor.
 """
+
 from __future__ import annotations
 
 import array
@@ -22,16 +23,32 @@ import pytest
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_msgs.msg import String
+from test_nodes import (  # noqa: F401
+    EXTRACTOR,
+    MATCHER,
+    TIMEOUT,
+    cloud,
+    header,
+    log_lines,
+    places,
+    read_log,
+    rig,
+    small_photo,
+    stamp_of,
+    start_matcher,
+)
 
 from lln_ros import msgs
 from lln_ros.mapstore import MapStore
-from test_nodes import (EXTRACTOR, MATCHER, TIMEOUT, cloud, header, log_lines, places, read_log, rig,  # noqa: F401
-                        small_photo, stamp_of, start_matcher)
 
-MATCHER_HWM_MB = 1024     # the matcher idles at ~150-250 MB; the 100k-row query itself is 79 MB on the wire
-EXTRACTOR_HWM_MB = 1536   # torch + the network idle at ~500-700 MB
-LATCHED = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+MATCHER_HWM_MB = 1024  # the matcher idles at ~150-250 MB; the 100k-row query itself is 79 MB on the wire
+EXTRACTOR_HWM_MB = 1536  # torch + the network idle at ~500-700 MB
+LATCHED = QoSProfile(
+    depth=1,
+    history=HistoryPolicy.KEEP_LAST,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
 
 
 def png_of_zeros(width: int, height: int, channels: int) -> bytes:
@@ -39,8 +56,10 @@ def png_of_zeros(width: int, height: int, channels: int) -> bytes:
     deflate with a full flush after each 4 MB block of rows makes every later block compress to the
     same bytes, so they are repeated; the zlib trailer's Adler-32 is computed over the real rows.
     16000x16000 RGB: 0.75 MB in ~1 s."""
+
     def chunk(kind, data):
         return struct.pack('>I', len(data)) + kind + data + struct.pack('>I', zlib.crc32(kind + data))
+
     row = bytes(1 + width * channels)
     per = max(1, 4_000_000 // len(row))
     block = row * per
@@ -76,19 +95,23 @@ def landmark_table(places, i: int) -> np.ndarray:
 def hostile_clouds(places) -> dict:
     """Landmark clouds that decode but declare sizes the matcher must refuse, by the limit each hits."""
     base = landmark_table(places, 0)
-    tiny = base.copy()                         # cells of 1e-3 px: a grid of ~1e5 x 1e5 cells
+    tiny = base.copy()  # cells of 1e-3 px: a grid of ~1e5 x 1e5 cells
     cells_u, cells_v = np.floor(base['u'][1:] / base['w'][1:]), np.floor(base['v'][1:] / base['h'][1:])
     tiny['w'][1:], tiny['h'][1:] = 1e-3, 1e-3
     tiny['u'][1:], tiny['v'][1:] = (cells_u + 0.5) * 1e-3, (cells_v + 0.5) * 1e-3
-    huge = base.copy()                         # a 1e9 x 1e9 image
+    huge = base.copy()  # a 1e9 x 1e9 image
     huge['w'][0], huge['h'][0] = 1e9, 1e9
-    wide = base.copy()                         # 32,768 px wide at the real cell size: 1,000+ columns
+    wide = base.copy()  # 32,768 px wide at the real cell size: 1,000+ columns
     wide['w'][0] = 32768
-    many = np.zeros(100_001, base.dtype)       # 100k landmark rows
+    many = np.zeros(100_001, base.dtype)  # 100k landmark rows
     many[0] = base[0]
     many[1:] = base[1]
-    return {'max_grid_side': msgs.array_to_cloud(tiny), 'max_image_pixels': msgs.array_to_cloud(huge),
-            'cells a side': msgs.array_to_cloud(wide), 'max_landmarks': msgs.array_to_cloud(many)}
+    return {
+        'max_grid_side': msgs.array_to_cloud(tiny),
+        'max_image_pixels': msgs.array_to_cloud(huge),
+        'cells a side': msgs.array_to_cloud(wide),
+        'max_landmarks': msgs.array_to_cloud(many),
+    }
 
 
 def test_matcher_survives_hostile_messages(rig, places, tmp_path):
@@ -102,11 +125,20 @@ def test_matcher_survives_hostile_messages(rig, places, tmp_path):
     q_pub = rig.probe.publisher(PointCloud2, 'query')
     model_pub = rig.probe.node.create_publisher(String, 'model_info', LATCHED)
     cands = rig.probe.collect(PointCloud2, 'candidates')
-    rig.until(lambda: kf_pub.get_subscription_count() > 0 and q_pub.get_subscription_count() > 0
-              and model_pub.get_subscription_count() > 0, 'subscriptions', proc)
+    rig.until(
+        lambda: (
+            kf_pub.get_subscription_count() > 0
+            and q_pub.get_subscription_count() > 0
+            and model_pub.get_subscription_count() > 0
+        ),
+        'subscriptions',
+        proc,
+    )
     idle_mb = vm_hwm_mb(proc)
-    bad_models = [f'{{"descriptor_space": "{places["space"]}", "descriptor_dim": 1e999}}',
-                  json.dumps({**places['model'], 'descriptor_dim': -5})]
+    bad_models = [
+        f'{{"descriptor_space": "{places["space"]}", "descriptor_dim": 1e999}}',
+        json.dumps({**places['model'], 'descriptor_dim': -5}),
+    ]
     for i, text in enumerate(bad_models):
         model_pub.publish(String(data=text))
         rig.wait_counter(MATCHER, 'bad_model_info', i + 1, proc)
@@ -123,11 +155,11 @@ def test_matcher_survives_hostile_messages(rig, places, tmp_path):
         rig.wait_counter(MATCHER, 'bad_query', i + 1, proc, timeout=2 * TIMEOUT)
     truncated = cloud(places, 1, header(0))
     data = bytes(truncated.data)
-    for batch in range(6):   # reliable KEEP_LAST 100 queue: 50 at a time, so none is overwritten
+    for batch in range(6):  # reliable KEEP_LAST 100 queue: 50 at a time, so none is overwritten
         for j in range(50):
             n = batch * 50 + j
             truncated.header = header(200 + n)
-            truncated.data = array.array('B', data[:len(data) - 1 - n])
+            truncated.data = array.array('B', data[: len(data) - 1 - n])
             q_pub.publish(truncated)
         rig.wait_counter(MATCHER, 'bad_query', len(hostile) + 50 * (batch + 1), proc)
 
@@ -143,7 +175,7 @@ def test_matcher_survives_hostile_messages(rig, places, tmp_path):
     assert c['keyframes_received'] == c['keyframes_stored'] + c['bad_keyframe'] == 7
     for limit in hostile:
         assert any(limit in line for line in log_lines(proc, 'bad_query')), (limit, read_log(proc))
-    assert len(log_lines(proc, 'data is truncated')) == 1, read_log(proc)   # 300 texts, one kind
+    assert len(log_lines(proc, 'data is truncated')) == 1, read_log(proc)  # 300 texts, one kind
     assert len(log_lines(proc, 'cannot use model_info')) == 2
     print(f'\nmatcher VmHWM: idle {idle_mb:.0f} MB, after the hostile messages {peak_mb:.0f} MB')
     assert peak_mb < MATCHER_HWM_MB, (idle_mb, peak_mb)
@@ -192,13 +224,15 @@ def test_matcher_bad_model_record_is_fatal_and_explained(rig, places, tmp_path):
     with MapStore(map_path, model=places['model']) as store:
         store.add(places['sets'][0], (1, 2))
     with sqlite3.connect(map_path) as con:
-        con.execute("UPDATE meta SET value = ? WHERE key = 'model'",
-                    (json.dumps({**places['model'], 'descriptor_dim': -5}),))
+        con.execute(
+            "UPDATE meta SET value = ? WHERE key = 'model'", (json.dumps({**places['model'], 'descriptor_dim': -5}),)
+        )
     text = wait_exit(rig.matcher(map_path))
     assert 'bad model record' in text and str(map_path) in text, text
     for command in ('info', 'check'):
-        out = subprocess.run([sys.executable, '-m', 'lln_ros.cli.map', command, str(map_path)],
-                             capture_output=True, text=True)
+        out = subprocess.run(
+            [sys.executable, '-m', 'lln_ros.cli.map', command, str(map_path)], capture_output=True, text=True
+        )
         assert out.returncode == 1 and 'Traceback' not in out.stdout + out.stderr
         assert 'bad model record' in out.stdout + out.stderr
 
@@ -212,16 +246,20 @@ def test_matcher_quarantines_a_damaged_keyframe(rig, places, tmp_path):
             store.add(places['sets'][i], stamp_of(header(i)))
     with sqlite3.connect(map_path) as con:
         con.execute("UPDATE landmarks SET descriptors = x'00' WHERE keyframe_id = 3")
-    out = subprocess.run([sys.executable, '-m', 'lln_ros.cli.map', 'check', str(map_path)],
-                         capture_output=True, text=True)
+    out = subprocess.run(
+        [sys.executable, '-m', 'lln_ros.cli.map', 'check', str(map_path)], capture_output=True, text=True
+    )
     assert out.returncode == 1 and 'keyframe 3:' in out.stdout and 'quarantined' in out.stdout, out
     proc = start_matcher(rig, map_path, places, '-p', 'prefilter_k:=0')
     q_pub = rig.probe.publisher(PointCloud2, 'query')
     cands = rig.probe.collect(PointCloud2, 'candidates', msgs.cloud_to_candidates)
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
-    rig.until(lambda: any('keyframe 3:' in line and 'quarantined' in line for line in log_lines(proc, 'ERROR')),
-              'the ERROR line naming the quarantined keyframe', proc)
-    for i in (2, 4):           # place 2 is keyframe 3, the damaged one
+    rig.until(
+        lambda: any('keyframe 3:' in line and 'quarantined' in line for line in log_lines(proc, 'ERROR')),
+        'the ERROR line naming the quarantined keyframe',
+        proc,
+    )
+    for i in (2, 4):  # place 2 is keyframe 3, the damaged one
         q_pub.publish(cloud(places, i, header(50 + i)))
     rig.until(lambda: len(cands) == 2, 'both answers', proc)
     assert 3 not in cands[0]['keyframe_id'] and int(cands[1]['keyframe_id'][0]) == 5
@@ -229,7 +267,7 @@ def test_matcher_quarantines_a_damaged_keyframe(rig, places, tmp_path):
     assert info['keyframes'] == 5 and info['quarantined'] == [3] and 'bad_query' not in info['counters']
     assert proc.stop() == 0
     with sqlite3.connect(map_path) as con:
-        assert con.execute('SELECT count(*) FROM keyframes').fetchone()[0] == 6   # left in the file
+        assert con.execute('SELECT count(*) FROM keyframes').fetchone()[0] == 6  # left in the file
 
 
 def test_extractor_refuses_decompression_bombs_from_the_header(rig, small_photo):
@@ -272,10 +310,10 @@ def test_extractor_refuses_raw_images_above_the_limit(rig, small_photo):
     got = rig.probe.collect(PointCloud2, 'landmarks')
     pub = rig.probe.publisher(Image, 'image')
     rig.until(lambda: pub.get_subscription_count() > 0, 'extractor up', proc)
-    big = msgs.array_to_image(small_photo, 'rgb8', header(1))                  # 160 x 188 = 30,080 px
+    big = msgs.array_to_image(small_photo, 'rgb8', header(1))  # 160 x 188 = 30,080 px
     pub.publish(big)
     rig.wait_counter(EXTRACTOR, 'bad_image', 1, proc)
-    small = cv2.resize(small_photo, (120, 150))                                 # 18,000 px
+    small = cv2.resize(small_photo, (120, 150))  # 18,000 px
     pub.publish(msgs.array_to_image(small, 'rgb8', header(2, 'small')))
     rig.until(lambda: got, 'the image under the limit', proc)
     assert got[0].header.frame_id == 'small'

@@ -1,5 +1,6 @@
 """The two inference runtimes (lln_ros.core.runtime): same landmarks on real frames, the exported graph's
 cache, the fallback, model_info, and maps shared across runtimes."""
+
 import json
 import os
 import subprocess
@@ -12,15 +13,15 @@ import pytest
 
 from conftest import shared_data
 from lln_ros.core import runtime
-from lln_ros.errors import ModelError
 from lln_ros.core.extractor import Extractor
+from lln_ros.errors import ModelError
 from lln_ros.io.image import load_image
 from lln_ros.mapstore import MapStore
 
 pytestmark = pytest.mark.skipif(not runtime.onnxruntime_available(), reason='onnxruntime is not installed')
 
-NORDLAND_STEP = 20   # every 20th frame of the summer traverse: 179 frames along the whole line
-FLOAT16_STEP = 2.0 ** -12  # one float16 step in [0.25, 0.5)
+NORDLAND_STEP = 20  # every 20th frame of the summer traverse: 179 frames along the whole line
+FLOAT16_STEP = 2.0**-12  # one float16 step in [0.25, 0.5)
 
 
 @pytest.fixture(scope='module')
@@ -37,18 +38,27 @@ def compare(t: Extractor, o: Extractor, images: list) -> dict:
     same = [np.array_equal(x.cells, y.cells) for x, y in zip(a, b)]
     both = [(x, y) for x, y, s in zip(a, b, same) if s]
     return {
-        'frames': len(images), 'cells_identical': int(sum(same)),
+        'frames': len(images),
+        'cells_identical': int(sum(same)),
         # descriptors are float16-exact unit vectors (the map stores them so). Equal to float16
         # precision: no element differs by more than one float16 step at the size of a unit vector's
         # largest entries (2**-12 in [0.25, 0.5)); a feature whose float16 rounding flips between the
         # runtimes moves every element of its normalised vector by a little, so small elements can be
         # several of their own (smaller) steps apart
         'desc_max_diff': max(float(np.abs(x.descriptors - y.descriptors).max()) for x, y in both),
-        'desc_elements_identical': float(np.mean(np.concatenate(
-            [(x.descriptors == y.descriptors).ravel() for x, y in both]))),
-        'desc_min_cosine': min(float(np.min(np.sum(x.descriptors * y.descriptors, 1)
-                                             / np.linalg.norm(x.descriptors, axis=1)
-                                             / np.linalg.norm(y.descriptors, axis=1))) for x, y in both),
+        'desc_elements_identical': float(
+            np.mean(np.concatenate([(x.descriptors == y.descriptors).ravel() for x, y in both]))
+        ),
+        'desc_min_cosine': min(
+            float(
+                np.min(
+                    np.sum(x.descriptors * y.descriptors, 1)
+                    / np.linalg.norm(x.descriptors, axis=1)
+                    / np.linalg.norm(y.descriptors, axis=1)
+                )
+            )
+            for x, y in both
+        ),
         'global_max_diff': max(float(np.abs(x.global_descriptor - y.global_descriptor).max()) for x, y in both),
         'grids': {(x.grid, y.grid) for x, y in zip(a, b)},
     }
@@ -106,6 +116,7 @@ def test_model_info_names_the_runtime_and_default(pair):
     # the descriptor space does not depend on the runtime: the map's compatibility key
     assert pair[0].descriptor_space == pair[1].descriptor_space
     from lln_ros.core.extractor import default_conf
+
     assert default_conf['runtime'] == 'onnxruntime'
     with pytest.raises(ModelError, match='unknown runtime'):
         Extractor({'runtime': 'tensorflow'})
@@ -124,8 +135,17 @@ def test_map_built_with_one_runtime_answers_the_other(pair, tmp_path, build, que
         own = [store.query(s, k=5) for s in by[build].extract_batch(frames[40:])]
         other = [store.query(s, k=5) for s in by[query].extract_batch(frames[40:])]
     ids = [([c.keyframe_id for c in a], [c.keyframe_id for c in b]) for a, b in zip(own, other)]
-    print(build, '->', query, 'same top-1', sum(a[0] == b[0] for a, b in ids), 'same top-5', sum(a == b for a, b in ids),
-          'of', len(ids))
+    print(
+        build,
+        '->',
+        query,
+        'same top-1',
+        sum(a[0] == b[0] for a, b in ids),
+        'same top-5',
+        sum(a == b for a, b in ids),
+        'of',
+        len(ids),
+    )
     assert sum(a[0] == b[0] for a, b in ids) >= 0.95 * len(ids), ids
     assert sum(a == b for a, b in ids) >= 0.9 * len(ids), ids
     top1 = [(a[0].score, b[0].score) for a, b in zip(own, other) if a[0].keyframe_id == b[0].keyframe_id]
@@ -133,6 +153,7 @@ def test_map_built_with_one_runtime_answers_the_other(pair, tmp_path, build, que
 
 
 # ------------------------------------------------------------------ the exported graph's cache
+
 
 def test_export_is_cached_and_keyed_by_the_weights(tmp_path, monkeypatch):
     """First use exports into $LLN_CACHE/onnx; a second extractor reuses the file; another head (the
@@ -163,10 +184,17 @@ def test_damaged_cache_file_is_exported_again(tmp_path, monkeypatch, photo):
 
 def test_without_onnxruntime_it_says_so_once_and_runs_torch(tmp_path):
     """A Python where `import onnxruntime` fails (as on a machine without it): torch runs, one log line."""
-    code = ('import logging, sys; sys.modules["onnxruntime"] = None; logging.basicConfig(level=logging.INFO); '
-            'from lln_ros.core.extractor import Extractor; e = Extractor(); print("RUNTIME", e.model_info["runtime"])')
-    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=600,
-                         env={**os.environ, 'LLN_CACHE': str(tmp_path)})
+    code = (
+        'import logging, sys; sys.modules["onnxruntime"] = None; logging.basicConfig(level=logging.INFO); '
+        'from lln_ros.core.extractor import Extractor; e = Extractor(); print("RUNTIME", e.model_info["runtime"])'
+    )
+    out = subprocess.run(
+        [sys.executable, '-c', code],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, 'LLN_CACHE': str(tmp_path)},
+    )
     assert out.returncode == 0, out.stderr
     assert 'RUNTIME torch' in out.stdout
     warned = [line for line in out.stderr.splitlines() if 'onnxruntime' in line]
@@ -177,8 +205,13 @@ def test_without_onnxruntime_it_says_so_once_and_runs_torch(tmp_path):
 def test_lln_export_command(tmp_path):
     """`lln-export` (the console script) writes the graph and checks it against torch."""
     exe = Path(sys.executable).parent / 'lln-export'
-    out = subprocess.run([str(exe), '--output', str(tmp_path / 'net.onnx'), '--json'], capture_output=True,
-                         text=True, timeout=600, env={**os.environ, 'LLN_CACHE': str(tmp_path / 'cache')})
+    out = subprocess.run(
+        [str(exe), '--output', str(tmp_path / 'net.onnx'), '--json'],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, 'LLN_CACHE': str(tmp_path / 'cache')},
+    )
     assert out.returncode == 0, out.stderr
     r = json.loads(out.stdout)
     assert Path(r['path']) == tmp_path / 'net.onnx' and (tmp_path / 'net.onnx').stat().st_size > 1e6
@@ -192,44 +225,64 @@ def test_lln_match_runtime_flag(tmp_path):
     exe = Path(sys.executable).parent / 'lln-match'
     answers = {}
     for rt in ('torch', 'onnxruntime'):
-        out = subprocess.run([str(exe), str(root / '5.jpg'), str(root / '50.jpg'), '--runtime', rt, '--json'],
-                             capture_output=True, text=True, timeout=600)
+        out = subprocess.run(
+            [str(exe), str(root / '5.jpg'), str(root / '50.jpg'), '--runtime', rt, '--json'],
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         assert out.returncode == 0, out.stderr
         answers[rt] = json.loads(out.stdout)
         assert answers[rt]['model']['runtime'] == rt
     assert answers['torch']['pairs'] == answers['onnxruntime']['pairs']
     assert abs(answers['torch']['similarity'] - answers['onnxruntime']['similarity']) < 1e-3
-    bad = subprocess.run([str(exe), str(root / '5.jpg'), str(root / '50.jpg'), '--runtime', 'tf'],
-                         capture_output=True, text=True, timeout=600)
+    bad = subprocess.run(
+        [str(exe), str(root / '5.jpg'), str(root / '50.jpg'), '--runtime', 'tf'],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert bad.returncode == 2 and 'unknown runtime' in bad.stderr
 
 
 # ------------------------------------------------------------------ the node parameter
 
+
 def test_extractor_node_runtime_parameter(tmp_path):
     """The real node (its console script, own DDS domain): `runtime` picks the runtime, the latched
     model_info says which ran, and both publish the same landmark cells for the same image."""
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-    from ros_harness import VENV_BIN, Probe, RosProcess, ros_env
     from sensor_msgs.msg import Image, PointCloud2
     from std_msgs.msg import String
 
     from lln_ros import msgs
+    from ros_harness import VENV_BIN, Probe, RosProcess, ros_env
+
     image = cv2.resize(load_image(str(shared_data('rtabmap_loop', '5.jpg'))), (384, 288))
     env = ros_env(tmp_path, {'LLN_CACHE': os.environ.get('LLN_CACHE', str(runtime.cache_dir()))})
     cells = {}
     for rt in ('torch', 'onnxruntime'):
-        proc = RosProcess(VENV_BIN / 'extractor', ['-p', f'runtime:={rt}', '-p', 'num_threads:=1',
-                                                   '-p', 'reliability:=reliable'], env, tmp_path / f'{rt}.log')
+        proc = RosProcess(
+            VENV_BIN / 'extractor',
+            ['-p', f'runtime:={rt}', '-p', 'num_threads:=1', '-p', 'reliability:=reliable'],
+            env,
+            tmp_path / f'{rt}.log',
+        )
         try:
             with Probe(env) as probe:
                 info, got = [], probe.collect(PointCloud2, 'landmarks')
-                probe.node.create_subscription(String, 'model_info', lambda m: info.append(json.loads(m.data)),
-                                               QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                                                          durability=DurabilityPolicy.TRANSIENT_LOCAL))
+                probe.node.create_subscription(
+                    String,
+                    'model_info',
+                    lambda m: info.append(json.loads(m.data)),
+                    QoSProfile(
+                        depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
+                    ),
+                )
                 pub = probe.publisher(Image, 'image')
-                probe.spin_until(lambda: not proc.alive() or (info and pub.get_subscription_count() > 0), 120,
-                                 'extractor up')
+                probe.spin_until(
+                    lambda: not proc.alive() or (info and pub.get_subscription_count() > 0), 120, 'extractor up'
+                )
                 assert proc.alive(), proc.log()
                 assert info[0]['runtime'] == rt and info[0]['descriptor_space'] == 'efficientnet_lite0/stage6/192'
                 pub.publish(msgs.array_to_image(image, 'rgb8', msgs.make_header(1_000_000_000, 'cam')))

@@ -1,5 +1,6 @@
 """Keypoints on the wire (msgs.keypoints_to_cloud / cloud_to_keypoints) and in the map
 (MapStore.add_keypoints / keypoints), with real ORB keypoints of the matplotlib photograph."""
+
 import numpy as np
 import pytest
 
@@ -33,8 +34,18 @@ def test_bad_clouds_are_message_errors(kps):
     landmarks_like = msgs.array_to_cloud(np.zeros(3, [('u', '<f4'), ('v', '<f4')]))
     with pytest.raises(MessageError, match="'size' is missing"):
         msgs.cloud_to_keypoints(landmarks_like)
-    table = np.zeros(2, [('u', '<f4'), ('v', '<f4'), ('size', '<f4'), ('angle', '<f4'), ('response', '<f4'),
-                         ('octave', '<i4'), ('descriptor', 'u1', (32,))])
+    table = np.zeros(
+        2,
+        [
+            ('u', '<f4'),
+            ('v', '<f4'),
+            ('size', '<f4'),
+            ('angle', '<f4'),
+            ('response', '<f4'),
+            ('octave', '<i4'),
+            ('descriptor', 'u1', (32,)),
+        ],
+    )
     table['u'][0] = np.nan
     with pytest.raises(MessageError, match="'u' contains NaN"):
         msgs.cloud_to_keypoints(msgs.array_to_cloud(table))
@@ -48,19 +59,19 @@ def test_map_keeps_keypoints_per_keyframe(kps, extractor, photo, tmp_path):
     path = tmp_path / 'map.db'
     with MapStore(path, model=extractor.model_info) as store:
         a, b = store.add(lset, (1, 0)), store.add(lset, (2, 0))
-        assert store.keypoints(a) is None          # no table yet: a map without keypoints stays valid
+        assert store.keypoints(a) is None  # no table yet: a map without keypoints stays valid
         store.add_keypoints(a, kps.uv, kps.descriptors)
         assert store.keypoints(b) is None
         with pytest.raises(KeyError):
             store.add_keypoints(999, kps.uv, kps.descriptors)
         with pytest.raises(DescriptorError, match='uint8'):
             store.add_keypoints(b, kps.uv, kps.descriptors.astype(np.float32))
-        store.add_keypoints(b, kps.uv[:0], kps.descriptors[:0])   # a textureless keyframe: zero keypoints
+        store.add_keypoints(b, kps.uv[:0], kps.descriptors[:0])  # a textureless keyframe: zero keypoints
         assert store.check() == []
-    with MapStore(path, create=False) as store:   # durable, and read back exactly
+    with MapStore(path, create=False) as store:  # durable, and read back exactly
         uv, desc = store.keypoints(a)
         np.testing.assert_array_equal(uv, kps.uv)
         np.testing.assert_array_equal(desc, kps.descriptors)
         assert store.keypoints(b)[0].shape == (0, 2)
-        store.clear()                              # keypoints go with their keyframes
+        store.clear()  # keypoints go with their keyframes
         assert store.keypoints(a) is None

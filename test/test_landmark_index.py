@@ -1,24 +1,24 @@
 """The landmark first stage (lln_ros/core/landmark_index.py): its scoring, its index kept consistent with
 both map backends through add / delete / clear / restart, its persisted IVF-PQ file (stale, corrupt,
 missing, from another map), and on real images the revisits the holistic top-K misses."""
+
 import logging
 import shutil
 
-import cv2
 import numpy as np
 import pytest
-
-from conftest import shared_data
-from lln_ros.io import datasets
-from lln_ros.errors import MapError
-from lln_ros.io.image import load_image
-from lln_ros.core.landmark_index import LandmarkIndex, check_prefilter, decode_ids, encode_ids, score_hits
-from lln_ros.core.landmarks import stack_landmarks
-from lln_ros.mapstore import MapStore
-from lln_ros.metrics import recall_at_k
-from lln_ros.core.retrieval import first_stage
 from test_map_backends import BACKENDS, uri_for
 from test_mapstore import MODEL, make_set
+
+from conftest import shared_data
+from lln_ros.core.landmark_index import LandmarkIndex, check_prefilter, decode_ids, encode_ids, score_hits
+from lln_ros.core.landmarks import stack_landmarks
+from lln_ros.core.retrieval import first_stage
+from lln_ros.errors import MapError
+from lln_ros.io import datasets
+from lln_ros.io.image import load_image
+from lln_ros.mapstore import MapStore
+from lln_ros.metrics import recall_at_k
 
 SMALL_IVF = {'landmark_index_threshold': 500, 'landmark_ivf_lists': 8, 'landmark_nprobe': 8, 'landmark_pq_bits': 4}
 
@@ -35,7 +35,7 @@ def test_ids_round_trip_and_prefilter_rule():
     assert decode_ids(np.array([-1]))[0].tolist() == [-1]
     with pytest.raises(ValueError, match='cells'):
         encode_ids(np.array([1]), np.array([[4096, 0]]))
-    assert check_prefilter('landmarks', 0) == ('exhaustive', 0)   # backward compatible
+    assert check_prefilter('landmarks', 0) == ('exhaustive', 0)  # backward compatible
     assert check_prefilter('holistic', 30) == ('holistic', 30)
     with pytest.raises(ValueError, match='prefilter must be one of'):
         check_prefilter('fancy', 30)
@@ -49,12 +49,12 @@ def test_score_hits_burstiness_and_spatial_consistency():
     sims = np.full((7, 4), 0.0, np.float32)
     kfs = np.full((7, 4), -1, np.int64)
     m_cells = np.zeros((7, 4, 2), np.int64)
-    for i in range(4):                       # consistent: offset (-1, 0) for all four
+    for i in range(4):  # consistent: offset (-1, 0) for all four
         sims[i, 0], kfs[i, 0], m_cells[i, 0] = 0.8, 1, q_cells[i] + [1, 0]
-    sims[0, 1:4], kfs[0, 1:4], m_cells[0, 1:4] = 0.95, 2, [[5, 5], [6, 5], [7, 5]]   # the burst
-    for i, off in zip((4, 5, 6), ([3, 0], [-3, 1], [0, -2])):                        # scattered
+    sims[0, 1:4], kfs[0, 1:4], m_cells[0, 1:4] = 0.95, 2, [[5, 5], [6, 5], [7, 5]]  # the burst
+    for i, off in zip((4, 5, 6), ([3, 0], [-3, 1], [0, -2])):  # scattered
         sims[i, 0], kfs[i, 0], m_cells[i, 0] = 0.95, 2, np.maximum(q_cells[i] + off, 0)
-    sims[4, 1], kfs[4, 1] = 0.3, 3           # below tau: keyframe 3 gets nothing
+    sims[4, 1], kfs[4, 1] = 0.3, 3  # below tau: keyframe 3 gets nothing
     ids, scores = score_hits(q_cells, sims, kfs, m_cells, {'landmark_tau': 0.5, 'landmark_alpha': 1.0})
     assert ids.tolist() == [1, 2] and scores[0] > scores[1] > 0
     assert scores[0] == pytest.approx(4 * (0.8 - 0.5) / 0.5, rel=1e-5)
@@ -67,7 +67,7 @@ def test_index_add_search_remove_and_below(rng):
     assert index.ntotal == 300 and index.keyframe_counts() == {i: 50 for i in range(10, 16)}
     ids, scores = index.shortlist(make_set(rng, base=sets[2], noise=0.05), k=3)
     assert ids[0] == 12 and scores[0] > 0
-    ids, _ = index.shortlist(sets[4], k=3, below=14)   # keyframes 14, 15 are excluded
+    ids, _ = index.shortlist(sets[4], k=3, below=14)  # keyframes 14, 15 are excluded
     assert 14 not in ids and 15 not in ids
     assert index.remove_keyframes([12, 99]) == 50 and 12 not in index.keyframe_counts()
 
@@ -82,12 +82,15 @@ def test_map_keeps_landmark_index_consistent(kind, tmp_path, rng):
         ids = store.add_many(sets[:8], [(i, 0) for i in range(8)])
         ids += [store.add(s, (100 + i, 0)) for i, s in enumerate(sets[8:])]
         assert store.info()['landmarks'] == sum(len(s) for s in sets) and store.check() == []
-        assert store.query(make_set(rng, n=len(sets[5]), base=sets[5], noise=0.1), prefilter='landmarks')[0].keyframe_id == ids[5]
+        assert (
+            store.query(make_set(rng, n=len(sets[5]), base=sets[5], noise=0.1), prefilter='landmarks')[0].keyframe_id
+            == ids[5]
+        )
         store.delete([ids[5], ids[9]])
         assert store.info()['landmarks'] == sum(len(s) for i, s in enumerate(sets) if i not in (5, 9))
         assert all(c.keyframe_id not in (ids[5], ids[9]) for c in store.query(sets[5], prefilter_k=12, k=12))
         assert store.check() == []
-    with MapStore.open(uri) as store:   # restart: rebuilt from the stored keyframes
+    with MapStore.open(uri) as store:  # restart: rebuilt from the stored keyframes
         assert store.info()['landmarks'] == sum(len(s) for i, s in enumerate(sets) if i not in (5, 9))
         assert store.check() == []
         assert store.query(sets[3])[0].keyframe_id == ids[3]
@@ -110,14 +113,14 @@ def test_compressed_index_persisted_stale_corrupt_missing_foreign(tmp_path, rng,
         ids += store.add_many(sets[25:], [(i, 0) for i in range(25, 30)])
         store.delete([ids[0]])
     lm_path = path + '.landmarks'
-    shutil.copy(stale, lm_path)                       # as after a crash: 5 keyframes behind, 1 deleted
+    shutil.copy(stale, lm_path)  # as after a crash: 5 keyframes behind, 1 deleted
     with caplog.at_level(logging.INFO, logger='lln_ros.mapstore'):
         with MapStore.open(path, conf=SMALL_IVF) as store:
             assert 'caught up (5 keyframes added, 1 removed)' in caplog.text
             assert store.info()['landmarks'] == 29 * 50 and store.check() == []
             assert store.query(make_set(rng, base=sets[27], noise=0.05))[0].keyframe_id == ids[27]
     data = bytearray(open(lm_path, 'rb').read())
-    data[len(data) // 2:len(data) // 2 + 64] = b'\x00' * 64
+    data[len(data) // 2 : len(data) // 2 + 64] = b'\x00' * 64
     open(lm_path, 'wb').write(bytes(data))
     with pytest.raises(MapError, match='checksum'):
         LandmarkIndex.read(lm_path, 320)
@@ -150,6 +153,7 @@ def _holistic_misses_found(qs, refs, gt, allowed, k):
 
     def hit(r):
         return ((r >= 0) & np.take_along_axis(gt, np.maximum(r, 0), axis=1)).any(1)
+
     return lm, hol, int((hit(lm) & ~hit(hol)).sum()), int((hit(hol) & ~hit(lm)).sum())
 
 
@@ -171,6 +175,8 @@ def test_nordland_slice_landmark_first_stage_beats_holistic(extractor):
     refs = extractor.extract_batch([load_image(str(p)) for p in ds.ref_paths])
     qs = extractor.extract_batch([load_image(str(p)) for p in ds.query_paths])
     lm, hol, found, lost = _holistic_misses_found(qs, refs, ds.gt, None, 5)
-    assert recall_at_k(lm, ds.gt, 5) > recall_at_k(hol, ds.gt, 5) + 0.1, \
-        (recall_at_k(lm, ds.gt, 5), recall_at_k(hol, ds.gt, 5))
+    assert recall_at_k(lm, ds.gt, 5) > recall_at_k(hol, ds.gt, 5) + 0.1, (
+        recall_at_k(lm, ds.gt, 5),
+        recall_at_k(hol, ds.gt, 5),
+    )
     assert found > lost

@@ -9,13 +9,13 @@ sends every frame over 512 KiB as UDP fragments and most are lost (measured: 26/
 `received` counter on /diagnostics; the newest-frame policy may then skip frames it cannot extract
 in time, which it counts as `dropped` (received = published + dropped).
 """
+
 from __future__ import annotations
 
 import subprocess
 import sys
 from pathlib import Path
 
-import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 
 from ros_harness import Probe, RosProcess, installed_env, ros_env
@@ -39,18 +39,29 @@ def test_camera_sized_frames_reach_the_extractor(colcon_install, tmp_path):
     env = installed_env(colcon_install, ros_env(tmp_path))
     diag: dict[str, str] = {}
     statuses: list[tuple[bytes, str]] = []
-    extractor = RosProcess(install / 'lib' / 'lln_ros' / 'extractor',
-                           ['--params-file', str(share / 'config' / 'extractor.yaml'),
-                            '-p', 'num_threads:=1', '-p', 'diagnostics_period:=0.2'],
-                           env, tmp_path / 'extractor.log')
+    extractor = RosProcess(
+        install / 'lib' / 'lln_ros' / 'extractor',
+        [
+            '--params-file',
+            str(share / 'config' / 'extractor.yaml'),
+            '-p',
+            'num_threads:=1',
+            '-p',
+            'diagnostics_period:=0.2',
+        ],
+        env,
+        tmp_path / 'extractor.log',
+    )
     probe = Probe(env)
     try:
+
         def on_diag(msg):
             for status in msg.status:
                 if status.name == EXTRACTOR:
                     diag.clear()
                     diag.update({kv.key: kv.value for kv in status.values})
                     statuses.append((status.level, status.message))
+
         probe.node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 50)
         counter = lambda key: int(diag.get(key, 0))  # noqa: E731
         probe.spin_until(lambda: diag or not extractor.alive(), 180, 'extractor diagnostics')
@@ -58,23 +69,34 @@ def test_camera_sized_frames_reach_the_extractor(colcon_install, tmp_path):
         results = {}
         for width, height in ((640, 480), (1280, 720)):
             before = counter('received')
-            camera = subprocess.Popen([sys.executable, str(HERE / 'camera_publisher.py'), str(width), str(height),
-                                       str(FRAMES), str(HZ)], env=camera_env(share, env),
-                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            camera = subprocess.Popen(
+                [sys.executable, str(HERE / 'camera_publisher.py'), str(width), str(height), str(FRAMES), str(HZ)],
+                env=camera_env(share, env),
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+            )
             probe.spin_until(lambda: camera.poll() is not None, 120, f'camera {width}x{height}')
             out = camera.stdout.read()
             assert camera.returncode == 0 and f'published {FRAMES}' in out, out
             # every arrival is extracted or counted as dropped; wait for the last extraction
-            probe.spin_until(lambda: counter('published') + counter('dropped') + counter('bad_image')
-                             >= counter('received') and counter('received') > before, 60,
-                             'the extractor to finish its backlog')
+            probe.spin_until(
+                lambda: (
+                    counter('published') + counter('dropped') + counter('bad_image') >= counter('received')
+                    and counter('received') > before
+                ),
+                60,
+                'the extractor to finish its backlog',
+            )
             probe.spin_for(0.5)
             results[(width, height)] = counter('received') - before
             print(f'{width}x{height}: {results[(width, height)]} of {FRAMES} received; totals {diag}')
         assert extractor.alive(), extractor.log()
         for (width, height), received in results.items():
-            assert received >= 0.99 * FRAMES, (f'{width}x{height}: {received} of {FRAMES} frames reached the '
-                                               f'extractor; {diag}\n{extractor.log()[-2000:]}')
+            assert received >= 0.99 * FRAMES, (
+                f'{width}x{height}: {received} of {FRAMES} frames reached the '
+                f'extractor; {diag}\n{extractor.log()[-2000:]}'
+            )
         assert counter('bad_image') == 0, diag
         assert counter('received') == counter('published') + counter('dropped'), diag
         if counter('dropped'):  # the newest-frame policy's skips are visible, with the reason
@@ -84,16 +106,32 @@ def test_camera_sized_frames_reach_the_extractor(colcon_install, tmp_path):
         # extractor says so from the stamp gaps, at level WARN
         before, missing = counter('received'), counter('frames_missing')
         statuses.clear()
-        plain = {k: v for k, v in env.items() if k not in ('FASTRTPS_DEFAULT_PROFILES_FILE',
-                                                           'FASTDDS_DEFAULT_PROFILES_FILE')}
-        camera = subprocess.run([sys.executable, str(HERE / 'camera_publisher.py'), '1280', '720', str(FRAMES),
-                                 str(HZ), '--stamp-start', '1700001000'], env=plain, capture_output=True, text=True,
-                                timeout=180)
+        plain = {
+            k: v for k, v in env.items() if k not in ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
+        }
+        camera = subprocess.run(
+            [
+                sys.executable,
+                str(HERE / 'camera_publisher.py'),
+                '1280',
+                '720',
+                str(FRAMES),
+                str(HZ),
+                '--stamp-start',
+                '1700001000',
+            ],
+            env=plain,
+            capture_output=True,
+            text=True,
+            timeout=180,
+        )
         assert camera.returncode == 0, camera.stdout + camera.stderr
         probe.spin_for(1.5)
         lost = FRAMES - (counter('received') - before)
-        print(f'1280x720 without the profile: {FRAMES - lost} of {FRAMES} received, '
-              f'{counter("frames_missing") - missing} counted missing')
+        print(
+            f'1280x720 without the profile: {FRAMES - lost} of {FRAMES} received, '
+            f'{counter("frames_missing") - missing} counted missing'
+        )
         if lost >= 3:  # (on an idle machine loopback UDP may deliver most of them; then there is nothing to see)
             assert counter('frames_missing') - missing >= lost // 2, diag
             assert any(lvl == DiagnosticStatus.WARN and 'missing upstream' in msg for lvl, msg in statuses), statuses

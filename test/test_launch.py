@@ -2,14 +2,31 @@
 are not installable here, so the file is checked statically (as test_nodes.py does): every argument
 issue 16 asks for is declared with a sane default, every node gets the namespace, log level and
 sim-time switches, and every installed file or executable it names exists."""
+
 from __future__ import annotations
 
 import ast
 
 import yaml
 
-REQUIRED = {'image', 'image_transport', 'reliability', 'frame_queue', 'mode', 'feed', 'map_path', 'verify', 'use_sim_time',
-            'namespace', 'log_level', 'visualize', 'rviz', 'dds_profile', 'extractor_params', 'matcher_params'}
+REQUIRED = {
+    'image',
+    'image_transport',
+    'reliability',
+    'frame_queue',
+    'mode',
+    'feed',
+    'map_path',
+    'verify',
+    'use_sim_time',
+    'namespace',
+    'log_level',
+    'visualize',
+    'rviz',
+    'dds_profile',
+    'extractor_params',
+    'matcher_params',
+}
 
 
 def launch_tree(colcon_install):
@@ -63,6 +80,7 @@ def test_rviz_config_matches_the_nodes(colcon_install):
     """The shipped rviz2 layout parses, uses the visualizer's timeline frame and subscribes topics
     the nodes publish."""
     from lln_ros.nodes.visualizer import PARAMETERS
+
     share = colcon_install / 'lln_ros' / 'share' / 'lln_ros'
     config = yaml.safe_load((share / 'rviz' / 'lln.rviz').read_text())
     manager = config['Visualization Manager']

@@ -1,5 +1,6 @@
 """The matcher's decisions without rclpy (lln_ros.core.localizer.Localizer) on real SQLite maps, the
 input limits (lln_ros.limits) and problem logging by kind (lln_ros.counters)."""
+
 import json
 import os
 import sqlite3
@@ -8,14 +9,13 @@ import sys
 
 import numpy as np
 import pytest
+from test_mapstore import MODEL, SPACE, make_set
 
+from lln_ros.core.localizer import Localizer, open_map, writable_problem
 from lln_ros.counters import Counters, problem_kind
 from lln_ros.errors import MapError, ModelError
-from lln_ros.core.landmarks import LandmarkSet
-from lln_ros.limits import LimitError, check_landmark_set, default_conf, validate_model
-from lln_ros.core.localizer import Localizer, open_map, writable_problem
+from lln_ros.limits import check_landmark_set, default_conf, validate_model
 from lln_ros.mapstore import MapStore
-from test_mapstore import MODEL, SPACE, make_set
 
 T0 = 1_700_000_000 * 10**9
 
@@ -41,12 +41,29 @@ class Log:
 
 
 def invariants(counts: dict) -> None:
-    got = {k: counts.get(k, 0) for k in ('queries_received', 'queries_answered', 'queries_stale', 'bad_query',
-                                         'queries_failed', 'keyframes_received', 'keyframes_stored',
-                                         'bad_keyframe', 'keyframes_failed', 'queries_stored')}
-    assert got['queries_received'] == got['queries_answered'] + got['queries_stale'] + got['bad_query'] + \
-        got['queries_failed'], got
-    assert got['keyframes_received'] + got['queries_stored'] == got['keyframes_stored'] + got['bad_keyframe'] + got['keyframes_failed'], got
+    got = {
+        k: counts.get(k, 0)
+        for k in (
+            'queries_received',
+            'queries_answered',
+            'queries_stale',
+            'bad_query',
+            'queries_failed',
+            'keyframes_received',
+            'keyframes_stored',
+            'bad_keyframe',
+            'keyframes_failed',
+            'queries_stored',
+        )
+    }
+    assert (
+        got['queries_received']
+        == got['queries_answered'] + got['queries_stale'] + got['bad_query'] + got['queries_failed']
+    ), got
+    assert (
+        got['keyframes_received'] + got['queries_stored']
+        == got['keyframes_stored'] + got['bad_keyframe'] + got['keyframes_failed']
+    ), got
 
 
 def ask(loc: Localizer, lset, i: int):
@@ -76,9 +93,11 @@ def map_path(tmp_path):
 
 def test_localizer_is_ros_free():
     """The Localizer, limits and counters import without rclpy (nodes decode; this decides)."""
-    code = ('import sys, lln_ros.core.localizer, lln_ros.limits, lln_ros.counters; '
-            'bad = [m for m in sys.modules if m.split(".")[0] in ("rclpy", "sensor_msgs", "std_msgs")]; '
-            'print(bad); sys.exit(1 if bad else 0)')
+    code = (
+        'import sys, lln_ros.core.localizer, lln_ros.limits, lln_ros.counters; '
+        'bad = [m for m in sys.modules if m.split(".")[0] in ("rclpy", "sensor_msgs", "std_msgs")]; '
+        'print(bad); sys.exit(1 if bad else 0)'
+    )
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True)
     assert out.returncode == 0, out.stdout + out.stderr
 
@@ -99,25 +118,28 @@ def test_localization_and_mapping(map_path, rng):
     store, _ = open_map(map_path, 'mapping', SPACE)
     with store:
         loc = Localizer(store, {'mode': 'mapping', 'exclude_recent': 2, 'k': 3})
-        answer = ask(loc, sets[2], 200)      # answered from the map, then stored
+        answer = ask(loc, sets[2], 200)  # answered from the map, then stored
         assert answer.rows[0]['keyframe_id'] == 3 and len(store) == 7
-        again = ask(loc, sets[2], 201)       # its own copy (keyframe 7) is too recent to answer
+        again = ask(loc, sets[2], 201)  # its own copy (keyframe 7) is too recent to answer
         assert 7 not in [r['keyframe_id'] for r in again.rows]
         invariants(loc.counters.snapshot())
 
 
-@pytest.mark.parametrize('text, problem', [
-    ('{"descriptor_space": "a/b/192", "descriptor_dim": 1e999}', 'must be an integer'),   # OverflowError before
-    ('{"descriptor_space": "a/b/192", "descriptor_dim": -5}', 'must be in'),
-    ('{"descriptor_space": "a/b/192", "descriptor_dim": 10000000000000000000000}', 'must be in'),
-    ('{"descriptor_space": "a/b/192", "descriptor_dim": "192"}', 'must be an integer'),
-    ('{"descriptor_space": "a/b/192", "descriptor_dim": 64}', 'ends in D=192'),
-    ('{"descriptor_space": "a/b/192", "descriptor_dim": 192, "input_height": 100}', 'multiple of 32'),
-    ('{"descriptor_dim": 192}', 'descriptor_space'),
-    ('[1, 2]', 'JSON object'),
-    ('not json', 'cannot use model_info'),
-    ('[' * 100000 + ']' * 100000, 'cannot use model_info'),
-])
+@pytest.mark.parametrize(
+    'text, problem',
+    [
+        ('{"descriptor_space": "a/b/192", "descriptor_dim": 1e999}', 'must be an integer'),  # OverflowError before
+        ('{"descriptor_space": "a/b/192", "descriptor_dim": -5}', 'must be in'),
+        ('{"descriptor_space": "a/b/192", "descriptor_dim": 10000000000000000000000}', 'must be in'),
+        ('{"descriptor_space": "a/b/192", "descriptor_dim": "192"}', 'must be an integer'),
+        ('{"descriptor_space": "a/b/192", "descriptor_dim": 64}', 'ends in D=192'),
+        ('{"descriptor_space": "a/b/192", "descriptor_dim": 192, "input_height": 100}', 'multiple of 32'),
+        ('{"descriptor_dim": 192}', 'descriptor_space'),
+        ('[1, 2]', 'JSON object'),
+        ('not json', 'cannot use model_info'),
+        ('[' * 100000 + ']' * 100000, 'cannot use model_info'),
+    ],
+)
 def test_bad_model_info_changes_nothing(map_path, text, problem):
     """A model_info that fails validation is counted and logged, and neither the map (no model record
     written) nor the refusal state changes; a valid one afterwards is recorded."""
@@ -156,18 +178,24 @@ def hostile_sets(rng) -> dict:
         for k, v in fields.items():
             setattr(s, k, v)
         return s
+
     many = make_set(rng, n=5000, rows=50, cols=128)
     many.cell_size, many.image_size = np.array([3, 5.76], np.float32), np.array([384, 288], np.float32)
     return {
         'tiny cell': variant(cell_size=np.array([1e-3, 1e-3], np.float32), grid=(288000, 384000)),
         'huge image': variant(image_size=np.array([1e9, 1e9], np.float32), grid=(9, 12)),
-        '32768 px wide': variant(image_size=np.array([32768, 288], np.float32),
-                                 cell_size=np.array([32, 32], np.float32), grid=(9, 1024)),
+        '32768 px wide': variant(
+            image_size=np.array([32768, 288], np.float32), cell_size=np.array([32, 32], np.float32), grid=(9, 1024)
+        ),
         'rows vs input_height': variant(image_size=np.array([384, 576], np.float32), grid=(18, 12)),
         'not whole cells': variant(cell_size=np.array([33.3, 32], np.float32)),
         '5000 landmarks': many,
-        'no landmarks': variant(descriptors=np.zeros((0, 320), np.float32), cells=np.zeros((0, 2), np.int32),
-                                centers=np.zeros((0, 2), np.float32), scores=np.zeros(0, np.float32)),
+        'no landmarks': variant(
+            descriptors=np.zeros((0, 320), np.float32),
+            cells=np.zeros((0, 2), np.int32),
+            centers=np.zeros((0, 2), np.float32),
+            scores=np.zeros(0, np.float32),
+        ),
         'good': good,
     }
 
@@ -180,7 +208,7 @@ def test_limits_refuse_declared_sizes_before_any_work(map_path, rng):
     store, _ = open_map(map_path, descriptor_space=SPACE)
     with store:
         loc = Localizer(store, log=log)
-        loc.model_info(json.dumps(MODEL))   # the extractor's: input_height 288 makes a grid of 9 rows
+        loc.model_info(json.dumps(MODEL))  # the extractor's: input_height 288 makes a grid of 9 rows
         assert keyframe(loc, sets['good'], 0) == 1
         for i, (name, s) in enumerate(sets.items()):
             if name == 'good':
@@ -208,13 +236,12 @@ def test_check_landmark_set_accepts_the_extractors_output(extractor, photo):
 def test_validate_model_accepts_model_info(extractor):
     assert validate_model(extractor.model_info) == extractor.model_info
     with pytest.raises(ModelError, match='max_descriptor_dim'.replace('max_descriptor_dim', 'must be in')):
-        validate_model({**extractor.model_info, 'descriptor_dim': 5000,
-                        'descriptor_space': 'x/y/5000'})
+        validate_model({**extractor.model_info, 'descriptor_dim': 5000, 'descriptor_space': 'x/y/5000'})
 
 
 def damage(map_path, keyframe_id: int) -> None:
     con = sqlite3.connect(map_path)
-    con.execute('UPDATE landmarks SET descriptors = x\'00\' WHERE keyframe_id = ?', (keyframe_id,))
+    con.execute("UPDATE landmarks SET descriptors = x'00' WHERE keyframe_id = ?", (keyframe_id,))
     con.commit()
     con.close()
 
@@ -238,7 +265,7 @@ def test_damaged_keyframe_quarantined_not_blamed_on_the_query(map_path, rng):
         answer = ask(loc, sets[2], 50)
         assert answer is not None and 3 not in [r['keyframe_id'] for r in answer.rows]
         assert 'bad_query' not in loc.counters.snapshot()
-    with sqlite3.connect(map_path) as con:   # left in the file
+    with sqlite3.connect(map_path) as con:  # left in the file
         assert con.execute('SELECT count(*) FROM keyframes').fetchone()[0] == 5
 
 
@@ -314,14 +341,14 @@ def test_bad_model_record_is_explained(map_path, rng):
     with MapStore(map_path, model=MODEL) as store:
         store.add(make_set(rng), (1, 2))
     with sqlite3.connect(map_path) as con:
-        con.execute("UPDATE meta SET value = ? WHERE key = 'model'",
-                    (json.dumps({**MODEL, 'descriptor_dim': -7}),))
+        con.execute("UPDATE meta SET value = ? WHERE key = 'model'", (json.dumps({**MODEL, 'descriptor_dim': -7}),))
     with pytest.raises(MapError, match='bad model record') as err:
         MapStore(map_path, create=False)
     assert 'descriptor_dim' in str(err.value) and str(map_path) in str(err.value)
     for command in ('info', 'check'):
-        out = subprocess.run([sys.executable, '-m', 'lln_ros.cli.map', command, str(map_path)],
-                             capture_output=True, text=True)
+        out = subprocess.run(
+            [sys.executable, '-m', 'lln_ros.cli.map', command, str(map_path)], capture_output=True, text=True
+        )
         assert out.returncode == 1 and 'Traceback' not in out.stderr + out.stdout, out
         assert 'bad model record' in out.stderr + out.stdout and 'descriptor_dim' in out.stderr + out.stdout
 
@@ -330,6 +357,7 @@ def test_keypoints_paired_by_stamp_either_order(map_path, rng):
     """verify: keypoints that come before their landmark set wait for it; ones that come after are
     attached to the stored keyframe."""
     from lln_ros.reloc import Keypoints
+
     sets = [make_set(rng) for _ in range(2)]
 
     def kps(n):
@@ -337,13 +365,14 @@ def test_keypoints_paired_by_stamp_either_order(map_path, rng):
         k.uv = rng.random((n, 2)).astype(np.float32) * 200
         k.descriptors = rng.integers(0, 256, (n, 32), dtype=np.uint8)
         return k
+
     store, _ = open_map(map_path, 'localization', SPACE)
     with store:
         loc = Localizer(store, {'verify': True})
-        loc.keypoints(kps(30), stamp(0))              # before
+        loc.keypoints(kps(30), stamp(0))  # before
         keyframe(loc, sets[0], 0)
         keyframe(loc, sets[1], 1)
-        loc.keypoints(kps(40), stamp(1))              # after
+        loc.keypoints(kps(40), stamp(1))  # after
         assert store.keypoints(1)[0].shape == (30, 2) and store.keypoints(2)[0].shape == (40, 2)
         assert loc.counters.snapshot()['verify_missing_keypoints'] == 1
 
@@ -362,7 +391,7 @@ def test_problems_are_logged_by_kind_rate_limited():
     c.problem('bad_query', 'landmarks cloud: data is truncated: 5 bytes, expected 9')
     assert len(lines) == 3 and '299 more of this kind' in lines[-1]
     assert problem_kind('D=64, expected D=192') == problem_kind('D=8, expected D=1e+30')
-    for i in range(500):   # endless distinct texts share one '<other>' kind after max_kinds
+    for i in range(500):  # endless distinct texts share one '<other>' kind after max_kinds
         c.problem('bad_keyframe', f'kind{chr(65 + i % 26)}{chr(65 + i // 26)}')
     assert len(lines) == 3 + 64 + 1
 
@@ -372,11 +401,12 @@ def test_a_poisoned_keyframe_from_an_older_map_costs_little(map_path, rng):
     the int16 cell check) made every later query take 0.5-10 s and 2.1 GB: offset_mode now counts only
     occupied bins when the dense array would be large, so a query against it allocates megabytes."""
     import tracemalloc
+
     poisoned = make_set(rng, rows=9, cols=1024)
     poisoned.cell_size = np.array([32, 32], np.float32)
     poisoned.image_size = np.array([32768, 288], np.float32)
     poisoned.centers = ((poisoned.cells + 0.5) * 32).astype(np.float32)
-    poisoned.cells[0] = (1023, 8)       # offsets up to ~1,000 cells from any query's
+    poisoned.cells[0] = (1023, 8)  # offsets up to ~1,000 cells from any query's
     with MapStore(map_path, model=MODEL) as store:
         store.add(poisoned, (1, 0))
         store.add(make_set(rng), (2, 0))

@@ -1,5 +1,6 @@
 """lln_ros.loop_closure and scripts/loop_closure_client.py: the matcher's answers turned into
 loop-closure constraints (thresholds, verify-mode inliers, odometry gap), and the client over real DDS."""
+
 from __future__ import annotations
 
 import json
@@ -24,8 +25,16 @@ def answer(rows, extra=()):
     header = msgs.make_header(T0 * 10**9 + 60 * 10**9)
     cands = msgs.cloud_to_candidates(msgs.candidates_to_cloud(rows, header, extra))
     best = rows[0]['keyframe_id'] if rows else 0
-    pairs = {'query_u': [10.0, 50.0], 'query_v': [20.0, 60.0], 'map_u': [12.0, 55.0], 'map_v': [21.0, 58.0],
-             'cell_w': [32.0, 32.0], 'cell_h': [32.0, 32.0], 'similarity': [0.9, 0.8], 'weight': [1.0, 0.7]}
+    pairs = {
+        'query_u': [10.0, 50.0],
+        'query_v': [20.0, 60.0],
+        'map_u': [12.0, 55.0],
+        'map_v': [21.0, 58.0],
+        'cell_w': [32.0, 32.0],
+        'cell_h': [32.0, 32.0],
+        'similarity': [0.9, 0.8],
+        'weight': [1.0, 0.7],
+    }
     matches = msgs.cloud_to_matches(msgs.matches_to_cloud(msgs.match_rows(best, pairs) if rows else [], header))
     return header, cands, matches
 
@@ -70,17 +79,39 @@ def test_threshold_table():
 def test_client_over_dds(tmp_path):
     env = ros_env(tmp_path)
     out = tmp_path / 'closures.jsonl'
-    client = subprocess.Popen([sys.executable, str(CLIENT), '--min-score', '15', '--count', '3', '--out', str(out)],
-                              env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    client = subprocess.Popen(
+        [sys.executable, str(CLIENT), '--min-score', '15', '--count', '3', '--out', str(out)],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         with Probe(env) as probe:
             cpub, mpub = probe.publisher(PointCloud2, 'candidates'), probe.publisher(PointCloud2, 'matches')
             probe.spin_until(lambda: cpub.get_subscription_count() and mpub.get_subscription_count(), 60, 'client')
             for i, rows in enumerate(([row(3, 20.0, T0)], [row(4, 9.0, T0)], [])):
                 header = msgs.make_header((T0 + 100 + i) * 10**9)
-                mpub.publish(msgs.matches_to_cloud(msgs.match_rows(rows[0]['keyframe_id'] if rows else 0, {
-                    'query_u': [1.0], 'query_v': [2.0], 'map_u': [3.0], 'map_v': [4.0], 'cell_w': [8.0],
-                    'cell_h': [8.0], 'similarity': [0.9], 'weight': [1.0]}) if rows else [], header))
+                mpub.publish(
+                    msgs.matches_to_cloud(
+                        msgs.match_rows(
+                            rows[0]['keyframe_id'] if rows else 0,
+                            {
+                                'query_u': [1.0],
+                                'query_v': [2.0],
+                                'map_u': [3.0],
+                                'map_v': [4.0],
+                                'cell_w': [8.0],
+                                'cell_h': [8.0],
+                                'similarity': [0.9],
+                                'weight': [1.0],
+                            },
+                        )
+                        if rows
+                        else [],
+                        header,
+                    )
+                )
                 cpub.publish(msgs.candidates_to_cloud(rows, header))
             probe.spin_until(lambda: client.poll() is not None, 60, 'client exit')
         _, err = client.communicate(timeout=10)

@@ -1,6 +1,7 @@
 """One suite, both map backends: the embedded SQLite + FAISS map and Milvus, on Milvus Lite and on a
 real Milvus 2.3.5 server (the `milvus-server` cases run inside a loopback-only network namespace, see
 test_milvus_server.py). Small maps of synthetic landmark sets."""
+
 import importlib.util
 import json
 import os
@@ -9,15 +10,20 @@ import sys
 
 import numpy as np
 import pytest
+from test_mapstore import MODEL, OTHER_MODEL, make_set
 
 from lln_ros.errors import MapError
 from lln_ros.mapstore import MapStore, SQLiteMapStore, backend_for
-from test_mapstore import MODEL, OTHER_MODEL, make_set
 
 HAVE_MILVUS = importlib.util.find_spec('pymilvus') is not None and importlib.util.find_spec('milvus_lite') is not None
-BACKENDS = ['sqlite', pytest.param('milvus', marks=pytest.mark.skipif(
-    not HAVE_MILVUS, reason='pymilvus / milvus-lite not installed (requirements.txt)')),
-    pytest.param('milvus-server', marks=pytest.mark.milvus_server)]
+BACKENDS = [
+    'sqlite',
+    pytest.param(
+        'milvus',
+        marks=pytest.mark.skipif(not HAVE_MILVUS, reason='pymilvus / milvus-lite not installed (requirements.txt)'),
+    ),
+    pytest.param('milvus-server', marks=pytest.mark.milvus_server),
+]
 
 
 def uri_for(kind, tmp_path, name='map'):
@@ -55,10 +61,10 @@ def test_exhaustive_query_scores_every_allowed_keyframe(uri, rng):
         every = store.query(query, prefilter_k=0, k=12)
         assert sorted(c.keyframe_id for c in every) == ids
         assert [c.score for c in every] == sorted((c.score for c in every), reverse=True)
-        assert [(c.keyframe_id, c.score) for c in every] == \
-            [(c.keyframe_id, c.score) for c in store.query(query, prefilter_k=12, k=12)]
-        assert [c.keyframe_id for c in store.query(query, prefilter_k=0, k=3)] == \
-            [c.keyframe_id for c in every[:3]]
+        assert [(c.keyframe_id, c.score) for c in every] == [
+            (c.keyframe_id, c.score) for c in store.query(query, prefilter_k=12, k=12)
+        ]
+        assert [c.keyframe_id for c in store.query(query, prefilter_k=0, k=3)] == [c.keyframe_id for c in every[:3]]
         allowed = store.query(query, prefilter_k=0, k=12, exclude_recent=5)
         assert sorted(c.keyframe_id for c in allowed) == ids[:7]
         assert store.query(query, prefilter_k=0, k=5, exclude_recent=12) == []
@@ -79,8 +85,9 @@ def test_insert_query_get(uri, rng):
             assert top[0].score == pytest.approx(50.0, abs=0.05) and top[0].n_pairs == 50
         noisy = make_set(rng, base=sets[5], noise=0.3)
         assert store.query(noisy, prefilter_k=10, k=1)[0].keyframe_id == ids[5]
-        assert [c.keyframe_id for c in store.query(sets[24], k=5, exclude_recent=1)] and \
-            ids[24] not in [c.keyframe_id for c in store.query(sets[24], k=25, exclude_recent=1)]
+        assert [c.keyframe_id for c in store.query(sets[24], k=5, exclude_recent=1)] and ids[24] not in [
+            c.keyframe_id for c in store.query(sets[24], k=25, exclude_recent=1)
+        ]
         assert store.query(sets[0], k=5, exclude_recent=25) == []
         got = store.get(ids[3])
         np.testing.assert_allclose(got.descriptors, sets[3].descriptors, atol=2e-3)
@@ -102,8 +109,11 @@ def test_delete_and_clear_never_reuse_ids(uri, rng):
         assert all(c.keyframe_id != ids[2] for c in store.query(sets[2], prefilter_k=10, k=10))
         assert store.check() == []
         store.clear()
-        assert len(store) == 0 and store.query(sets[0]) == [] and store.model['descriptor_space'] == MODEL[
-            'descriptor_space']
+        assert (
+            len(store) == 0
+            and store.query(sets[0]) == []
+            and store.model['descriptor_space'] == MODEL['descriptor_space']
+        )
         assert store.add(sets[0]) > max(ids)
 
 
@@ -162,10 +172,15 @@ def test_sqlite_ivf_above_threshold(tmp_path, rng):
 
 
 def run_cli(*args, check=True):
-    env = {**os.environ, 'PYTHONPATH': os.pathsep.join(
-        p for p in (os.path.dirname(os.path.dirname(os.path.abspath(__file__))), os.environ.get('PYTHONPATH')) if p)}
-    out = subprocess.run([sys.executable, '-m', 'lln_ros.cli.map', *args], capture_output=True, text=True,
-                         env=env, timeout=300)
+    env = {
+        **os.environ,
+        'PYTHONPATH': os.pathsep.join(
+            p for p in (os.path.dirname(os.path.dirname(os.path.abspath(__file__))), os.environ.get('PYTHONPATH')) if p
+        ),
+    }
+    out = subprocess.run(
+        [sys.executable, '-m', 'lln_ros.cli.map', *args], capture_output=True, text=True, env=env, timeout=300
+    )
     if check and out.returncode:
         raise AssertionError(f'lln-map {args} exited {out.returncode}:\n{out.stdout}\n{out.stderr}')
     return out
@@ -191,7 +206,7 @@ def test_cli_export_import_between_backends(tmp_path, rng, request, target):
     info = json.loads(run_cli('info', '--json', milvus).stdout)
     assert info['keyframes'] == 14 and info['backend'] == 'milvus'
     assert 'healthy' in run_cli('check', milvus).stdout
-    assert run_cli('export', str(src), milvus, check=False).returncode == 1   # ids taken: refused
+    assert run_cli('export', str(src), milvus, check=False).returncode == 1  # ids taken: refused
 
 
 def test_cli_info_check_compact(tmp_path, rng):
@@ -220,6 +235,7 @@ def test_cli_check_explains_a_damaged_map(tmp_path, rng, damage):
             f.write(b'\x00' * 512)
     else:
         import sqlite3
+
         con = sqlite3.connect(path)
         con.execute('UPDATE landmarks SET descriptors = zeroblob(10) WHERE keyframe_id = 5')
         con.commit()
@@ -230,7 +246,7 @@ def test_cli_check_explains_a_damaged_map(tmp_path, rng, damage):
     text = out.stdout + out.stderr
     assert {'truncate': 'truncated', 'garbage': 'not an lln_ros map', 'bad_blob': 'keyframe 5'}[damage] in text
     with pytest.raises(MapError, match=str(path) if damage != 'bad_blob' else 'keyframe 5'):
-        with MapStore.open(path, create=False) as store:   # never a silent empty map
+        with MapStore.open(path, create=False) as store:  # never a silent empty map
             store.get(5)
 
 
@@ -240,6 +256,7 @@ def test_sqlite_migration_runs_once_in_a_transaction(tmp_path, rng, monkeypatch)
     import sqlite3
 
     from lln_ros import mapstore
+
     path = tmp_path / 'old.db'
     with MapStore.open(path, model=MODEL) as store:
         kid = store.add(make_set(rng))
@@ -252,12 +269,14 @@ def test_sqlite_migration_runs_once_in_a_transaction(tmp_path, rng, monkeypatch)
     def broken(conn):
         conn.execute('CREATE TABLE half_done (x)')
         raise RuntimeError('migration failed')
+
     monkeypatch.setitem(mapstore.MIGRATIONS, mapstore.SCHEMA_VERSION - 1, broken)
     with pytest.raises(RuntimeError):
         MapStore.open(path)
     con = sqlite3.connect(path)
-    assert con.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == \
-        str(mapstore.SCHEMA_VERSION - 1)
+    assert con.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == str(
+        mapstore.SCHEMA_VERSION - 1
+    )
     assert not con.execute("SELECT name FROM sqlite_master WHERE name = 'half_done'").fetchall()
     con.close()
     monkeypatch.setitem(mapstore.MIGRATIONS, mapstore.SCHEMA_VERSION - 1, calls.append)

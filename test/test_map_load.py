@@ -6,6 +6,7 @@ maps of synthetic landmark sets (D=192, n=50: the default model's shapes), a pro
   dropped in transport), and the counts are reported.
 - ~/clear and ~/save during a burst of keyframes: no deadlock, no lost keyframe.
 """
+
 from __future__ import annotations
 
 import time
@@ -14,11 +15,11 @@ import numpy as np
 import pytest
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
+from test_mapstore import make_set
+from test_nodes import MATCHER, Rig, header, stamp_of
 
 from lln_ros import msgs
 from lln_ros.mapstore import MapStore
-from test_mapstore import make_set
-from test_nodes import MATCHER, Rig, header, stamp_of
 
 SPACE = 'efficientnet_lite0/stage6/192'
 
@@ -28,7 +29,7 @@ def random_set(rng):
 
 
 def noisy_view(rng, lset):
-    return make_set(rng, dim=192, base=lset, noise=0.02)   # a perturbation of norm ~0.28 per unit vector
+    return make_set(rng, dim=192, base=lset, noise=0.02)  # a perturbation of norm ~0.28 per unit vector
 
 
 @pytest.fixture
@@ -48,8 +49,12 @@ def rss_mb(pid: int) -> float:
 
 def start(rig, map_path, *args):
     proc = rig.matcher(map_path, '-p', f'descriptor_space:={SPACE}', *args)
-    rig.until(lambda: rig.probe.node.count_publishers('candidates') > 0
-              and rig.probe.node.count_subscribers('query') > 0, 'matcher up', proc, timeout=120)
+    rig.until(
+        lambda: rig.probe.node.count_publishers('candidates') > 0 and rig.probe.node.count_subscribers('query') > 0,
+        'matcher up',
+        proc,
+        timeout=120,
+    )
     return proc
 
 
@@ -68,8 +73,15 @@ def test_matcher_30hz_for_60s_on_10k_map(rig, tmp_path, record_property):
     proc = start(rig, map_path, '-p', f'max_query_age:={max_age}', '-p', 'queue_depth:=10')
     q_pub = rig.probe.publisher(PointCloud2, 'query', depth=10)
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'query subscription', proc)
-    answers = rig.probe.collect(PointCloud2, 'candidates', lambda m: (
-        msgs.stamp_to_ns(m.header), time.monotonic(), [int(r['keyframe_id']) for r in msgs.cloud_to_candidates(m)]))
+    answers = rig.probe.collect(
+        PointCloud2,
+        'candidates',
+        lambda m: (
+            msgs.stamp_to_ns(m.header),
+            time.monotonic(),
+            [int(r['keyframe_id']) for r in msgs.cloud_to_candidates(m)],
+        ),
+    )
     queries = [(kid, msgs.landmarks_to_cloud(noisy_view(rng, s))) for kid, s in revisits.items()]
     sent: dict[int, tuple[float, int]] = {}
     t0 = time.monotonic()
@@ -82,7 +94,7 @@ def test_matcher_30hz_for_60s_on_10k_map(rig, tmp_path, record_property):
         q_pub.publish(cloud)
         sent[stamp] = (now, kid)
         i += 1
-        if rss_start is None and now - t0 > 5:     # after warm-up: the map, index and caches are in
+        if rss_start is None and now - t0 > 5:  # after warm-up: the map, index and caches are in
             rss_start = rss_mb(proc.proc.pid)
         rig.probe.spin_for(max(0.0, t0 + i / rate - time.monotonic()))
     rig.probe.spin_for(3.0)  # drain
@@ -93,20 +105,29 @@ def test_matcher_30hz_for_60s_on_10k_map(rig, tmp_path, record_property):
     top1 = np.mean([bool(ids) and ids[0] == sent[s][1] for s, _, ids in answers if s in sent])
     received, answered = counters.get('queries_received', 0), counters.get('queries_answered', 0)
     stale = counters.get('queries_stale', 0)
-    report = {'sent': len(sent), 'received': received, 'answered': answered, 'dropped_stale': stale,
-              'dropped_transport': len(sent) - received, 'p50_s': float(np.percentile(latency, 50)),
-              'p99_s': float(np.percentile(latency, 99)), 'max_s': float(latency.max()), 'top1': float(top1),
-              'rss_start_mb': rss_start, 'rss_end_mb': rss_end}
+    report = {
+        'sent': len(sent),
+        'received': received,
+        'answered': answered,
+        'dropped_stale': stale,
+        'dropped_transport': len(sent) - received,
+        'p50_s': float(np.percentile(latency, 50)),
+        'p99_s': float(np.percentile(latency, 99)),
+        'max_s': float(latency.max()),
+        'top1': float(top1),
+        'rss_start_mb': rss_start,
+        'rss_end_mb': rss_end,
+    }
     print('load report:', report)
     for key, value in report.items():
         record_property(key, value)
-    assert len(sent) >= 0.95 * rate * seconds                 # the probe kept the rate
+    assert len(sent) >= 0.95 * rate * seconds  # the probe kept the rate
     assert received == answered + stale + counters.get('bad_query', 0)  # every received query accounted for
     assert len(answers) == answered and received <= len(sent)
-    assert answered >= 0.5 * len(sent), report               # the server keeps up with most of the stream
-    assert report['max_s'] < max_age + 1.0, report            # bounded: stale queries are dropped, not queued
-    assert top1 >= 0.9, report                                # and the answers are right
-    assert rss_end - rss_start < 50, report                   # no growing queue or cache
+    assert answered >= 0.5 * len(sent), report  # the server keeps up with most of the stream
+    assert report['max_s'] < max_age + 1.0, report  # bounded: stale queries are dropped, not queued
+    assert top1 >= 0.9, report  # and the answers are right
+    assert rss_end - rss_start < 50, report  # no growing queue or cache
     assert proc.stop() == 0
 
 
@@ -115,7 +136,7 @@ def test_clear_and_save_during_a_burst(rig, tmp_path):
     keyframe is either in the map or was counted by a clear (the last clear wins, nothing else lost)."""
     rng = np.random.default_rng(1)
     map_path = tmp_path / 'map.db'
-    proc = start(rig, map_path, '-p', 'queue_depth:=200')   # the whole burst fits the queue
+    proc = start(rig, map_path, '-p', 'queue_depth:=200')  # the whole burst fits the queue
     kf_pub = rig.probe.publisher(PointCloud2, 'keyframes', depth=200)
     rig.until(lambda: kf_pub.get_subscription_count() > 0, 'keyframes subscription', proc)
     clients = {n: rig.probe.node.create_client(Trigger, f'{MATCHER}/{n}') for n in ('clear', 'save')}
@@ -124,8 +145,7 @@ def test_clear_and_save_during_a_burst(rig, tmp_path):
     for i in range(burst):
         kf_pub.publish(msgs.landmarks_to_cloud(random_set(rng), header(i)))
         if i % 25 == 10:
-            futures += [clients['clear'].call_async(Trigger.Request()),
-                        clients['save'].call_async(Trigger.Request())]
+            futures += [clients['clear'].call_async(Trigger.Request()), clients['save'].call_async(Trigger.Request())]
         rig.probe.spin_for(0.0)
     rig.until(lambda: all(f.done() for f in futures), 'every service answer (no deadlock)', proc, timeout=60)
     try:

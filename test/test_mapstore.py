@@ -1,5 +1,6 @@
 """The persistent map (lln_ros.mapstore): real SQLite files, landmark sets of realistic shapes
 (n=50, D=320, a 9x12 grid at 384x288) made with numpy."""
+
 import os
 import signal
 import sqlite3
@@ -11,22 +12,36 @@ import time
 import numpy as np
 import pytest
 
-from lln_ros.errors import MapError
 from lln_ros.core.landmarks import LandmarkSet
+from lln_ros.errors import MapError
 from lln_ros.mapstore import SCHEMA_VERSION, MapCandidate, MapStore
 
 SPACE = 'efficientnet_lite0/stage7/320'
-MODEL = {'backbone': 'efficientnet_lite0', 'layer': 'stage7', 'descriptor_dim': 320,
-         'descriptor_space': SPACE, 'head': 'abc123', 'head_trained': True, 'weights': '',
-         'input_height': 288}
-OTHER_MODEL = {**MODEL, 'backbone': 'resnet101', 'layer': 'layer3', 'descriptor_dim': 1024,
-               'descriptor_space': 'resnet101/layer3/1024'}
+MODEL = {
+    'backbone': 'efficientnet_lite0',
+    'layer': 'stage7',
+    'descriptor_dim': 320,
+    'descriptor_space': SPACE,
+    'head': 'abc123',
+    'head_trained': True,
+    'weights': '',
+    'input_height': 288,
+}
+OTHER_MODEL = {
+    **MODEL,
+    'backbone': 'resnet101',
+    'layer': 'layer3',
+    'descriptor_dim': 1024,
+    'descriptor_space': 'resnet101/layer3/1024',
+}
 
 
 def make_set(rng, n=50, dim=320, rows=9, cols=12, space=SPACE, base=None, noise=0.0):
     """Random unit descriptors with realistic shapes; `base` given: a noisy view of that set."""
+
     def unit(x):
         return (x / np.linalg.norm(x, axis=-1, keepdims=True)).astype(np.float32)
+
     if base is None:
         glob, desc = unit(rng.standard_normal(dim)), unit(rng.standard_normal((n, dim)))
         flat = rng.choice(rows * cols, n, replace=False)
@@ -36,11 +51,18 @@ def make_set(rng, n=50, dim=320, rows=9, cols=12, space=SPACE, base=None, noise=
         desc = unit(base.descriptors + noise * rng.standard_normal(base.descriptors.shape))
         cells = base.cells.copy()
     cell = np.array([384 / cols, 288 / rows], np.float32)
-    return LandmarkSet(global_descriptor=glob, descriptors=desc, cells=cells,
-                       centers=((cells + 0.5) * cell).astype(np.float32),
-                       scores=np.sort(rng.random(n).astype(np.float32))[::-1].copy(),
-                       cell_size=cell, image_size=np.array([384, 288], np.float32), grid=(rows, cols),
-                       activation=rng.random((rows, cols)).astype(np.float32), descriptor_space=space)
+    return LandmarkSet(
+        global_descriptor=glob,
+        descriptors=desc,
+        cells=cells,
+        centers=((cells + 0.5) * cell).astype(np.float32),
+        scores=np.sort(rng.random(n).astype(np.float32))[::-1].copy(),
+        cell_size=cell,
+        image_size=np.array([384, 288], np.float32),
+        grid=(rows, cols),
+        activation=rng.random((rows, cols)).astype(np.float32),
+        descriptor_space=space,
+    )
 
 
 @pytest.fixture
@@ -70,13 +92,23 @@ def test_add_then_query_with_itself_ranks_first(map_path, rng):
             assert top.keyframe_id == ids[i]
             assert top.stamp == (100 + i, 1000 * i)
             assert top.holistic_score == pytest.approx(1.0, abs=1e-5)
-            assert top.score == pytest.approx(50.0, abs=0.05)     # 50 mutual pairs, cosine ~1, weight 1
+            assert top.score == pytest.approx(50.0, abs=0.05)  # 50 mutual pairs, cosine ~1, weight 1
             assert top.score > res[1].score + 10
             assert [c.score for c in res] == sorted((c.score for c in res), reverse=True)
             assert top.offset == (0, 0) and top.n_pairs == 50
             p = top.pairs
-            assert set(p) == {'query_index', 'map_index', 'query_u', 'query_v', 'map_u', 'map_v',
-                              'cell_w', 'cell_h', 'similarity', 'weight'}
+            assert set(p) == {
+                'query_index',
+                'map_index',
+                'query_u',
+                'query_v',
+                'map_u',
+                'map_v',
+                'cell_w',
+                'cell_h',
+                'similarity',
+                'weight',
+            }
             assert all(len(v) == 50 for v in p.values())
             np.testing.assert_array_equal(p['query_index'], p['map_index'])
             np.testing.assert_allclose(p['query_u'], sets[i].centers[p['query_index'], 0])
@@ -117,7 +149,9 @@ def test_exclude_recent(map_path, rng):
         query = make_set(rng)
         # the 5 most recent keyframes are near-copies of the query: holistically the best 5
         near = [store.add(make_set(rng, base=query, noise=0.02)) for _ in range(5)]
-        assert {c.keyframe_id for c in store.query(query, method_rerank=False, prefilter='holistic', prefilter_k=5, k=5)} == set(near)
+        assert {
+            c.keyframe_id for c in store.query(query, method_rerank=False, prefilter='holistic', prefilter_k=5, k=5)
+        } == set(near)
         res = store.query(query, prefilter_k=3, k=3, exclude_recent=5, method_rerank=False, prefilter='holistic')
         assert len(res) == 3, 'FAISS must be asked for more than prefilter_k when recent ones are excluded'
         assert all(c.keyframe_id in ids for c in res)
@@ -136,7 +170,7 @@ def test_get_round_trip(map_path, rng):
         kid = store.add(s, stamp=(1700000000, 999999999))
         back = store.get(kid)
         np.testing.assert_array_equal(back.global_descriptor, s.global_descriptor)
-        np.testing.assert_allclose(back.descriptors, s.descriptors, atol=1e-3)   # stored as float16
+        np.testing.assert_allclose(back.descriptors, s.descriptors, atol=1e-3)  # stored as float16
         assert back.descriptors.dtype == np.float32
         np.testing.assert_array_equal(back.cells, s.cells)
         np.testing.assert_array_equal(back.centers, s.centers)
@@ -154,6 +188,7 @@ def test_get_round_trip(map_path, rng):
 def test_stamp_from_ros_time_like_object(map_path, rng):
     class Time:
         sec, nanosec = 12, 34
+
     with MapStore(map_path) as store:
         kid = store.add(make_set(rng), stamp=Time())
         assert store.get(kid).meta['stamp'] == (12, 34)
@@ -165,7 +200,7 @@ def test_reopen_keeps_everything(map_path, rng):
     store = MapStore.open(map_path, model=MODEL)
     sets, ids = fill(store, rng, 25)
     store.close()
-    store.close()   # idempotent
+    store.close()  # idempotent
     with pytest.raises(MapError, match='closed'):
         len(store)
     with MapStore.open(map_path, create=False) as again:
@@ -188,7 +223,7 @@ def test_model_recorded_from_first_set_when_none_given(map_path, rng):
         assert store.model is None and store.query(make_set(rng)) == []
         store.add(make_set(rng))
         assert store.model == {'descriptor_space': SPACE, 'descriptor_dim': 320}
-    with MapStore(map_path, model=MODEL) as store:   # same space: accepted
+    with MapStore(map_path, model=MODEL) as store:  # same space: accepted
         assert len(store) == 1
 
 
@@ -213,7 +248,7 @@ def test_model_mismatch_refused(map_path, rng):
     assert str(map_path) in msg and SPACE in msg and 'resnet101/layer3/1024' in msg
     with pytest.raises(MapError, match='descriptor_dim'):
         MapStore(map_path, model={'backbone': 'x'})
-    with MapStore(map_path) as store:   # the refused open changed nothing
+    with MapStore(map_path) as store:  # the refused open changed nothing
         assert store.model == MODEL and len(store) == 1 and store.check() == []
 
 
@@ -250,7 +285,7 @@ def test_truncated_map_with_leftover_wal_refused(map_path, rng):
         fill(store, rng, 30)
     with open(map_path, 'r+b') as f:
         f.truncate(map_path.stat().st_size // 2)
-    (map_path.parent / 'map.db-wal').write_bytes(b'\0' * 64)   # skips the header size check
+    (map_path.parent / 'map.db-wal').write_bytes(b'\0' * 64)  # skips the header size check
     with pytest.raises(MapError, match='map.db'):
         MapStore(map_path)
 
@@ -338,11 +373,12 @@ def test_threads_add_and_query_concurrently(map_path, rng):
     sets = [make_set(rng) for _ in range(60)]
     errors, added = [], []
     with MapStore(map_path, model=MODEL) as store:
+
         def writer(chunk):
             try:
                 for s in chunk:
                     added.append((store.add(s), s))
-            except Exception as e:   # pragma: no cover - reported below
+            except Exception as e:  # pragma: no cover - reported below
                 errors.append(e)
 
         def reader():
@@ -351,7 +387,7 @@ def test_threads_add_and_query_concurrently(map_path, rng):
                     store.query(s, exclude_recent=2)
                     store.info()
                 store.save()
-            except Exception as e:   # pragma: no cover
+            except Exception as e:  # pragma: no cover
                 errors.append(e)
 
         threads = [threading.Thread(target=writer, args=(sets[i::3],)) for i in range(3)]
@@ -366,7 +402,7 @@ def test_threads_add_and_query_concurrently(map_path, rng):
             assert store.query(s)[0].keyframe_id == kid
 
 
-KILL_SCRIPT = '''
+KILL_SCRIPT = """
 import sys
 import numpy as np
 sys.path.insert(0, sys.argv[2])
@@ -381,15 +417,20 @@ while True:
     kid = store.add(sets[i % 16], stamp=(i, 0))
     print(kid, flush=True)
     i += 1
-'''
+"""
 
 
 def test_acknowledged_keyframes_survive_kill_9(map_path, tmp_path):
     script = tmp_path / 'writer.py'
     script.write_text(KILL_SCRIPT)
-    here = os.path.dirname(os.path.abspath(__file__))   # the writer imports make_set from this file
-    proc = subprocess.Popen([sys.executable, str(script), str(map_path), here], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, bufsize=1)
+    here = os.path.dirname(os.path.abspath(__file__))  # the writer imports make_set from this file
+    proc = subprocess.Popen(
+        [sys.executable, str(script), str(map_path), here],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        bufsize=1,
+    )
     acked = []
     try:
         deadline = time.monotonic() + 120
@@ -400,7 +441,7 @@ def test_acknowledged_keyframes_survive_kill_9(map_path, tmp_path):
                 break
             acked.append(int(line))
         assert proc.poll() is None, 'the writer must still be running when it is killed'
-        os.kill(proc.pid, signal.SIGKILL)     # mid-stream: it is adding as fast as it can
+        os.kill(proc.pid, signal.SIGKILL)  # mid-stream: it is adding as fast as it can
         proc.wait(timeout=30)
         # anything acknowledged before the kill that we have not read yet counts too
         acked += [int(x) for x in proc.stdout.read().split()]
@@ -415,6 +456,6 @@ def test_acknowledged_keyframes_survive_kill_9(map_path, tmp_path):
     with MapStore(map_path, create=False) as store:
         ids = store.ids()
         assert set(acked) <= set(ids)
-        assert len(ids) - len(acked) <= 1   # at most the one in flight, committed but not yet printed
+        assert len(ids) - len(acked) <= 1  # at most the one in flight, committed but not yet printed
         assert store.check() == []
         assert store.get(acked[-1]).descriptors.shape == (50, 320)

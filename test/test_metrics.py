@@ -1,4 +1,5 @@
 """Metrics on hand-computed cases."""
+
 import numpy as np
 import pytest
 
@@ -9,7 +10,7 @@ def case():
     # 5 queries, 6 refs. q0..q3 have a true match, q4 has none (a first visit).
     gt = np.zeros((5, 6), bool)
     gt[0, 0] = gt[1, 1] = gt[2, 2] = gt[3, 3] = True
-    ranked = np.array([[0, 5], [4, 1], [2, 0], [3, 1], [5, 0]])   # top-1 correct: q0, q2, q3
+    ranked = np.array([[0, 5], [4, 1], [2, 0], [3, 1], [5, 0]])  # top-1 correct: q0, q2, q3
     scores = np.array([0.9, 0.8, 0.7, 0.4, 0.6])
     return ranked, scores, gt
 

@@ -8,6 +8,7 @@ lo: test_real_server_suite (in the normal run) re-runs every `milvus_server` tes
 test_map_backends.py's, in a child pytest inside such a namespace (test/milvus_loopback.py); there
 the `milvus_server` fixture starts one server for the whole child run. Outside it those tests skip.
 """
+
 from __future__ import annotations
 
 import json
@@ -19,17 +20,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from milvus_loopback import milvus_version, only_loopback
+from test_mapstore import MODEL, make_set
 
 from lln_ros.errors import MapError
 from lln_ros.mapstore import MapStore
-from milvus_loopback import milvus_version, only_loopback
-from test_mapstore import MODEL, make_set
 
 REPO = Path(__file__).resolve().parents[1]
 HAVE_LITE = all(__import__('importlib').util.find_spec(m) for m in ('pymilvus', 'milvus_lite'))
 server = pytest.mark.milvus_server
-BOTH = [pytest.param('lite', marks=pytest.mark.skipif(not HAVE_LITE, reason='pymilvus / milvus-lite not installed')),
-        pytest.param('server', marks=server)]
+BOTH = [
+    pytest.param('lite', marks=pytest.mark.skipif(not HAVE_LITE, reason='pymilvus / milvus-lite not installed')),
+    pytest.param('server', marks=server),
+]
 
 
 @pytest.fixture
@@ -41,20 +44,37 @@ def milvus_uri(request, tmp_path):
 
 
 def child_env() -> dict:
-    return {**os.environ, 'PYTHONPATH': os.pathsep.join(
-        p for p in (str(REPO), str(REPO / 'test'), os.environ.get('PYTHONPATH')) if p)}
+    return {
+        **os.environ,
+        'PYTHONPATH': os.pathsep.join(p for p in (str(REPO), str(REPO / 'test'), os.environ.get('PYTHONPATH')) if p),
+    }
 
 
 # ============================================================================================
 # the normal run: every milvus_server test, in a child pytest inside a loopback-only namespace
 
+
 @pytest.mark.skipif(only_loopback(), reason='already inside the loopback namespace (this is the child run)')
 def test_real_server_suite(tmp_path):
     if milvus_version() is None:
         pytest.skip('the PyPI package `milvus` (a Milvus 2.3.5 standalone server) is not installed')
-    cmd = [sys.executable, str(REPO / 'test' / 'milvus_loopback.py'), '--', sys.executable, '-m', 'pytest', '-q',
-           '-p', 'no:cacheprovider', '-m', 'milvus_server', '-o', 'addopts=-ra',
-           str(REPO / 'test' / 'test_map_backends.py'), str(REPO / 'test' / 'test_milvus_server.py')]
+    cmd = [
+        sys.executable,
+        str(REPO / 'test' / 'milvus_loopback.py'),
+        '--',
+        sys.executable,
+        '-m',
+        'pytest',
+        '-q',
+        '-p',
+        'no:cacheprovider',
+        '-m',
+        'milvus_server',
+        '-o',
+        'addopts=-ra',
+        str(REPO / 'test' / 'test_map_backends.py'),
+        str(REPO / 'test' / 'test_milvus_server.py'),
+    ]
     t = time.monotonic()
     out = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, env=child_env(), timeout=1800)
     text = out.stdout + out.stderr
@@ -69,6 +89,7 @@ def test_real_server_suite(tmp_path):
 # ============================================================================================
 # inside the namespace
 
+
 @server
 def test_database_is_created_and_a_missing_one_named(milvus_server):
     uri = f'{milvus_server.uri}/lln_fresh_db?map=m'
@@ -82,6 +103,7 @@ def test_database_is_created_and_a_missing_one_named(milvus_server):
             assert store.ids() == [kid]
     finally:
         from milvus_loopback import drop_maps
+
         drop_maps(milvus_server, 'lln_fresh_db', 'm_')
 
 
@@ -110,6 +132,7 @@ def write_schema1_map(uri: str, sets, stamps, model: dict) -> list[int]:
 
     from lln_ros.mapstore import FORMAT
     from lln_ros.mapstore.milvus import parse_uri
+
     where = parse_uri(uri)
     c = MilvusClient(uri=where['uri'], timeout=60)
     if where['db_name']:
@@ -129,32 +152,79 @@ def write_schema1_map(uri: str, sets, stamps, model: dict) -> list[int]:
         if index:
             params.add_index(index, index_type='INVERTED' if where['uri'].endswith('.db') else 'STL_SORT')
         c.create_collection(name, schema=schema, index_params=params, consistency_level='Strong')
-    create(f'{m}_meta', [('key', 'VARCHAR', {'is_primary': True, 'max_length': 64}),
-                         ('value', 'VARCHAR', {'max_length': 65535})], 'unused', 2)
-    create(f'{m}_keyframes', [('id', 'INT64', {'is_primary': True}), ('stamp_sec', 'INT64', {}),
-                              ('stamp_nanosec', 'INT64', {})] + [(f, 'FLOAT', {}) for f in
-                                                                 ('image_w', 'image_h', 'cell_w', 'cell_h')]
-           + [(f, 'INT32', {}) for f in ('grid_rows', 'grid_cols', 'n')], 'global_descriptor', dim)
-    create(f'{m}_landmarks', [('pk', 'INT64', {'is_primary': True}), ('keyframe_id', 'INT64', {}),
-                              ('rank', 'INT32', {}), ('col', 'INT16', {}), ('row', 'INT16', {}),
-                              ('score', 'FLOAT', {}),
-                              ('descriptor', 'ARRAY', {'element_type': DataType.INT16, 'max_capacity': dim})],
-           'center', 2, index='keyframe_id', auto_id=True)
+
+    create(
+        f'{m}_meta',
+        [('key', 'VARCHAR', {'is_primary': True, 'max_length': 64}), ('value', 'VARCHAR', {'max_length': 65535})],
+        'unused',
+        2,
+    )
+    create(
+        f'{m}_keyframes',
+        [('id', 'INT64', {'is_primary': True}), ('stamp_sec', 'INT64', {}), ('stamp_nanosec', 'INT64', {})]
+        + [(f, 'FLOAT', {}) for f in ('image_w', 'image_h', 'cell_w', 'cell_h')]
+        + [(f, 'INT32', {}) for f in ('grid_rows', 'grid_cols', 'n')],
+        'global_descriptor',
+        dim,
+    )
+    create(
+        f'{m}_landmarks',
+        [
+            ('pk', 'INT64', {'is_primary': True}),
+            ('keyframe_id', 'INT64', {}),
+            ('rank', 'INT32', {}),
+            ('col', 'INT16', {}),
+            ('row', 'INT16', {}),
+            ('score', 'FLOAT', {}),
+            ('descriptor', 'ARRAY', {'element_type': DataType.INT16, 'max_capacity': dim}),
+        ],
+        'center',
+        2,
+        index='keyframe_id',
+        auto_id=True,
+    )
     ids = list(range(1, len(sets) + 1))
-    meta = {'format': FORMAT, 'schema_version': '1', 'created': '0', 'created_by': 'lln_ros (schema 1)',
-            'next_id': str(len(sets) + 1), 'model': json.dumps(model, sort_keys=True),
-            'descriptor_space': model['descriptor_space'], 'descriptor_dim': str(dim)}
+    meta = {
+        'format': FORMAT,
+        'schema_version': '1',
+        'created': '0',
+        'created_by': 'lln_ros (schema 1)',
+        'next_id': str(len(sets) + 1),
+        'model': json.dumps(model, sort_keys=True),
+        'descriptor_space': model['descriptor_space'],
+        'descriptor_dim': str(dim),
+    }
     c.upsert(f'{m}_meta', [{'key': k, 'value': v, 'unused': [0.0, 0.0]} for k, v in meta.items()])
     kf, lm = [], []
     for kid, lset, (sec, nsec) in zip(ids, sets, stamps):
-        kf.append({'id': kid, 'stamp_sec': sec, 'stamp_nanosec': nsec, 'image_w': float(lset.image_size[0]),
-                   'image_h': float(lset.image_size[1]), 'cell_w': float(lset.cell_size[0]),
-                   'cell_h': float(lset.cell_size[1]), 'grid_rows': int(lset.grid[0]), 'grid_cols': int(lset.grid[1]),
-                   'n': len(lset), 'global_descriptor': np.asarray(lset.global_descriptor, np.float32).tolist()})
+        kf.append(
+            {
+                'id': kid,
+                'stamp_sec': sec,
+                'stamp_nanosec': nsec,
+                'image_w': float(lset.image_size[0]),
+                'image_h': float(lset.image_size[1]),
+                'cell_w': float(lset.cell_size[0]),
+                'cell_h': float(lset.cell_size[1]),
+                'grid_rows': int(lset.grid[0]),
+                'grid_cols': int(lset.grid[1]),
+                'n': len(lset),
+                'global_descriptor': np.asarray(lset.global_descriptor, np.float32).tolist(),
+            }
+        )
         bits = np.ascontiguousarray(lset.descriptors, np.float16).view(np.int16)
-        lm += [{'keyframe_id': kid, 'rank': j, 'col': int(lset.cells[j, 0]), 'row': int(lset.cells[j, 1]),
-                'score': float(lset.scores[j]), 'center': lset.centers[j].astype(np.float32).tolist(),
-                'descriptor': bits[j].tolist()} for j in range(len(lset))]
+        lm += [
+            {
+                'keyframe_id': kid,
+                'rank': j,
+                'col': int(lset.cells[j, 0]),
+                'row': int(lset.cells[j, 1]),
+                'score': float(lset.scores[j]),
+                'center': lset.centers[j].astype(np.float32).tolist(),
+                'descriptor': bits[j].tolist(),
+            }
+            for j in range(len(lset))
+        ]
     c.insert(f'{m}_landmarks', lm)
     c.insert(f'{m}_keyframes', kf)
     c.close()
@@ -197,7 +267,7 @@ def test_keypoints_are_stored_per_keyframe(milvus_uri):
         with pytest.raises(KeyError):
             store.add_keypoints(999, uv, desc)
         store.add_keypoints(c, uv[:10], desc[:10])
-        store.add_keypoints(c, uv[:20], desc[:20])   # replaces
+        store.add_keypoints(c, uv[:20], desc[:20])  # replaces
         store.delete([c])
         assert store.check() == []
     with MapStore.open(milvus_uri, create=False) as store:
@@ -207,7 +277,7 @@ def test_keypoints_are_stored_per_keyframe(milvus_uri):
         assert store.keypoints(b)[0].shape == (0, 2) and store.keypoints(c) is None
 
 
-READER = r'''
+READER = r"""
 import json, sys, time
 import numpy as np
 from lln_ros.mapstore import MapStore
@@ -224,7 +294,7 @@ with MapStore.open(uri, create=False) as store:
     top = [store.query(sets[i], k=1)[0].keyframe_id for i in (0, want - 6)]
     recent = store.query(sets[want - 1], k=want, exclude_recent=5)
     print(json.dumps({'ids': ids, 'top': top, 'max_allowed': max(c.keyframe_id for c in recent)}), flush=True)
-'''
+"""
 
 
 @server
@@ -235,8 +305,17 @@ def test_two_readers_follow_one_writer(milvus_map):
     sets = [make_set(rng) for _ in range(30)]
     with MapStore.open(milvus_map, model=MODEL) as writer:
         ids = writer.add_many(sets[:10], [(i, 0) for i in range(10)])
-        readers = [subprocess.Popen([sys.executable, '-c', READER, milvus_map, '30'], stdout=subprocess.PIPE,
-                                    stderr=subprocess.PIPE, text=True, env=child_env(), cwd=REPO) for _ in range(2)]
+        readers = [
+            subprocess.Popen(
+                [sys.executable, '-c', READER, milvus_map, '30'],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                env=child_env(),
+                cwd=REPO,
+            )
+            for _ in range(2)
+        ]
         for r in readers:
             assert json.loads(r.stdout.readline() or '{}').get('opened_with') == 10, r.stderr.read()
         ids += [writer.add(s, (10 + i, 0)) for i, s in enumerate(sets[10:])]
@@ -248,7 +327,7 @@ def test_two_readers_follow_one_writer(milvus_map):
             assert seen['max_allowed'] < ids[25]
 
 
-WRITER = r'''
+WRITER = r"""
 import sys, time
 import numpy as np
 from lln_ros.errors import MapError
@@ -269,7 +348,7 @@ while acked < total and time.monotonic() < deadline:
     print('acked', kid, flush=True)
     time.sleep(0.02)
 store.close()
-'''
+"""
 
 
 @server
@@ -278,8 +357,14 @@ def test_server_restart_while_a_writer_runs(milvus_server, milvus_map, how):
     """The server stops (SIGTERM, or SIGKILL) and starts again while a writer adds keyframes: the
     writer gets MapErrors that say what failed, carries on once the server is back, and every
     keyframe it was told was stored is in the map afterwards."""
-    proc = subprocess.Popen([sys.executable, '-c', WRITER, milvus_map, '80'], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, env=child_env(), cwd=REPO)
+    proc = subprocess.Popen(
+        [sys.executable, '-c', WRITER, milvus_map, '80'],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=child_env(),
+        cwd=REPO,
+    )
     lines, acked = [], []
 
     def read_until(count: int) -> None:
@@ -290,6 +375,7 @@ def test_server_restart_while_a_writer_runs(milvus_server, milvus_map, how):
             lines.append(line)
             if line.startswith('acked'):
                 acked.append(int(line.split()[1]))
+
     try:
         read_until(20)
         milvus_server.restart(kill=how == 'kill')
@@ -315,19 +401,24 @@ def test_matcher_over_dds_in_mapping_mode(milvus_map, colcon_install, extractor,
     """The installed matcher node, map_path = the real server: mapping mode over DDS (loopback inside
     the namespace) with landmark sets of real photo crops; revisits found, every answered keyframe stored."""
     from sensor_msgs.msg import PointCloud2
+    from test_nodes import Rig, cloud, header, stamp_of, start_matcher
 
     from lln_ros import msgs
-    from test_nodes import Rig, cloud, header, stamp_of, start_matcher
-    crops = [photo[y:y + 256, x:x + 224] for y in (0, 170, 340) for x in (0, 144, 288)]
+
+    crops = [photo[y : y + 256, x : x + 224] for y in (0, 170, 340) for x in (0, 144, 288)]
     sets = extractor.extract_batch([np.ascontiguousarray(c) for c in crops])
-    places = {'sets': sets, 'space': extractor.model_info['descriptor_space'], 'dim': extractor.model_info['descriptor_dim']}
+    places = {
+        'sets': sets,
+        'space': extractor.model_info['descriptor_space'],
+        'dim': extractor.model_info['descriptor_dim'],
+    }
     rig = Rig(colcon_install, tmp_path)
     try:
         proc = start_matcher(rig, milvus_map, places, '-p', 'mode:=mapping', '-p', 'exclude_recent:=2')
         q_pub = rig.probe.publisher(PointCloud2, 'query')
         cands = rig.probe.collect(PointCloud2, 'candidates', msgs.cloud_to_candidates)
         rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
-        sequence = [0, 1, 2, 3, 4, 1, 5, 3]   # frame 5 revisits place 1, frame 7 place 3
+        sequence = [0, 1, 2, 3, 4, 1, 5, 3]  # frame 5 revisits place 1, frame 7 place 3
         for j, place in enumerate(sequence):
             q_pub.publish(cloud(places, place, header(j)))
             rig.until(lambda: len(cands) > j, f'answer {j}', proc)

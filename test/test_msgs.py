@@ -1,5 +1,6 @@
 """lln_ros.msgs: every table and image encoding round-trips, every malformed message is refused
 with a MessageError. Real sensor_msgs classes and rclpy's real CDR serialization, no mocks."""
+
 from __future__ import annotations
 
 import array
@@ -11,9 +12,9 @@ from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
 
 from lln_ros import msgs
-from lln_ros.errors import MessageError
 from lln_ros.core.landmarks import LandmarkSet, l2_normalize, select_landmarks
 from lln_ros.core.retrieval import pair_regions
+from lln_ros.errors import MessageError
 
 
 def make_landmarks(d=16, rows=9, cols=12, n=20, image_size=(512, 384), seed=0) -> LandmarkSet:
@@ -55,9 +56,20 @@ def field(msg, name):
 
 # ---------------------------------------------------------------- generic tables
 
+
 def test_generic_cloud_roundtrip_all_datatypes_and_array_fields():
-    dtype = [('i8', 'i1'), ('u8', 'u1'), ('i16', '<i2'), ('u16', '<u2'), ('i32', '<i4'), ('u32', '<u4'),
-             ('f32', '<f4'), ('f64', '<f8'), ('vec', '<f4', (5,)), ('ids', '<u2', (3,))]
+    dtype = [
+        ('i8', 'i1'),
+        ('u8', 'u1'),
+        ('i16', '<i2'),
+        ('u16', '<u2'),
+        ('i32', '<i4'),
+        ('u32', '<u4'),
+        ('f32', '<f4'),
+        ('f64', '<f8'),
+        ('vec', '<f4', (5,)),
+        ('ids', '<u2', (3,)),
+    ]
     rng = np.random.default_rng(1)
     table = np.zeros(7, dtype)
     for name in table.dtype.names:
@@ -96,8 +108,7 @@ def test_generic_cloud_with_padded_rows_and_layout_gaps():
     assert cloud.point_step == 16 and field(cloud, 'y').offset == 8
     # the same table as 3 rows of 1 point, each row padded to 20 bytes
     padded = PointCloud2(height=3, width=1, fields=cloud.fields, point_step=16, row_step=20)
-    padded.data = array.array('B', b''.join(bytes(cloud.data[i * 16:(i + 1) * 16]) + b'\xee' * 4
-                                            for i in range(3)))
+    padded.data = array.array('B', b''.join(bytes(cloud.data[i * 16 : (i + 1) * 16]) + b'\xee' * 4 for i in range(3)))
     back = msgs.cloud_to_array(padded)
     np.testing.assert_array_equal(back['x'], [1, 2, 3])
     np.testing.assert_array_equal(back['y'], [4, 5, 6])
@@ -113,11 +124,14 @@ def small_cloud():
     return msgs.array_to_cloud(np.array([(1.0, 2), (3.0, 4)], [('a', '<f4'), ('b', '<u4')]))
 
 
-@pytest.mark.parametrize('required, match', [
-    ([('c', PointField.FLOAT32, 1)], "required field 'c' is missing"),
-    ([('a', PointField.FLOAT64, 1)], "field 'a' is FLOAT32, expected FLOAT64"),
-    ([('b', PointField.UINT32, 4)], "field 'b' has count 1, expected 4"),
-])
+@pytest.mark.parametrize(
+    'required, match',
+    [
+        ([('c', PointField.FLOAT32, 1)], "required field 'c' is missing"),
+        ([('a', PointField.FLOAT64, 1)], "field 'a' is FLOAT32, expected FLOAT64"),
+        ([('b', PointField.UINT32, 4)], "field 'b' has count 1, expected 4"),
+    ],
+)
 def test_generic_cloud_refuses_wrong_fields(required, match):
     with pytest.raises(MessageError, match=match):
         msgs.cloud_to_array(small_cloud(), required)
@@ -171,6 +185,7 @@ def test_array_to_cloud_refuses_non_tables():
 
 # ---------------------------------------------------------------- landmarks
 
+
 def assert_same_landmarks(a: LandmarkSet, b: LandmarkSet):
     np.testing.assert_array_equal(b.global_descriptor, a.global_descriptor)
     np.testing.assert_array_equal(b.descriptors, a.descriptors)
@@ -183,12 +198,15 @@ def assert_same_landmarks(a: LandmarkSet, b: LandmarkSet):
     assert b.cells.dtype == np.int32 and b.descriptors.dtype == np.float32
 
 
-@pytest.mark.parametrize('kwargs', [
-    {},                                                         # rtabmap frames: 512x384, 12x9 grid
-    {'image_size': (64, 32), 'rows': 9, 'cols': 18, 'n': 50},  # Nordland: upsampled, fractional cells
-    {'image_size': (960, 540), 'rows': 9, 'cols': 16, 'n': 144, 'd': 320},  # all cells, bigger D
-    {'image_size': (641, 479), 'rows': 9, 'cols': 13, 'n': 1, 'd': 1},     # odd sizes, D = 1
-])
+@pytest.mark.parametrize(
+    'kwargs',
+    [
+        {},  # rtabmap frames: 512x384, 12x9 grid
+        {'image_size': (64, 32), 'rows': 9, 'cols': 18, 'n': 50},  # Nordland: upsampled, fractional cells
+        {'image_size': (960, 540), 'rows': 9, 'cols': 16, 'n': 144, 'd': 320},  # all cells, bigger D
+        {'image_size': (641, 479), 'rows': 9, 'cols': 13, 'n': 1, 'd': 1},  # odd sizes, D = 1
+    ],
+)
 def test_landmarks_roundtrip(kwargs):
     lset = make_landmarks(**kwargs)
     cloud = msgs.landmarks_to_cloud(lset, header())
@@ -214,6 +232,7 @@ def test_landmarks_roundtrip(kwargs):
 
 def test_landmarks_roundtrip_feeds_the_matcher():
     from lln_ros.core.similarity import match_pair
+
     a, b = make_landmarks(seed=1), make_landmarks(seed=2)
     a2, b2 = (msgs.cloud_to_landmarks(roundtrip(msgs.landmarks_to_cloud(s))) for s in (a, b))
     want, got = match_pair(a, b), match_pair(a2, b2)
@@ -243,8 +262,9 @@ def test_landmarks_missing_field_and_wrong_datatype():
     no_score = table[[n for n in table.dtype.names if n != 'score']]
     with pytest.raises(MessageError, match="required field 'score' is missing"):
         msgs.cloud_to_landmarks(msgs.array_to_cloud(no_score))
-    as_f64 = table.astype([(n, '<f8', table.dtype[n].shape) if n == 'descriptor' else (n, table.dtype[n])
-                           for n in table.dtype.names])
+    as_f64 = table.astype(
+        [(n, '<f8', table.dtype[n].shape) if n == 'descriptor' else (n, table.dtype[n]) for n in table.dtype.names]
+    )
     with pytest.raises(MessageError, match="'descriptor' is FLOAT64, expected FLOAT32"):
         msgs.cloud_to_landmarks(msgs.array_to_cloud(as_f64))
 
@@ -279,7 +299,7 @@ def test_landmarks_cells_outside_grid_and_bad_sizes():
 
 def test_landmarks_truncated():
     cloud = msgs.landmarks_to_cloud(make_landmarks())
-    cloud.data = cloud.data[:len(cloud.data) - 7]
+    cloud.data = cloud.data[: len(cloud.data) - 7]
     with pytest.raises(MessageError, match='truncated'):
         msgs.cloud_to_landmarks(cloud)
 
@@ -293,11 +313,12 @@ def test_landmarks_without_activation_map():
 
 # ---------------------------------------------------------------- candidates and matches
 
+
 def candidate_rows(extra=False):
-    rows = [{'keyframe_id': 7, 'score': 3.5, 'holistic_score': 0.9, 'stamp_sec': 1700000000,
-             'stamp_nanosec': 999_999_999},
-            {'keyframe_id': 4_000_000_000, 'score': 1.25, 'holistic_score': 0.5, 'stamp_sec': -2,
-             'stamp_nanosec': 0}]
+    rows = [
+        {'keyframe_id': 7, 'score': 3.5, 'holistic_score': 0.9, 'stamp_sec': 1700000000, 'stamp_nanosec': 999_999_999},
+        {'keyframe_id': 4_000_000_000, 'score': 1.25, 'holistic_score': 0.5, 'stamp_sec': -2, 'stamp_nanosec': 0},
+    ]
     if extra:
         rows[0].update(inliers=40.0, sequence_score=0.75)
         rows[1].update(inliers=3.0, sequence_score=0.25)
@@ -352,6 +373,7 @@ def test_landmarks_descriptors_renormalised_on_decode():
 
 def test_matches_roundtrip_and_match_rows():
     from lln_ros.core.similarity import match_pair
+
     a, b = make_landmarks(seed=1), make_landmarks(seed=1)
     b.descriptors = b.descriptors[::-1].copy()  # same landmarks, other order
     b.centers, b.cells, b.scores = b.centers[::-1].copy(), b.cells[::-1].copy(), b.scores[::-1].copy()
@@ -369,14 +391,19 @@ def test_matches_roundtrip_and_match_rows():
     assert (back['keyframe_id'] == 42).all()
     np.testing.assert_allclose(back['cell_w'], 512 / 12)
     dict_rows = [{name: r[name].item() for name, _, _ in msgs.MATCH_FIELDS} for r in rows[:3]]
-    np.testing.assert_array_equal(msgs.cloud_to_matches(msgs.matches_to_cloud(dict_rows))['map_u'],
-                                  rows['map_u'][:3])
+    np.testing.assert_array_equal(msgs.cloud_to_matches(msgs.matches_to_cloud(dict_rows))['map_u'], rows['map_u'][:3])
     assert len(msgs.cloud_to_matches(msgs.matches_to_cloud(msgs.match_rows(1, pair_regions(a, b, {}))))) == 0
 
 
 def test_matches_errors():
-    rows = msgs.match_rows(1, pair_regions(make_landmarks(), make_landmarks(), {
-        'query_index': [0, 1], 'map_index': [1, 0], 'similarity': [0.9, 0.8], 'weight': [1.0, 0.5]}))
+    rows = msgs.match_rows(
+        1,
+        pair_regions(
+            make_landmarks(),
+            make_landmarks(),
+            {'query_index': [0, 1], 'map_index': [1, 0], 'similarity': [0.9, 0.8], 'weight': [1.0, 0.5]},
+        ),
+    )
     table = msgs.cloud_to_matches(msgs.matches_to_cloud(rows))
     with pytest.raises(MessageError, match="'weight' is missing"):
         msgs.cloud_to_matches(msgs.array_to_cloud(table[[n for n in table.dtype.names if n != 'weight']]))
@@ -388,8 +415,11 @@ def test_matches_errors():
 
 # ---------------------------------------------------------------- images
 
-@pytest.mark.parametrize('encoding, channels, order', [
-    ('rgb8', 3, 'rgb'), ('bgr8', 3, 'bgr'), ('mono8', 1, 'rgb'), ('rgba8', 4, 'rgb'), ('bgra8', 4, 'bgr')])
+
+@pytest.mark.parametrize(
+    'encoding, channels, order',
+    [('rgb8', 3, 'rgb'), ('bgr8', 3, 'bgr'), ('mono8', 1, 'rgb'), ('rgba8', 4, 'rgb'), ('bgra8', 4, 'bgr')],
+)
 def test_image_roundtrip(encoding, channels, order):
     rng = np.random.default_rng(4)
     shape = (37, 53) if channels == 1 else (37, 53, channels)
@@ -474,7 +504,7 @@ def test_compressed_errors():
     with pytest.raises(MessageError, match='cannot decode'):
         msgs.compressed_to_array(m)
     good = msgs.array_to_compressed(np.zeros((16, 16, 3), np.uint8))
-    good.data = good.data[:len(good.data) // 3]
+    good.data = good.data[: len(good.data) // 3]
     with pytest.raises(MessageError, match='cannot decode'):
         msgs.compressed_to_array(good)
     m = CompressedImage(format='16UC1; compressedDepth')

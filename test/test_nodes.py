@@ -9,6 +9,7 @@ model, a service call during a burst, and kill -9 in mapping mode (no acknowledg
 Landmark clouds for the matcher come from real extractions done once per module (the matplotlib
 photograph, cropped into distinct "places"), so most matcher tests do not run the network.
 """
+
 from __future__ import annotations
 
 import array
@@ -30,15 +31,16 @@ from lln_ros.core.landmarks import LandmarkSet
 from lln_ros.mapstore import MapStore
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 
-TIMEOUT = 60.0          # generous: a loaded 2-core CI machine starts torch slowly
+TIMEOUT = 60.0  # generous: a loaded 2-core CI machine starts torch slowly
 EXTRACTOR = '/lln_extractor'
 MATCHER = '/lln_matcher'
-DIM = 192               # descriptor size of the default model (efficientnet_lite0/stage6)
+DIM = 192  # descriptor size of the default model (efficientnet_lite0/stage6)
 T0 = 1_700_000_000 * 10**9  # stamps of the test messages start here (ns)
 
 
 # --------------------------------------------------------------------------------------------
 # harness: one Rig per test = a domain, its processes, one probe, the latest /diagnostics
+
 
 class Rig:
     def __init__(self, install: Path, tmp: Path):
@@ -63,27 +65,47 @@ class Rig:
 
     def extractor(self, *ros_args: str) -> RosProcess:
         """The extractor with the packaged YAML, one torch thread and reliable images (overridable)."""
-        return self.start('extractor', '--params-file', str(self.config / 'extractor.yaml'),
-                          '-p', 'num_threads:=1', '-p', 'reliability:=reliable',
-                          '-p', 'diagnostics_period:=0.2', *ros_args)
+        return self.start(
+            'extractor',
+            '--params-file',
+            str(self.config / 'extractor.yaml'),
+            '-p',
+            'num_threads:=1',
+            '-p',
+            'reliability:=reliable',
+            '-p',
+            'diagnostics_period:=0.2',
+            *ros_args,
+        )
 
     def matcher(self, map_path: Path, *ros_args: str) -> RosProcess:
-        return self.start('matcher', '--params-file', str(self.config / 'matcher.yaml'),
-                          '-p', f'map_path:={map_path}', '-p', 'diagnostics_period:=0.2', *ros_args)
+        return self.start(
+            'matcher',
+            '--params-file',
+            str(self.config / 'matcher.yaml'),
+            '-p',
+            f'map_path:={map_path}',
+            '-p',
+            'diagnostics_period:=0.2',
+            *ros_args,
+        )
 
     def counter(self, node: str, key: str) -> int:
         return int(self.diag.get(node, {}).get(key, 0))
 
-    def wait_counter(self, node: str, key: str, value: int, proc: RosProcess | None = None,
-                     timeout: float = TIMEOUT) -> None:
+    def wait_counter(
+        self, node: str, key: str, value: int, proc: RosProcess | None = None, timeout: float = TIMEOUT
+    ) -> None:
         self.until(lambda: self.counter(node, key) >= value, f'{node} {key} >= {value}', proc, timeout)
 
     def until(self, done, what: str, proc: RosProcess | None = None, timeout: float = TIMEOUT) -> None:
         """Spin the probe until done(); fail at once (with its log) if `proc` dies meanwhile."""
+
         def check():
             if proc is not None and not proc.alive():
                 raise AssertionError(f'process died while waiting for {what}:\n{read_log(proc)}')
             return done()
+
         try:
             self.probe.spin_until(check, timeout, what)
         except TimeoutError as e:
@@ -147,6 +169,7 @@ def sha(path: Path) -> str:
 # --------------------------------------------------------------------------------------------
 # real landmark sets, extracted once per module
 
+
 @pytest.fixture(scope='module')
 def small_photo(photo) -> np.ndarray:
     """RGB 160x188: the real photograph at a size that keeps every extraction cheap."""
@@ -156,11 +179,15 @@ def small_photo(photo) -> np.ndarray:
 @pytest.fixture(scope='module')
 def places(extractor, photo) -> dict:
     """Fourteen distinct landmark sets (crops and flips of a real photograph) and their model."""
-    crops = [photo[y:y + 256, x:x + 224] for y in (0, 170, 340) for x in (0, 144, 288)]
+    crops = [photo[y : y + 256, x : x + 224] for y in (0, 170, 340) for x in (0, 144, 288)]
     crops += [c[:, ::-1] for c in crops[:3]] + [np.ascontiguousarray(c[::-1]) for c in crops[3:5]]
     sets = extractor.extract_batch([np.ascontiguousarray(c) for c in crops])
-    return {'sets': sets, 'space': extractor.model_info['descriptor_space'],
-            'dim': extractor.model_info['descriptor_dim'], 'model': extractor.model_info}
+    return {
+        'sets': sets,
+        'space': extractor.model_info['descriptor_space'],
+        'dim': extractor.model_info['descriptor_dim'],
+        'model': extractor.model_info,
+    }
 
 
 def cloud(places, i: int, h) -> PointCloud2:
@@ -177,6 +204,7 @@ def stored_stamps(map_path: Path) -> tuple[list, list]:
 # ============================================================================================
 # extractor
 
+
 def test_extractor_every_encoding(rig, small_photo):
     """rgb8, bgr8, mono8, rgba8, bgra8: one landmarks cloud each, header copied, row 0 = the whole
     image; the channel order is honoured (the same pixels in any colour layout give one descriptor)."""
@@ -184,12 +212,20 @@ def test_extractor_every_encoding(rig, small_photo):
     rgb = small_photo
     h, w = rgb.shape[:2]
     alpha = np.full((h, w, 1), 200, np.uint8)
-    images = {'rgb8': rgb, 'bgr8': rgb[:, :, ::-1], 'mono8': cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY),
-              'rgba8': np.concatenate([rgb, alpha], 2), 'bgra8': np.concatenate([rgb[:, :, ::-1], alpha], 2)}
+    images = {
+        'rgb8': rgb,
+        'bgr8': rgb[:, :, ::-1],
+        'mono8': cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY),
+        'rgba8': np.concatenate([rgb, alpha], 2),
+        'bgra8': np.concatenate([rgb[:, :, ::-1], alpha], 2),
+    }
     got = rig.probe.collect(PointCloud2, 'landmarks')
     pub = rig.probe.publisher(Image, 'image')
-    rig.until(lambda: pub.get_subscription_count() > 0 and rig.probe.node.count_publishers('landmarks') > 0,
-              'extractor up', proc)
+    rig.until(
+        lambda: pub.get_subscription_count() > 0 and rig.probe.node.count_publishers('landmarks') > 0,
+        'extractor up',
+        proc,
+    )
     sent = {}
     for i, (enc, img) in enumerate(images.items()):
         hdr = header(i, frame=f'camera_{enc}')
@@ -215,14 +251,17 @@ def test_extractor_every_encoding(rig, small_photo):
 
 def bad_images(w: int = 64, h: int = 48) -> dict:
     """Images the extractor must skip, by the text of the warning each one gets."""
-    depth = Image(encoding='16UC1', width=w, height=h, step=2 * w,
-                  data=array.array('B', bytes(2 * w * h)))
+    depth = Image(encoding='16UC1', width=w, height=h, step=2 * w, data=array.array('B', bytes(2 * w * h)))
     empty = Image(encoding='rgb8', width=0, height=0, step=0)
     truncated = msgs.array_to_image(np.zeros((h, w, 3), np.uint8), 'rgb8')
-    truncated.data = array.array('B', bytes(truncated.data)[:w * h])
+    truncated.data = array.array('B', bytes(truncated.data)[: w * h])
     tiny = msgs.array_to_image(np.zeros((4, 4, 3), np.uint8), 'rgb8')
-    return {"unsupported encoding '16UC1'": depth, 'empty image (0x0)': empty,
-            'data is truncated': truncated, 'image is 4x4 pixels': tiny}
+    return {
+        "unsupported encoding '16UC1'": depth,
+        'empty image (0x0)': empty,
+        'data is truncated': truncated,
+        'image is 4x4 pixels': tiny,
+    }
 
 
 def test_extractor_skips_bad_images(rig, small_photo):
@@ -234,7 +273,7 @@ def test_extractor_skips_bad_images(rig, small_photo):
     rig.until(lambda: pub.get_subscription_count() > 0, 'extractor up', proc)
     bad = bad_images()
     n = 0
-    for _ in range(2):          # twice each: counted twice, logged once
+    for _ in range(2):  # twice each: counted twice, logged once
         for i, msg in enumerate(bad.values()):
             msg.header = header(100 + n)
             pub.publish(msg)
@@ -257,16 +296,26 @@ def test_extractor_skips_bad_images(rig, small_photo):
 def test_extractor_compressed_transport(rig, photo):
     """image_transport=compressed: jpeg and png on image/compressed, with the default sensor-data
     (best-effort) subscription and a camera-like best-effort publisher; undecodable data skipped."""
-    proc = rig.extractor('-p', 'image_transport:=compressed', '-p', 'reliability:=best_effort',
-                         '-p', 'input_height:=128', '-p', 'top_n:=10')
+    proc = rig.extractor(
+        '-p',
+        'image_transport:=compressed',
+        '-p',
+        'reliability:=best_effort',
+        '-p',
+        'input_height:=128',
+        '-p',
+        'top_n:=10',
+    )
     got = rig.probe.collect(PointCloud2, 'landmarks')
     pub = rig.probe.node.create_publisher(CompressedImage, 'image/compressed', qos_profile_sensor_data)
     rig.until(lambda: pub.get_subscription_count() > 0, 'extractor up', proc)
     bgr = cv2.resize(photo, (200, 150))[:, :, ::-1]
     garbage = CompressedImage(format='jpeg', data=array.array('B', b'\xff\xd8\xff' + bytes(range(256)) * 4))
-    frames = [('jpeg', msgs.array_to_compressed(bgr, fmt='jpeg', quality=80)),
-              ('garbage', garbage),
-              ('png', msgs.array_to_compressed(bgr, fmt='png'))]
+    frames = [
+        ('jpeg', msgs.array_to_compressed(bgr, fmt='jpeg', quality=80)),
+        ('garbage', garbage),
+        ('png', msgs.array_to_compressed(bgr, fmt='png')),
+    ]
     for i, (fmt, msg) in enumerate(frames):
         msg.header = header(i, 'cam_' + fmt)
         deadline = time.monotonic() + TIMEOUT
@@ -295,8 +344,11 @@ def test_extractor_activation_image(rig, small_photo):
     heat = rig.probe.collect(Image, 'activation')
     got = rig.probe.collect(PointCloud2, 'landmarks')
     pub = rig.probe.publisher(Image, 'image')
-    rig.until(lambda: pub.get_subscription_count() > 0 and rig.probe.node.count_publishers('activation') > 0,
-              'extractor up', proc)
+    rig.until(
+        lambda: pub.get_subscription_count() > 0 and rig.probe.node.count_publishers('activation') > 0,
+        'extractor up',
+        proc,
+    )
     hdr = header(3, 'act')
     pub.publish(msgs.array_to_image(small_photo, 'rgb8', hdr))
     rig.until(lambda: heat and got, 'activation and landmarks', proc)
@@ -335,10 +387,14 @@ def test_extractor_backlog_keeps_newest(rig, photo):
 # ============================================================================================
 # matcher
 
+
 def start_matcher(rig, map_path, places, *args) -> RosProcess:
-    proc = rig.matcher(map_path, '-p', f"descriptor_space:={places['space']}", *args)
-    rig.until(lambda: rig.probe.node.count_publishers('candidates') > 0
-              and rig.probe.node.count_subscribers('keyframes') > 0, 'matcher up', proc)
+    proc = rig.matcher(map_path, '-p', f'descriptor_space:={places["space"]}', *args)
+    rig.until(
+        lambda: rig.probe.node.count_publishers('candidates') > 0 and rig.probe.node.count_subscribers('keyframes') > 0,
+        'matcher up',
+        proc,
+    )
     return proc
 
 
@@ -351,8 +407,7 @@ def test_matcher_localization(rig, places, tmp_path):
     q_pub = rig.probe.publisher(PointCloud2, 'query')
     cands = rig.probe.collect(PointCloud2, 'candidates')
     matches = rig.probe.collect(PointCloud2, 'matches')
-    rig.until(lambda: kf_pub.get_subscription_count() > 0 and q_pub.get_subscription_count() > 0,
-              'subscriptions', proc)
+    rig.until(lambda: kf_pub.get_subscription_count() > 0 and q_pub.get_subscription_count() > 0, 'subscriptions', proc)
     n = 8
     for i in range(n):
         kf_pub.publish(cloud(places, i, header(i, 'map')))
@@ -409,11 +464,11 @@ def test_matcher_mapping_mode_exclude_recent(rig, places, tmp_path):
     q_pub = rig.probe.publisher(PointCloud2, 'query')
     cands = rig.probe.collect(PointCloud2, 'candidates', msgs.cloud_to_candidates)
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
-    sequence = [0, 1, 2, 3, 4, 1, 5]   # frame 5 revisits place 1 (stored as keyframe 2)
+    sequence = [0, 1, 2, 3, 4, 1, 5]  # frame 5 revisits place 1 (stored as keyframe 2)
     for j, place in enumerate(sequence):
         q_pub.publish(cloud(places, place, header(j)))
         rig.until(lambda: len(cands) > j, f'answer {j}', proc)
-    assert [len(c) for c in cands[:3]] == [0, 0, 0]   # the map is empty or all of it too recent
+    assert [len(c) for c in cands[:3]] == [0, 0, 0]  # the map is empty or all of it too recent
     for j, c in enumerate(cands):
         allowed = {stamp_of(header(i)) for i in range(j - 2)}
         assert {(int(s), int(n)) for s, n in zip(c['stamp_sec'], c['stamp_nanosec'])} <= allowed, j
@@ -440,10 +495,12 @@ def bad_clouds(places) -> dict:
     nan['descriptor'][3, 7] = np.nan
     truncated = cloud(places, 0, header(0))
     truncated.data = array.array('B', bytes(truncated.data)[:-100])
-    return {"required field 'score' is missing": msgs.array_to_cloud(no_score),
-            f"descriptors have D=64, expected D={places['dim']}": msgs.array_to_cloud(wrong_d),
-            'descriptors contain NaN or inf': msgs.array_to_cloud(nan),
-            'data is truncated': truncated}
+    return {
+        "required field 'score' is missing": msgs.array_to_cloud(no_score),
+        f'descriptors have D=64, expected D={places["dim"]}': msgs.array_to_cloud(wrong_d),
+        'descriptors contain NaN or inf': msgs.array_to_cloud(nan),
+        'data is truncated': truncated,
+    }
 
 
 def test_matcher_refuses_bad_clouds(rig, places, tmp_path):
@@ -455,8 +512,7 @@ def test_matcher_refuses_bad_clouds(rig, places, tmp_path):
     kf_pub = rig.probe.publisher(PointCloud2, 'keyframes')
     q_pub = rig.probe.publisher(PointCloud2, 'query')
     cands = rig.probe.collect(PointCloud2, 'candidates')
-    rig.until(lambda: kf_pub.get_subscription_count() > 0 and q_pub.get_subscription_count() > 0,
-              'subscriptions', proc)
+    rig.until(lambda: kf_pub.get_subscription_count() > 0 and q_pub.get_subscription_count() > 0, 'subscriptions', proc)
     bad = bad_clouds(places)
     kf_pub.publish(cloud(places, 0, header(0)))
     rig.wait_counter(MATCHER, 'keyframes_stored', 1, proc)
@@ -558,10 +614,10 @@ def corrupt(kind: str, path: Path, places) -> None:
         store.save()
     data = bytearray(path.read_bytes())
     if kind == 'truncated':
-        del data[len(data) // 2:]
+        del data[len(data) // 2 :]
     elif kind == 'damaged_pages':  # every b-tree page header after the first page overwritten
         for page in range(1, len(data) // 4096):
-            data[page * 4096:page * 4096 + 64] = b'\xa5' * 64
+            data[page * 4096 : page * 4096 + 64] = b'\xa5' * 64
     path.write_bytes(bytes(data))
 
 
@@ -598,12 +654,22 @@ def test_matcher_refuses_other_model(rig, places, tmp_path, small_photo, other_d
     def unit(*shape):
         x = rng.standard_normal(shape).astype(np.float32)
         return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
     with MapStore(map_path, model=other) as store:
-        store.add(LandmarkSet(global_descriptor=unit(other_dim), descriptors=unit(2, other_dim),
-                              cells=np.array([[0, 0], [1, 0]]), centers=np.array([[16, 16], [48, 16]], np.float32),
-                              scores=np.ones(2, np.float32), cell_size=np.array([32, 32], np.float32),
-                              image_size=np.array([64, 32], np.float32), grid=(1, 2), descriptor_space=space),
-                  stamp=(5, 6))
+        store.add(
+            LandmarkSet(
+                global_descriptor=unit(other_dim),
+                descriptors=unit(2, other_dim),
+                cells=np.array([[0, 0], [1, 0]]),
+                centers=np.array([[16, 16], [48, 16]], np.float32),
+                scores=np.ones(2, np.float32),
+                cell_size=np.array([32, 32], np.float32),
+                image_size=np.array([64, 32], np.float32),
+                grid=(1, 2),
+                descriptor_space=space,
+            ),
+            stamp=(5, 6),
+        )
     matcher = rig.matcher(map_path)
     kf_pub = rig.probe.publisher(PointCloud2, 'keyframes')
     rig.until(lambda: kf_pub.get_subscription_count() > 0, 'matcher up', matcher)
@@ -612,7 +678,7 @@ def test_matcher_refuses_other_model(rig, places, tmp_path, small_photo, other_d
         kf_pub.publish(cloud(places, 0, header(0)))
         refused += 1
         rig.wait_counter(MATCHER, 'bad_keyframe', refused, matcher)
-        assert len(log_lines(matcher, f"D={places['dim']}, expected D={other_dim}")) == 1, read_log(matcher)
+        assert len(log_lines(matcher, f'D={places["dim"]}, expected D={other_dim}')) == 1, read_log(matcher)
 
     extractor = rig.extractor('-p', 'input_height:=128', '-r', 'landmarks:=keyframes')
     rig.until(lambda: log_lines(matcher, places['space']), "the refusal of the extractor's model", matcher)
@@ -669,12 +735,14 @@ def test_matcher_kill9_in_mapping_mode_loses_no_answered_keyframe(rig, places, t
 # ============================================================================================
 # launch file (launch / launch_ros are not installable here: check it statically)
 
+
 def test_launch_file_is_installed_and_consistent(colcon_install):
     """launch/lln.launch.py is installed to share/lln_ros/launch, compiles, declares the image and
     mode arguments, and starts both executables under the node names the packaged YAML files use."""
     import ast
 
     import yaml
+
     share = colcon_install / 'lln_ros' / 'share' / 'lln_ros'
     source = (share / 'launch' / 'lln.launch.py').read_text()
     tree = ast.parse(source)
@@ -684,11 +752,15 @@ def test_launch_file_is_installed_and_consistent(colcon_install):
     assert {'image', 'mode', 'image_transport', 'map_path'} <= declared
     used = {n.args[0].value for n in calls if n.func.id == 'LaunchConfiguration'}
     assert used <= declared, f'undeclared launch arguments: {used - declared}'
-    nodes = [{kw.arg: kw.value.value for kw in n.keywords if isinstance(kw.value, ast.Constant)}
-             for n in calls if n.func.id == 'Node']
+    nodes = [
+        {kw.arg: kw.value.value for kw in n.keywords if isinstance(kw.value, ast.Constant)}
+        for n in calls
+        if n.func.id == 'Node'
+    ]
     for exe, name in (('extractor', 'lln_extractor'), ('matcher', 'lln_matcher')):
         assert {'package': 'lln_ros', 'executable': exe, 'name': name}.items() <= next(
-            n for n in nodes if n.get('executable') == exe).items()
+            n for n in nodes if n.get('executable') == exe
+        ).items()
         assert (colcon_install / 'lln_ros' / 'lib' / 'lln_ros' / exe).is_file()
         config = yaml.safe_load((share / 'config' / f'{exe}.yaml').read_text())
         assert list(config) == [name]

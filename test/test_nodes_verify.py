@@ -1,5 +1,6 @@
 """Verify mode over real DDS: the extractor's `keypoints` topic, and the matcher storing keypoints
 per keyframe and re-ranking candidates by region-constrained RANSAC inliers (issue 5)."""
+
 from __future__ import annotations
 
 import math
@@ -8,26 +9,30 @@ import cv2
 import numpy as np
 import pytest
 from sensor_msgs.msg import Image, PointCloud2
+from test_nodes import EXTRACTOR, MATCHER, header, read_log, rig, same_header, start_matcher  # noqa: F401
 
 from lln_ros import msgs
 from lln_ros.mapstore import MapStore
 from lln_ros.reloc import Relocalizer
-from test_nodes import EXTRACTOR, MATCHER, header, read_log, rig, same_header, start_matcher  # noqa: F401
 
 
 @pytest.fixture(scope='module')
 def scenes(extractor, photo) -> dict:
     """Four keyframes (distinct crops of the photograph) with landmarks and ORB keypoints, and a
     query: keyframe 2 seen again, rotated 4 degrees and 10% brighter."""
-    crops = [np.ascontiguousarray(photo[y:y + 288, x:x + 256]) for y, x in ((0, 0), (0, 256), (300, 0), (300, 256))]
+    crops = [np.ascontiguousarray(photo[y : y + 288, x : x + 256]) for y, x in ((0, 0), (0, 256), (300, 0), (300, 256))]
     h, w = crops[2].shape[:2]
     A = cv2.getRotationMatrix2D((w / 2, h / 2), 4, 1.0)
     query = np.clip(cv2.warpAffine(crops[2], A, (w, h), borderMode=cv2.BORDER_REFLECT) * 1.1, 0, 255).astype(np.uint8)
     orb = Relocalizer({'max_keypoints': 500})
     images = crops + [query]
     sets = extractor.extract_batch(images)
-    return {'sets': sets, 'kps': [orb.detect(im) for im in images], 'space': extractor.model_info['descriptor_space'],
-            'images': images}
+    return {
+        'sets': sets,
+        'kps': [orb.detect(im) for im in images],
+        'space': extractor.model_info['descriptor_space'],
+        'images': images,
+    }
 
 
 def test_extractor_publishes_keypoints_with_the_landmarks_header(rig, scenes):
@@ -35,8 +40,11 @@ def test_extractor_publishes_keypoints_with_the_landmarks_header(rig, scenes):
     landmarks = rig.probe.collect(PointCloud2, 'landmarks')
     keypoints = rig.probe.collect(PointCloud2, 'keypoints')
     pub = rig.probe.publisher(Image, 'image')
-    rig.until(lambda: pub.get_subscription_count() > 0 and rig.probe.node.count_publishers('keypoints') > 0,
-              'extractor up', proc)
+    rig.until(
+        lambda: pub.get_subscription_count() > 0 and rig.probe.node.count_publishers('keypoints') > 0,
+        'extractor up',
+        proc,
+    )
     blank = np.full((240, 320, 3), 90, np.uint8)
     for i, img in enumerate([scenes['images'][0], blank]):
         pub.publish(msgs.array_to_image(img, 'rgb8', header(i)))
@@ -50,7 +58,7 @@ def test_extractor_publishes_keypoints_with_the_landmarks_header(rig, scenes):
     # the keypoints are what the library detects on the same image
     ref = Relocalizer({'max_keypoints': 300}).detect(scenes['images'][0])
     np.testing.assert_allclose(kps.uv, ref.uv)
-    assert len(msgs.cloud_to_keypoints(keypoints[1])) == 0      # textureless: an empty cloud, not an error
+    assert len(msgs.cloud_to_keypoints(keypoints[1])) == 0  # textureless: an empty cloud, not an error
     assert rig.counter(EXTRACTOR, 'bad_image') == 0
 
 

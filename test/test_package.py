@@ -1,5 +1,6 @@
 """The ROS 2 package contract: colcon builds it, the ament index finds it, and the executables
 that `ros2 run lln_ros <exe>` would start exist in <prefix>/lib/lln_ros and run."""
+
 import os
 import subprocess
 import sys
@@ -10,8 +11,10 @@ from ros_harness import installed_env
 
 def test_ament_index_and_executables(colcon_install, tmp_path):
     env = installed_env(colcon_install, dict(os.environ))
-    code = ("from ament_index_python.packages import get_package_prefix, get_package_share_directory;"
-            "print(get_package_prefix('lln_ros')); print(get_package_share_directory('lln_ros'))")
+    code = (
+        'from ament_index_python.packages import get_package_prefix, get_package_share_directory;'
+        "print(get_package_prefix('lln_ros')); print(get_package_share_directory('lln_ros'))"
+    )
     out = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True, cwd=tmp_path)
     assert out.returncode == 0, out.stderr
     prefix, share = out.stdout.split()
@@ -25,6 +28,11 @@ def test_ament_index_and_executables(colcon_install, tmp_path):
     exe = Path(prefix) / 'lib' / 'lln_ros' / 'lln-match'
     out = subprocess.run([str(exe), '--help'], env=env, capture_output=True, text=True, cwd=tmp_path)
     assert out.returncode == 0 and 'lln-match' in out.stdout, out.stderr
-    out = subprocess.run([sys.executable, '-c', 'import lln_ros; print(lln_ros.__file__)'], env=env,
-                         capture_output=True, text=True, cwd=tmp_path)
+    out = subprocess.run(
+        [sys.executable, '-c', 'import lln_ros; print(lln_ros.__file__)'],
+        env=env,
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
     assert str(colcon_install) in out.stdout

@@ -1,4 +1,5 @@
 """lln_ros.nodes.parameters on an in-process rclpy node: descriptors, run-time validation, rollback."""
+
 import pytest
 import rclpy
 from rclpy.context import Context
@@ -24,22 +25,32 @@ def test_descriptors_validation_and_rollback(node):
         if changes.get('k') == 13:
             raise ValueError('k 13 is unlucky')
         applied.append(changes)
-    values = declare_all(node, {
-        'k': Param(5, 'candidates', dynamic=True, range=(1, 100)),
-        'gain': Param(0.5, 'a gain', dynamic=True, range=(0.0, 1.0)),
-        'mode': Param('a', 'the mode', choices=('a', 'b')),
-        'method': Param('x', 'the method', dynamic=True, choices=('x', 'y')),
-        'legacy': (7, 'declared in the old (default, description) form'),
-    }, on_change)
+
+    values = declare_all(
+        node,
+        {
+            'k': Param(5, 'candidates', dynamic=True, range=(1, 100)),
+            'gain': Param(0.5, 'a gain', dynamic=True, range=(0.0, 1.0)),
+            'mode': Param('a', 'the mode', choices=('a', 'b')),
+            'method': Param('x', 'the method', dynamic=True, choices=('x', 'y')),
+            'legacy': (7, 'declared in the old (default, description) form'),
+        },
+        on_change,
+    )
     d = node.describe_parameter('k')
     assert not d.read_only and d.integer_range[0].to_value == 100 and 'run time' in d.additional_constraints
     assert node.describe_parameter('mode').read_only and node.describe_parameter('legacy').read_only
     assert node.describe_parameter('gain').floating_point_range[0].to_value == 1.0
     assert node.set_parameters([Parameter('k', value=7)])[0].successful and values['k'] == 7
     assert applied == [{'k': 7}]
-    for name, value, reason in (('k', 0, 'out of range'), ('gain', 1.5, 'out of range'),
-                                ('method', 'z', 'must be one of x | y'), ('mode', 'b', 'read-only'),
-                                ('legacy', 8, 'read-only'), ('k', 13, 'unlucky')):
+    for name, value, reason in (
+        ('k', 0, 'out of range'),
+        ('gain', 1.5, 'out of range'),
+        ('method', 'z', 'must be one of x | y'),
+        ('mode', 'b', 'read-only'),
+        ('legacy', 8, 'read-only'),
+        ('k', 13, 'unlucky'),
+    ):
         result = node.set_parameters([Parameter(name, value=value)])[0]
         assert not result.successful and reason in result.reason, (name, result.reason)
     assert values['k'] == 7 and node.get_parameter('k').value == 7  # the refused 13 changed nothing

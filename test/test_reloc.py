@@ -1,14 +1,15 @@
 """Keypoint matching and geometric verification (lln_ros.reloc) on real images: a photograph under
 a known affine warp (the true correspondence of every pixel is known), rtabmap_loop frames, a
 Nordland frame, and every kind of input that must end in "not verified" instead of an exception."""
+
 import cv2
 import numpy as np
 import pytest
 
 from conftest import shared_data
+from lln_ros.core.similarity import match_pair
 from lln_ros.io.image import load_image
 from lln_ros.reloc import Keypoints, Relocalizer, RelocError, camera_matrix, pair_boxes, region_boxes
-from lln_ros.core.similarity import match_pair
 
 
 @pytest.fixture(scope='module')
@@ -51,10 +52,18 @@ def test_region_constrained_matches_stay_in_their_regions(warped, extractor):
     assert r.verified and r.inliers >= 30, r.reason
     # every match lies in one region pair: query keypoint in query box m, keyframe keypoint in map box m
     uq, um = kq.uv[r.matches.query_index], km.uv[r.matches.map_index]
-    in_q = (uq[None, :, 0] >= qb[:, None, 0]) & (uq[None, :, 0] < qb[:, None, 2]) & \
-           (uq[None, :, 1] >= qb[:, None, 1]) & (uq[None, :, 1] < qb[:, None, 3])
-    in_m = (um[None, :, 0] >= mb[:, None, 0]) & (um[None, :, 0] < mb[:, None, 2]) & \
-           (um[None, :, 1] >= mb[:, None, 1]) & (um[None, :, 1] < mb[:, None, 3])
+    in_q = (
+        (uq[None, :, 0] >= qb[:, None, 0])
+        & (uq[None, :, 0] < qb[:, None, 2])
+        & (uq[None, :, 1] >= qb[:, None, 1])
+        & (uq[None, :, 1] < qb[:, None, 3])
+    )
+    in_m = (
+        (um[None, :, 0] >= mb[:, None, 0])
+        & (um[None, :, 0] < mb[:, None, 2])
+        & (um[None, :, 1] >= mb[:, None, 1])
+        & (um[None, :, 1] < mb[:, None, 3])
+    )
     assert (in_q & in_m).any(axis=0).all()
     assert np.mean(reprojection_error(r, kq, km, A) < 3.0) > 0.9
     # one partner per keypoint on both sides
@@ -70,9 +79,11 @@ def test_essential_matrix_and_pose_on_consecutive_rtabmap_frames(tmp_path):
     root = shared_data('rtabmap_loop')
     reloc = Relocalizer()
     kq, km = reloc.detect(load_image(str(root / '42.jpg'))), reloc.detect(load_image(str(root / '41.jpg')))
-    yaml_file = tmp_path / 'camera.yaml'   # a ROS camera-calibration file; 512x384, ~60 deg field of view
-    yaml_file.write_text('image_width: 512\nimage_height: 384\ncamera_name: rtabmap\n'
-                         'camera_matrix:\n  rows: 3\n  cols: 3\n  data: [440, 0, 256, 0, 440, 192, 0, 0, 1]\n')
+    yaml_file = tmp_path / 'camera.yaml'  # a ROS camera-calibration file; 512x384, ~60 deg field of view
+    yaml_file.write_text(
+        'image_width: 512\nimage_height: 384\ncamera_name: rtabmap\n'
+        'camera_matrix:\n  rows: 3\n  cols: 3\n  data: [440, 0, 256, 0, 440, 192, 0, 0, 1]\n'
+    )
     r = reloc.relocalize(kq, km, K=str(yaml_file))
     assert r.verified and r.model == 'E', r.reason
     assert r.R is not None and r.t is not None
@@ -129,30 +140,36 @@ def test_regions_outside_the_image_are_not_verified(photo):
 def collinear_keypoints(n=40, rng=None):
     rng = rng or np.random.default_rng(0)
     u = np.linspace(10, 300, n, dtype=np.float32)
-    return Keypoints(uv=np.stack([u, 0.5 * u + 20], axis=1), size=np.full(n, 31, np.float32),
-                     angle=np.zeros(n, np.float32), response=np.ones(n, np.float32),
-                     octave=np.zeros(n, np.int32),
-                     descriptors=rng.integers(0, 256, (n, 32), dtype=np.uint8), image_size=(320, 240))
+    return Keypoints(
+        uv=np.stack([u, 0.5 * u + 20], axis=1),
+        size=np.full(n, 31, np.float32),
+        angle=np.zeros(n, np.float32),
+        response=np.ones(n, np.float32),
+        octave=np.zeros(n, np.int32),
+        descriptors=rng.integers(0, 256, (n, 32), dtype=np.uint8),
+        image_size=(320, 240),
+    )
 
 
 def test_collinear_and_too_few_matches_are_not_verified():
     reloc = Relocalizer()
     line = collinear_keypoints()
-    r = reloc.relocalize(line, line)   # identical descriptors: 40 perfect matches, all on one line
+    r = reloc.relocalize(line, line)  # identical descriptors: 40 perfect matches, all on one line
     assert len(r.matches) == 40 and not r.verified and 'line' in r.reason
     few = collinear_keypoints(5)
     r = reloc.relocalize(few, few)
     assert not r.verified and '5 matches' in r.reason
     sift = Relocalizer({'detector': 'sift'})
     with pytest.raises(RelocError, match='descriptors differ'):
-        sift.match(Keypoints(line.uv, line.size, line.angle, line.response, line.octave,
-                             np.zeros((40, 128), np.float32)), line)
+        sift.match(
+            Keypoints(line.uv, line.size, line.angle, line.response, line.octave, np.zeros((40, 128), np.float32)), line
+        )
 
 
 def test_intrinsics_sources_and_errors(tmp_path):
     k = [500.0, 0, 320, 0, 510, 240, 0, 0, 1]
 
-    class CameraInfoLike:   # sensor_msgs/CameraInfo carries K as the flat float64[9] field `k`
+    class CameraInfoLike:  # sensor_msgs/CameraInfo carries K as the flat float64[9] field `k`
         def __init__(self, k):
             self.k = k
 
@@ -183,5 +200,5 @@ def test_bad_configuration_raises_clear_errors():
         Relocalizer({'ratio': 1.5})
     try:
         Relocalizer({'detector': 'akaze'})
-    except RelocError as e:   # OpenCV 5 builds without contrib have no AKAZE: say so
+    except RelocError as e:  # OpenCV 5 builds without contrib have no AKAZE: say so
         assert 'AKAZE' in str(e)

@@ -1,21 +1,22 @@
 """Holistic prefilter + landmark rerank, on real images: photo crops (self-contained) and the
 rtabmap_loop revisits (with ../shared/data)."""
+
 import cv2
 import numpy as np
 import pytest
 
 from conftest import shared_data
-from lln_ros.errors import DescriptorError
 from lln_ros.core.extractor import Extractor
-from lln_ros.io.image import load_image
 from lln_ros.core.landmarks import stack_landmarks
 from lln_ros.core.retrieval import LandmarkDatabase, rank_all
 from lln_ros.core.similarity import match_batch
+from lln_ros.errors import DescriptorError
+from lln_ros.io.image import load_image
 
 
 def crops(photo):
     """Eight overlapping 384x288 views of one photograph, stepping 32 px down."""
-    return [photo[y:y + 288, 0:384] for y in range(0, 256, 32)]
+    return [photo[y : y + 288, 0:384] for y in range(0, 256, 32)]
 
 
 def test_each_view_retrieves_itself_first(extractor, photo):

@@ -7,6 +7,7 @@
   matcher with use_sim_time and max_query_age: every query answered, stamps unchanged, ages small;
   the same replay without sim time drops every query and says why.
 """
+
 from __future__ import annotations
 
 import json
@@ -22,8 +23,8 @@ from rcl_interfaces.srv import DescribeParameters, SetParameters
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 
-from lln_ros.io import bag
 from lln_ros import msgs
+from lln_ros.io import bag
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 
 MATCHER = '/lln_matcher'
@@ -32,7 +33,7 @@ T0 = 1_700_000_000 * 10**9
 
 @pytest.fixture(scope='module')
 def places(extractor, photo):
-    crops = [photo[y:y + 256, x:x + 224] for y in (0, 170, 340) for x in (0, 144, 288)]
+    crops = [photo[y : y + 256, x : x + 224] for y in (0, 170, 340) for x in (0, 144, 288)]
     sets = extractor.extract_batch([np.ascontiguousarray(c) for c in crops])
     return {'sets': sets, 'model': extractor.model_info}
 
@@ -42,10 +43,20 @@ class Matcher:
 
     def __init__(self, install, tmp_path, places, *ros_args):
         self.env = installed_env(install, ros_env(tmp_path))
-        self.proc = RosProcess(install / 'lln_ros' / 'lib' / 'lln_ros' / 'matcher',
-                               ['-p', f'map_path:={tmp_path / "map.db"}', '-p', 'diagnostics_period:=0.2',
-                                '-p', f"descriptor_space:={places['model']['descriptor_space']}", *ros_args],
-                               self.env, tmp_path / 'matcher.log')
+        self.proc = RosProcess(
+            install / 'lln_ros' / 'lib' / 'lln_ros' / 'matcher',
+            [
+                '-p',
+                f'map_path:={tmp_path / "map.db"}',
+                '-p',
+                'diagnostics_period:=0.2',
+                '-p',
+                f'descriptor_space:={places["model"]["descriptor_space"]}',
+                *ros_args,
+            ],
+            self.env,
+            tmp_path / 'matcher.log',
+        )
         self.probe = Probe(self.env)
         self.status = None
         self.probe.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 50)
@@ -69,9 +80,12 @@ class Matcher:
 
     def set(self, **values) -> list:
         """SetParameters with these values, one request; the list of SetParametersResult."""
-        kinds = {bool: (ParameterType.PARAMETER_BOOL, 'bool_value'), int: (ParameterType.PARAMETER_INTEGER,
-                 'integer_value'), float: (ParameterType.PARAMETER_DOUBLE, 'double_value'),
-                 str: (ParameterType.PARAMETER_STRING, 'string_value')}
+        kinds = {
+            bool: (ParameterType.PARAMETER_BOOL, 'bool_value'),
+            int: (ParameterType.PARAMETER_INTEGER, 'integer_value'),
+            float: (ParameterType.PARAMETER_DOUBLE, 'double_value'),
+            str: (ParameterType.PARAMETER_STRING, 'string_value'),
+        }
         params = []
         for name, v in values.items():
             kind, field = kinds[type(v)]
@@ -98,8 +112,11 @@ def test_runtime_parameters_and_diagnostic_levels(colcon_install, tmp_path, plac
         m.wait_status(lambda s: m.values().get('keyframes') == str(len(places['sets'])), 'keyframes stored')
         assert m.status.level == DiagnosticStatus.OK and m.status.message == 'running'
 
-        described = m.call(DescribeParameters, 'describe_parameters',
-                           DescribeParameters.Request(names=['k', 'offset_scale', 'mode', 'method'])).descriptors
+        described = m.call(
+            DescribeParameters,
+            'describe_parameters',
+            DescribeParameters.Request(names=['k', 'offset_scale', 'mode', 'method']),
+        ).descriptors
         k, offset_scale, mode, method = described
         assert not k.read_only and (k.integer_range[0].from_value, k.integer_range[0].to_value) == (1, 10_000_000)
         assert not offset_scale.read_only and offset_scale.floating_point_range[0].from_value == 1e-3
@@ -112,10 +129,14 @@ def test_runtime_parameters_and_diagnostic_levels(colcon_install, tmp_path, plac
         m.probe.spin_until(lambda: answers, 30, 'an answer')
         assert len(answers[-1]) == 2 and answers[-1]['score'].min() >= 0.5
         # refused, with the reason, and nothing changes
-        for values, reason in (({'k': 0}, 'out of range'), ({'offset_scale': 0.0}, 'out of range'),
-                               ({'method': 'bogus'}, 'must be one of lln | holistic'),
-                               ({'mode': 'mapping'}, 'read-only'), ({'k': 2.5}, 'Wrong parameter type'),
-                               ({'sequence_max_gap': 0.0}, 'out of range')):
+        for values, reason in (
+            ({'k': 0}, 'out of range'),
+            ({'offset_scale': 0.0}, 'out of range'),
+            ({'method': 'bogus'}, 'must be one of lln | holistic'),
+            ({'mode': 'mapping'}, 'read-only'),
+            ({'k': 2.5}, 'Wrong parameter type'),
+            ({'sequence_max_gap': 0.0}, 'out of range'),
+        ):
             result = m.set(**values)[0]
             assert not result.successful and reason in result.reason, (values, result.reason)
         queries.publish(msgs.landmarks_to_cloud(places['sets'][5], msgs.make_header(T0 + 101 * 10**9)))
@@ -133,11 +154,13 @@ def test_runtime_parameters_and_diagnostic_levels(colcon_install, tmp_path, plac
 
         # WARN: a best-effort landmark publisher cannot match the reliable query subscription
         from rclpy.qos import qos_profile_sensor_data
+
         m.probe.node.create_publisher(PointCloud2, 'query', qos_profile_sensor_data)
         m.wait_status(lambda s: s.level == DiagnosticStatus.WARN and 'incompatible QoS' in s.message, 'QoS WARN')
 
         # ERROR: an extractor with another model: every landmark input is refused until they agree
         from lln_ros.nodes.common import MODEL_QOS  # latched, as the extractor's
+
         models = m.probe.node.create_publisher(String, 'model_info', MODEL_QOS)
         other = {**places['model'], 'descriptor_space': 'efficientnet_lite2/stage6/192'}
         models.publish(String(data=json.dumps(other)))
@@ -152,16 +175,38 @@ def landmark_bag(tmp_path, places, count=12, rate=2.0):
     """A bag of real landmark clouds on /query at `rate` Hz (what a recorded extractor output is)."""
     stamps = bag.frame_stamps(count, rate)
     out = tmp_path / 'queries_bag'
-    bag.write_bag(out, [('/query', msgs.landmarks_to_cloud(places['sets'][i % len(places['sets'])],
-                                                            msgs.make_header(s)), s) for i, s in enumerate(stamps)])
+    bag.write_bag(
+        out,
+        [
+            ('/query', msgs.landmarks_to_cloud(places['sets'][i % len(places['sets'])], msgs.make_header(s)), s)
+            for i, s in enumerate(stamps)
+        ],
+    )
     return out, stamps
 
 
 def replay(m: Matcher, bag_dir, rate, clock: bool):
     answers = m.probe.collect(PointCloud2, 'candidates', lambda c: (msgs.stamp_to_ns(c.header.stamp), c))
-    play = subprocess.Popen([sys.executable, '-m', 'lln_ros.cli.bag', 'play', str(bag_dir), '--wait-subscribers',
-                             '1', '--wait-timeout', '30', '--rate', str(rate), *(['--clock'] if clock else [])],
-                            env=m.env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    play = subprocess.Popen(
+        [
+            sys.executable,
+            '-m',
+            'lln_ros.cli.bag',
+            'play',
+            str(bag_dir),
+            '--wait-subscribers',
+            '1',
+            '--wait-timeout',
+            '30',
+            '--rate',
+            str(rate),
+            *(['--clock'] if clock else []),
+        ],
+        env=m.env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     m.probe.spin_until(lambda: play.poll() is not None, 120, 'lln-bag play')
     out = play.stdout.read()
     assert play.returncode == 0, out
@@ -172,8 +217,17 @@ def replay(m: Matcher, bag_dir, rate, clock: bool):
 def test_bag_replay_with_sim_time(colcon_install, tmp_path, places, sim_time):
     """6 s of recorded queries at 4x (1.5 s of wall time) with max_query_age 1 s."""
     bag_dir, stamps = landmark_bag(tmp_path, places)
-    m = Matcher(colcon_install, tmp_path, places, '-p', 'mode:=mapping', '-p', 'max_query_age:=1.0',
-                '-p', f'use_sim_time:={str(sim_time).lower()}')
+    m = Matcher(
+        colcon_install,
+        tmp_path,
+        places,
+        '-p',
+        'mode:=mapping',
+        '-p',
+        'max_query_age:=1.0',
+        '-p',
+        f'use_sim_time:={str(sim_time).lower()}',
+    )
     try:
         start = time.monotonic()
         answers, out = replay(m, bag_dir, 4.0, clock=sim_time)
@@ -202,12 +256,26 @@ def test_frame_queue_keeps_every_frame_of_a_burst(colcon_install, tmp_path, phot
     extracted completely, in order; the default (1) would keep only the newest waiting frame."""
     import cv2
     from sensor_msgs.msg import Image
+
     env = installed_env(colcon_install, ros_env(tmp_path))
     share = colcon_install / 'lln_ros' / 'share' / 'lln_ros'
-    proc = RosProcess(colcon_install / 'lln_ros' / 'lib' / 'lln_ros' / 'extractor',
-                      ['--params-file', str(share / 'config' / 'extractor.yaml'), '-p', 'frame_queue:=30',
-                       '-p', 'reliability:=reliable', '-p', 'num_threads:=1', '-p', 'input_height:=128'],
-                      env, tmp_path / 'extractor.log')
+    proc = RosProcess(
+        colcon_install / 'lln_ros' / 'lib' / 'lln_ros' / 'extractor',
+        [
+            '--params-file',
+            str(share / 'config' / 'extractor.yaml'),
+            '-p',
+            'frame_queue:=30',
+            '-p',
+            'reliability:=reliable',
+            '-p',
+            'num_threads:=1',
+            '-p',
+            'input_height:=128',
+        ],
+        env,
+        tmp_path / 'extractor.log',
+    )
     probe = Probe(env)
     try:
         images = probe.publisher(Image, 'image')

@@ -1,5 +1,6 @@
 """lln_ros.core.sequence and lln_ros.peers: the sequence search (offline = online), its stream faults, the
 SeqSLAM front end, and lln-eval's sad / seqslam / X+seq rows on real data."""
+
 import json
 
 import cv2
@@ -8,9 +9,17 @@ import pytest
 
 from conftest import shared_data
 from lln_ros.cli.eval import main
+from lln_ros.core.sequence import (
+    KeyframeSequence,
+    SequenceError,
+    SequenceMatcher,
+    contrast_enhance,
+    rank_sequences,
+    sad_descriptors,
+    sad_difference,
+    sad_size,
+)
 from lln_ros.errors import LLNError
-from lln_ros.core.sequence import (KeyframeSequence, SequenceError, SequenceMatcher, contrast_enhance, rank_sequences,
-                                   sad_descriptors, sad_difference, sad_size)
 
 S = 10**9  # ns per second
 
@@ -58,12 +67,12 @@ def test_online_keyframe_ids_give_the_offline_figures():
 def test_stream_faults_reset_the_window():
     seq = SequenceMatcher({'length': 4, 'max_gap_s': 0.5})
     assert seq.push(1 * S, [1], [0.5]) is None
-    assert seq.push(1 * S + S // 4, [2], [0.5]) is None           # 0.25 s: a dropped frame, absorbed
+    assert seq.push(1 * S + S // 4, [2], [0.5]) is None  # 0.25 s: a dropped frame, absorbed
     assert len(seq) == 2
-    assert seq.push(1 * S, [3], [0.5]) == 'out_of_order'           # older than the last: new sequence
+    assert seq.push(1 * S, [3], [0.5]) == 'out_of_order'  # older than the last: new sequence
     assert len(seq) == 1
-    assert seq.push(1 * S, [4], [0.5]) == 'out_of_order'           # a repeated stamp too
-    assert seq.push(3 * S, [5], [0.5]) == 'gap'                    # 2 s of nothing: new sequence
+    assert seq.push(1 * S, [4], [0.5]) == 'out_of_order'  # a repeated stamp too
+    assert seq.push(3 * S, [5], [0.5]) == 'gap'  # 2 s of nothing: new sequence
     assert len(seq) == 1 and seq.resets == {'out_of_order': 2, 'gap': 1}
     for i in range(10):
         seq.push(4 * S + i, [i], [0.1])
@@ -128,7 +137,7 @@ def test_contrast_enhance_matches_its_definition():
     got = contrast_enhance(d, 3)
     for q in range(4):
         for r in range(30):
-            w = d[q, max(0, r - 3):r + 4]
+            w = d[q, max(0, r - 3) : r + 4]
             assert got[q, r] == pytest.approx((d[q, r] - w.mean()) / w.std(), rel=1e-6)
 
 
@@ -160,9 +169,26 @@ def test_eval_peers_and_sequence_rows_on_rtabmap_loop(tmp_path, capsys):
     """sad, seqslam and X+seq rows in one lln-eval run on the real loop sequence."""
     root = shared_data('rtabmap_loop')
     out = tmp_path / 'out'
-    rc = run_cli('--dataset', f'loop:{root},{root / "samples_GT.bmp"}', '--out', out,
-                 '--methods', 'holistic,lln,sad,seqslam', '--sequence', 5, '--cache', tmp_path / 'cache',
-                 '--timing-images', 1, '--timing-queries', 2, '--timing-repeats', 1, '--no-plots', '--quiet')
+    rc = run_cli(
+        '--dataset',
+        f'loop:{root},{root / "samples_GT.bmp"}',
+        '--out',
+        out,
+        '--methods',
+        'holistic,lln,sad,seqslam',
+        '--sequence',
+        5,
+        '--cache',
+        tmp_path / 'cache',
+        '--timing-images',
+        1,
+        '--timing-queries',
+        2,
+        '--timing-repeats',
+        1,
+        '--no-plots',
+        '--quiet',
+    )
     assert rc == 0, capsys.readouterr().err
     results = json.loads((out / 'results.json').read_text())
     rows = results['datasets']['rtabmap_loop']['methods']
@@ -178,19 +204,48 @@ def test_eval_peers_and_sequence_rows_on_rtabmap_loop(tmp_path, capsys):
 
 def test_eval_sequence_longer_than_the_map_is_one_line(tmp_path, capsys):
     root = shared_data('rtabmap_loop')
-    rc = run_cli('--dataset', f'loop:{root},{root / "samples_GT.bmp"}', '--out', tmp_path / 'out',
-                 '--methods', 'sad', '--sequence', 85, '--cache', tmp_path / 'cache', '--no-plots', '--quiet')
+    rc = run_cli(
+        '--dataset',
+        f'loop:{root},{root / "samples_GT.bmp"}',
+        '--out',
+        tmp_path / 'out',
+        '--methods',
+        'sad',
+        '--sequence',
+        85,
+        '--cache',
+        tmp_path / 'cache',
+        '--no-plots',
+        '--quiet',
+    )
     err = capsys.readouterr().err
     assert rc == 2 and 'sequence length 85 is longer than its map (84 references)' in err
-    rc = run_cli('--dataset', f'loop:{root},{root / "samples_GT.bmp"}', '--out', tmp_path / 'out',
-                 '--sequence', -1, '--no-plots', '--quiet')
+    rc = run_cli(
+        '--dataset',
+        f'loop:{root},{root / "samples_GT.bmp"}',
+        '--out',
+        tmp_path / 'out',
+        '--sequence',
+        -1,
+        '--no-plots',
+        '--quiet',
+    )
     assert rc == 2 and '--sequence must be 0' in capsys.readouterr().err
 
 
 def test_candidates_codec_carries_sequence_score_even_with_zero_rows():
     from lln_ros import msgs
-    rows = [{'keyframe_id': 7, 'score': 3.5, 'holistic_score': 0.8, 'stamp_sec': 1, 'stamp_nanosec': 2,
-             'sequence_score': 2.25}]
+
+    rows = [
+        {
+            'keyframe_id': 7,
+            'score': 3.5,
+            'holistic_score': 0.8,
+            'stamp_sec': 1,
+            'stamp_nanosec': 2,
+            'sequence_score': 2.25,
+        }
+    ]
     table = msgs.cloud_to_candidates(msgs.candidates_to_cloud(rows, None, ('sequence_score',)))
     assert table['sequence_score'].tolist() == [2.25] and table['keyframe_id'].tolist() == [7]
     empty = msgs.cloud_to_candidates(msgs.candidates_to_cloud([], None, ('sequence_score',)))

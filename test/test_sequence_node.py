@@ -1,16 +1,16 @@
 """The matcher's online sequence search over real DDS (sequence_length > 0): the published
 sequence_score ranking equals the offline search over the same map and stream, and out-of-order
 stamps, gaps and a jump to an unmapped area behave as documented."""
+
 from __future__ import annotations
 
 import numpy as np
 from sensor_msgs.msg import PointCloud2
+from test_nodes import MATCHER, cloud, header, places, read_log, rig, stamp_of, start_matcher  # noqa: F401 (fixtures)
 
 from lln_ros import msgs
-from lln_ros.mapstore import MapStore
 from lln_ros.core.sequence import KeyframeSequence
-from test_nodes import (MATCHER, cloud, header, places, read_log, rig, start_matcher,  # noqa: F401 (fixtures)
-                        stamp_of)
+from lln_ros.mapstore import MapStore
 
 MAPPED = 10  # places 0..9 are in the map; 10..13 are not (the unmapped area)
 
@@ -20,15 +20,14 @@ def test_matcher_sequence_online_equals_offline(rig, places, tmp_path):
     with MapStore(map_path, model=places['model']) as store:
         for i in range(MAPPED):
             store.add(places['sets'][i], stamp=stamp_of(header(i, 'map')))
-    proc = start_matcher(rig, map_path, places, '-p', 'sequence_length:=4', '-p', 'k:=3',
-                         '-p', 'sequence_max_gap:=1.0')
+    proc = start_matcher(rig, map_path, places, '-p', 'sequence_length:=4', '-p', 'k:=3', '-p', 'sequence_max_gap:=1.0')
     q_pub = rig.probe.publisher(PointCloud2, 'query')
     cands = rig.probe.collect(PointCloud2, 'candidates', msgs.cloud_to_candidates)
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
     # the route through places 2..7, then an out-of-order stamp, a 5 s gap, then unmapped places
-    stream = [(p, 100 + j) for j, p in enumerate(range(2, 8))]      # 50 ms apart
-    stream += [(8, 101)]                                             # older than the last: reset
-    stream += [(8, 200), (9, 201)]                                   # 5 s later: reset (gap)
+    stream = [(p, 100 + j) for j, p in enumerate(range(2, 8))]  # 50 ms apart
+    stream += [(8, 101)]  # older than the last: reset
+    stream += [(8, 200), (9, 201)]  # 5 s later: reset (gap)
     stream += [(p, 202 + j) for j, p in enumerate(range(MAPPED, 14))]  # the unmapped area
     for j, (place, t) in enumerate(stream):
         q_pub.publish(cloud(places, place, header(t, 'query')))
@@ -60,11 +59,16 @@ def test_matcher_sequence_online_equals_offline(rig, places, tmp_path):
 def test_matcher_refuses_bad_sequence_parameters(rig, tmp_path):
     """A negative sequence_length or a non-positive sequence_max_gap: exit at start, one FATAL line."""
     import time
+
     # the descriptor ranges (issue 16) refuse these at declaration, naming the parameter and its range
-    for args, text in ((('sequence_length:=-1',), 'parameter sequence_length: Parameter sequence_length out of range'),
-                       (('prefilter_k:=-1',), 'parameter prefilter_k: Parameter prefilter_k out of range'),
-                       (('sequence_length:=10', 'sequence_max_gap:=0.0'),
-                        'parameter sequence_max_gap: Parameter sequence_max_gap out of range')):
+    for args, text in (
+        (('sequence_length:=-1',), 'parameter sequence_length: Parameter sequence_length out of range'),
+        (('prefilter_k:=-1',), 'parameter prefilter_k: Parameter prefilter_k out of range'),
+        (
+            ('sequence_length:=10', 'sequence_max_gap:=0.0'),
+            'parameter sequence_max_gap: Parameter sequence_max_gap out of range',
+        ),
+    ):
         proc = rig.matcher(tmp_path / 'map.db', *[a for arg in args for a in ('-p', arg)])
         deadline = time.monotonic() + 60
         while proc.alive() and time.monotonic() < deadline:
@@ -78,8 +82,21 @@ def test_matcher_sequence_in_mapping_mode(rig, places, tmp_path):
     """mode=mapping with sequence_length: the route 0..5 is stored as it is driven, the revisit 1, 2, 3
     is answered by the sequence (the same places, in order); the newest exclude_recent keyframes never
     end a line, so the first queries get zero rows. prefilter_k 0: every allowed keyframe is scored."""
-    proc = start_matcher(rig, tmp_path / 'map.db', places, '-p', 'mode:=mapping', '-p', 'exclude_recent:=2',
-                         '-p', 'sequence_length:=3', '-p', 'k:=2', '-p', 'prefilter_k:=0')
+    proc = start_matcher(
+        rig,
+        tmp_path / 'map.db',
+        places,
+        '-p',
+        'mode:=mapping',
+        '-p',
+        'exclude_recent:=2',
+        '-p',
+        'sequence_length:=3',
+        '-p',
+        'k:=2',
+        '-p',
+        'prefilter_k:=0',
+    )
     q_pub = rig.probe.publisher(PointCloud2, 'query')
     cands = rig.probe.collect(PointCloud2, 'candidates', msgs.cloud_to_candidates)
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)

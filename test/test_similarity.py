@@ -1,21 +1,29 @@
 """Spatially weighted cross matching, checked against a plain-loop reference of the paper's
 definition, on synthetic sets with known structure and on real image pairs with known shifts."""
+
 import numpy as np
 import pytest
 
-from lln_ros.errors import DescriptorError
 from lln_ros.core.landmarks import LandmarkSet, l2_normalize, stack_landmarks
 from lln_ros.core.similarity import match_batch, match_pair, offset_mode, offset_weights
+from lln_ros.errors import DescriptorError
 
 
 def make_set(desc, cells, grid=(9, 12), space='test/x/8'):
     desc = l2_normalize(np.asarray(desc, np.float32))
     cells = np.asarray(cells, np.int32)
     cell = np.array([32.0, 32.0], np.float32)
-    return LandmarkSet(global_descriptor=l2_normalize(desc.max(0)), descriptors=desc, cells=cells,
-                       centers=(cells + 0.5) * cell, scores=np.linspace(1, 0, len(desc), dtype=np.float32),
-                       cell_size=cell, image_size=np.array([384, 288], np.float32), grid=grid,
-                       descriptor_space=space)
+    return LandmarkSet(
+        global_descriptor=l2_normalize(desc.max(0)),
+        descriptors=desc,
+        cells=cells,
+        centers=(cells + 0.5) * cell,
+        scores=np.linspace(1, 0, len(desc), dtype=np.float32),
+        cell_size=cell,
+        image_size=np.array([384, 288], np.float32),
+        grid=grid,
+        descriptor_space=space,
+    )
 
 
 def reference_similarity(a, b, scale=1.0):
@@ -33,8 +41,7 @@ def reference_similarity(a, b, scale=1.0):
         c, t = counts.get(d, (0, 0.0))
         counts[d] = (c + 1, t + max(s, 0))
     mode = max(counts, key=lambda d: (counts[d][0], counts[d][1]))
-    total = sum(s * np.exp(-0.5 * ((d[0] - mode[0]) ** 2 + (d[1] - mode[1]) ** 2) / scale ** 2)
-                for _, _, s, d in pairs)
+    total = sum(s * np.exp(-0.5 * ((d[0] - mode[0]) ** 2 + (d[1] - mode[1]) ** 2) / scale**2) for _, _, s, d in pairs)
     return total, mode
 
 
@@ -94,8 +101,8 @@ def test_pairs_and_weights():
     rng = np.random.default_rng(3)
     a = random_set(rng, n=10)
     cells = a.cells.copy()
-    cells[:7] -= [1, 0]   # seven landmarks agree on offset (1, 0)
-    cells[7:] -= [0, 3]   # three are displaced by (0, 3): down-weighted by exp(-(1+9)/2)
+    cells[:7] -= [1, 0]  # seven landmarks agree on offset (1, 0)
+    cells[7:] -= [0, 3]  # three are displaced by (0, 3): down-weighted by exp(-(1+9)/2)
     cells = np.clip(cells, 0, [11, 8])
     b = make_set(a.descriptors, cells)
     r = match_pair(a, b)
@@ -145,7 +152,7 @@ def test_bad_descriptors():
 
 
 def test_real_image_against_itself_and_a_shifted_copy(extractor, photo):
-    view = photo[100:388, 0:384]                # 384x288: 32 px cells, the paper's grid
+    view = photo[100:388, 0:384]  # 384x288: 32 px cells, the paper's grid
     a = extractor(view)
     r = match_pair(a, a)
     assert (r.match[0] == np.arange(len(a))).all() and tuple(r.offsets[0]) == (0, 0)

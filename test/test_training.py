@@ -1,4 +1,5 @@
 """LLN head training: data sources, mining, determinism, resume, and the checkpoint it ships."""
+
 import pickle
 
 import cv2
@@ -6,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from lln_ros.io import datasets
 from lln_ros import training
-from lln_ros.errors import DatasetError
 from lln_ros.core.extractor import Extractor
 from lln_ros.core.lln import LLNHead, load_checkpoint
+from lln_ros.errors import DatasetError
+from lln_ros.io import datasets
 
 
 @pytest.fixture(scope='module')
@@ -21,7 +22,7 @@ def traverses(tmp_path_factory, photo):
         (root / name).mkdir()
         for i in range(10):
             y = 20 + i * 30 + dy
-            view = (photo[y:y + 96, 100:228] * gain).astype(np.uint8)
+            view = (photo[y : y + 96, 100:228] * gain).astype(np.uint8)
             cv2.imwrite(str(root / name / f'{i}.png'), cv2.cvtColor(view, cv2.COLOR_RGB2BGR))
     return root
 
@@ -31,8 +32,16 @@ def small_extractor():
 
 
 def conf(**kw):
-    return {'epochs': 2, 'lr': 1e-3, 'tuples_per_epoch': 0, 'train_size': 96, 'batch_size': 4,
-            'neg_margin': 1, 'head': {'channels': 8}, **kw}
+    return {
+        'epochs': 2,
+        'lr': 1e-3,
+        'tuples_per_epoch': 0,
+        'train_size': 96,
+        'batch_size': 4,
+        'neg_margin': 1,
+        'head': {'channels': 8},
+        **kw,
+    }
 
 
 def test_pairs_from_dataset_excludes_frames_beside_a_match(traverses):
@@ -47,7 +56,7 @@ def test_places_and_sfm_layouts(tmp_path, photo):
     for place in ('a', 'b', 'c'):
         (tmp_path / 'places' / place).mkdir(parents=True)
         for k in range(2):
-            cv2.imwrite(str(tmp_path / 'places' / place / f'{k}.jpg'), photo[k * 10:k * 10 + 64, :64])
+            cv2.imwrite(str(tmp_path / 'places' / place / f'{k}.jpg'), photo[k * 10 : k * 10 + 64, :64])
     p = training.pairs_from_places(tmp_path / 'places')
     assert len(p.query_paths) == 6 and p.positive.sum() == 6 and not p.positive.diagonal().any()
     assert p.negative[0].sum() == 4
@@ -56,7 +65,7 @@ def test_places_and_sfm_layouts(tmp_path, photo):
     for k, cid in enumerate(cids):
         path = training.sfm_image_path(tmp_path / 'ims', cid)
         path.parent.mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(path) + '.png', photo[k * 20:k * 20 + 64, :64])
+        cv2.imwrite(str(path) + '.png', photo[k * 20 : k * 20 + 64, :64])
         (path.parent / (path.name + '.png')).rename(path)
     with open(tmp_path / 'db.pkl', 'wb') as f:
         pickle.dump({'train': {'cids': cids, 'cluster': [0, 0, 1, 1], 'qidxs': [0, 2], 'pidxs': [1, 3]}}, f)
@@ -80,13 +89,19 @@ def test_loss_and_embedding():
     q = torch.tensor([[1.0, 0.0]])
     assert training.triplet_loss(q, q, torch.tensor([[[0.0, 1.0]]]), 0.3).item() == 0.0  # well separated
     loss = training.triplet_loss(q, torch.tensor([[0.0, 1.0]]), torch.tensor([[[1.0, 0.0], [0.0, 1.0]]]), 0.3)
-    assert loss.item() == pytest.approx((2 ** 0.5 + 0.3) + 0.3, rel=1e-5)
+    assert loss.item() == pytest.approx((2**0.5 + 0.3) + 0.3, rel=1e-5)
 
 
 def rerank_trainer(traverses, tmp_path):
     ds = datasets.aligned(traverses / 'ref', traverses / 'query', tol=0)
-    t = training.Trainer(small_extractor(), training.pairs_from_dataset(ds, neg_margin=1), ds,
-                         conf(val_prefilter_k=5, val_top_n=6), cache_dir=str(tmp_path / 'cache'), out_dir=str(tmp_path))
+    t = training.Trainer(
+        small_extractor(),
+        training.pairs_from_dataset(ds, neg_margin=1),
+        ds,
+        conf(val_prefilter_k=5, val_top_n=6),
+        cache_dir=str(tmp_path / 'cache'),
+        out_dir=str(tmp_path),
+    )
     t.load_features()
     t.prepare_rerank()
     return t
@@ -97,18 +112,22 @@ def test_match_tables_reproduce_the_similarity_of_all_cells(traverses, tmp_path)
     query cells they give match_batch's score for every candidate."""
     from lln_ros.core.landmarks import stack_landmarks
     from lln_ros.core.similarity import match_batch
+
     t = rerank_trainer(traverses, tmp_path)
     ex = small_extractor()
     ex.conf = {**ex.conf, 'method': 'all'}
     q, refs = t.fq[3].numpy(), t.fr.numpy()
     d, h, w = q.shape
+
     def local(f):
         return f.reshape(d, h * w).T / np.linalg.norm(f.reshape(d, h * w).T, axis=1, keepdims=True)
+
     cells = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 2)
     partner, value = training.match_tables(local(q), np.stack([local(f) for f in refs]), cells)
     assert partner.shape == value.shape == (10, h * w)
-    want = match_batch(ex.from_features(q, (128, 96)),
-                       stack_landmarks([ex.from_features(f, (128, 96)) for f in refs])).scores
+    want = match_batch(
+        ex.from_features(q, (128, 96)), stack_landmarks([ex.from_features(f, (128, 96)) for f in refs])
+    ).scores
     np.testing.assert_allclose(value.sum(1), want, rtol=2e-3)
     assert value.sum(1).argmax() == 3  # the query's own place wins
 
@@ -135,8 +154,8 @@ def test_rerank_scores_use_each_querys_own_candidates(traverses, tmp_path):
     # positives first in every candidate list
     for row in range(len(t.queries)):
         q = t.queries[row]
-        assert t.pairs.positive[q, t.rr_cand[row, :t.rr_npos[row]]].all()
-        assert not t.pairs.positive[q, t.rr_cand[row, t.rr_npos[row]:][t.rr_cand[row, t.rr_npos[row]:] >= 0]].any()
+        assert t.pairs.positive[q, t.rr_cand[row, : t.rr_npos[row]]].all()
+        assert not t.pairs.positive[q, t.rr_cand[row, t.rr_npos[row] :][t.rr_cand[row, t.rr_npos[row] :] >= 0]].any()
 
 
 def test_rerank_loss_prefers_positives():
@@ -156,9 +175,15 @@ def test_training_is_deterministic_resumable_and_ships_metadata(traverses, tmp_p
     pairs = training.pairs_from_dataset(ds, neg_margin=1)
 
     def run(out, epochs, resume=True):
-        t = training.Trainer(small_extractor(), pairs, ds, conf(epochs=epochs, objective=objective),
-                             cache_dir=str(tmp_path / 'cache'),
-                             out_dir=str(out), meta={'command': 'test'})
+        t = training.Trainer(
+            small_extractor(),
+            pairs,
+            ds,
+            conf(epochs=epochs, objective=objective),
+            cache_dir=str(tmp_path / 'cache'),
+            out_dir=str(out),
+            meta={'command': 'test'},
+        )
         return t.fit(resume=resume), t
 
     # the feature cache is warmed first: features computed in this process and the same features
@@ -183,12 +208,19 @@ def test_training_is_deterministic_resumable_and_ships_metadata(traverses, tmp_p
     assert meta['epoch'] == scores.index(max(scores)) and meta['trained'] == (meta['epoch'] > 0)
     assert 0 <= meta['val_p_at_100r'] <= 1
     with pytest.raises(DatasetError, match='another training configuration'):
-        training.Trainer(small_extractor(), pairs, ds, conf(epochs=3, lr=0.5, objective=objective),
-                         cache_dir=str(tmp_path / 'cache'), out_dir=str(tmp_path / 'c')).fit()
+        training.Trainer(
+            small_extractor(),
+            pairs,
+            ds,
+            conf(epochs=3, lr=0.5, objective=objective),
+            cache_dir=str(tmp_path / 'cache'),
+            out_dir=str(tmp_path / 'c'),
+        ).fit()
 
 
 def test_cli_rejects_bad_data_before_work(tmp_path, capsys):
     from lln_ros.cli.train import main
+
     (tmp_path / 'a').mkdir()
     assert main(['--data', f'aligned:{tmp_path / "a"},{tmp_path / "b"}', '--out', str(tmp_path / 'o')]) == 2
     assert 'lln-train: error:' in capsys.readouterr().err and not (tmp_path / 'o').exists()
@@ -202,7 +234,7 @@ def square_traverses(tmp_path_factory, photo):
         (root / name).mkdir()
         for i in range(6):
             x = 30 + i * 40 + dx
-            view = np.clip(photo[150:246, x:x + 96] * gain, 0, 255).astype(np.uint8)
+            view = np.clip(photo[150:246, x : x + 96] * gain, 0, 255).astype(np.uint8)
             cv2.imwrite(str(root / name / f'{i}.png'), cv2.cvtColor(view, cv2.COLOR_RGB2BGR))
     return root
 
@@ -230,14 +262,25 @@ def test_norm_prior_starts_at_act():
 
 @pytest.mark.parametrize('objective', ['rerank', 'triplet'])
 def test_datasets_of_different_grids_train_together_and_best_is_the_validation_mean(
-        traverses, square_traverses, tmp_path, objective):
-    wide = datasets.aligned(traverses / 'ref', traverses / 'query', tol=0, name='wide')         # 4x3 cells
+    traverses, square_traverses, tmp_path, objective
+):
+    wide = datasets.aligned(traverses / 'ref', traverses / 'query', tol=0, name='wide')  # 4x3 cells
     square = datasets.aligned(square_traverses / 'ref', square_traverses / 'query', tol=0, name='square')  # 3x3
     pairs = training.combine([training.pairs_from_dataset(wide, 1), training.pairs_from_dataset(square, 1)])
-    t = training.Trainer(small_extractor(), pairs, [wide, square],
-                         conf(epochs=2, objective=objective, val_prefilter_k=4, val_top_n=6,
-                              head={'channels': 8, 'norm_prior': 1.0} if objective == 'rerank' else {'channels': 8}),
-                         cache_dir=str(tmp_path / 'cache'), out_dir=str(tmp_path / 'out'))
+    t = training.Trainer(
+        small_extractor(),
+        pairs,
+        [wide, square],
+        conf(
+            epochs=2,
+            objective=objective,
+            val_prefilter_k=4,
+            val_top_n=6,
+            head={'channels': 8, 'norm_prior': 1.0} if objective == 'rerank' else {'channels': 8},
+        ),
+        cache_dir=str(tmp_path / 'cache'),
+        out_dir=str(tmp_path / 'out'),
+    )
     result = t.fit()
     assert t.fq.shape[2:] == (3, 4) and t.q_valid[-1].sum() == 9 and t.q_valid[0].all()
     if objective == 'rerank':  # padded cells are never matched

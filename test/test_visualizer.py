@@ -1,6 +1,7 @@
 """lln_ros.drawing (ROS-free, OpenCV) and the lln_visualizer node over real DDS: the query beside its
 best keyframe with the matched regions linked, and the loop-closure markers, from real extractions
 of the matplotlib photograph."""
+
 from __future__ import annotations
 
 import cv2
@@ -10,9 +11,9 @@ from sensor_msgs.msg import Image, PointCloud2
 from visualization_msgs.msg import MarkerArray
 
 from lln_ros import msgs
-from lln_ros.drawing import CAPTION_HEIGHT, draw_match_overlay, similarity_colours
 from lln_ros.core.retrieval import pair_regions
 from lln_ros.core.similarity import match_pair
+from lln_ros.drawing import CAPTION_HEIGHT, draw_match_overlay, similarity_colours
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 
 T0 = 1_700_000_000 * 10**9
@@ -23,7 +24,7 @@ def pair(photo, extractor):
     """Two overlapping crops of the photo (RGB), their landmark sets and the matcher's match rows."""
     h, w = photo.shape[:2]
     a_img = np.ascontiguousarray(photo[: h * 3 // 4, : w * 3 // 4])
-    b_img = np.ascontiguousarray(photo[h // 8: h * 7 // 8, w // 8: w * 7 // 8])
+    b_img = np.ascontiguousarray(photo[h // 8 : h * 7 // 8, w // 8 : w * 7 // 8])
     a, b = extractor.extract_batch([a_img, b_img])
     result = match_pair(a, b, 1.0)
     rows = msgs.match_rows(1, pair_regions(a, b, result.pairs(0)))
@@ -43,7 +44,10 @@ def test_overlay_layout_and_regions(pair):
     top = 2 * CAPTION_HEIGHT
     hits = 0
     for row, colour in zip(rows, colours):
-        for x, y in ((row['query_u'] * sq, top + row['query_v'] * sq), (wq + row['map_u'] * sk, top + row['map_v'] * sk)):
+        for x, y in (
+            (row['query_u'] * sq, top + row['query_v'] * sq),
+            (wq + row['map_u'] * sk, top + row['map_v'] * sk),
+        ):
             hits += np.abs(canvas[round(y), round(x)].astype(int) - colour.astype(int)).max() <= 60
     assert hits >= 0.8 * 2 * len(rows), f'{hits} of {2 * len(rows)} pair ends drawn'
     # no keyframe image: a grey panel, the query side still outlined
@@ -61,8 +65,12 @@ def test_overlay_layout_and_regions(pair):
 def test_visualizer_node_overlay_and_markers(pair, colcon_install, tmp_path):
     a_img, b_img, a, b, score, rows = pair
     env = installed_env(colcon_install, ros_env(tmp_path))
-    proc = RosProcess(colcon_install / 'lln_ros' / 'lib' / 'lln_ros' / 'visualizer',
-                      ['-p', 'reliability:=reliable', '-p', 'overlay_height:=240'], env, tmp_path / 'visualizer.log')
+    proc = RosProcess(
+        colcon_install / 'lln_ros' / 'lib' / 'lln_ros' / 'visualizer',
+        ['-p', 'reliability:=reliable', '-p', 'overlay_height:=240'],
+        env,
+        tmp_path / 'visualizer.log',
+    )
     probe = Probe(env)
     try:
         images = probe.publisher(Image, 'image')
@@ -70,22 +78,30 @@ def test_visualizer_node_overlay_and_markers(pair, colcon_install, tmp_path):
         matches = probe.publisher(PointCloud2, 'matches')
         overlays = probe.collect(Image, 'overlay')
         markers = probe.collect(MarkerArray, 'markers')
-        probe.spin_until(lambda: all(p.get_subscription_count() for p in (images, candidates, matches))
-                         or not proc.alive(), 60, 'visualizer subscriptions')
+        probe.spin_until(
+            lambda: all(p.get_subscription_count() for p in (images, candidates, matches)) or not proc.alive(),
+            60,
+            'visualizer subscriptions',
+        )
         assert proc.alive(), proc.log()
         keyframe_header, query_header = msgs.make_header(T0, 'camera'), msgs.make_header(T0 + 2 * 10**9, 'camera')
-        images.publish(msgs.array_to_image(b_img, 'rgb8', keyframe_header))   # seen first: the keyframe
+        images.publish(msgs.array_to_image(b_img, 'rgb8', keyframe_header))  # seen first: the keyframe
         images.publish(msgs.array_to_image(a_img, 'rgb8', query_header))
         probe.spin_for(1.0)
-        row = {'keyframe_id': 1, 'score': score, 'holistic_score': float(a.global_descriptor @ b.global_descriptor),
-               'stamp_sec': T0 // 10**9, 'stamp_nanosec': 0}
-        matches.publish(msgs.matches_to_cloud(rows, query_header))              # either order
+        row = {
+            'keyframe_id': 1,
+            'score': score,
+            'holistic_score': float(a.global_descriptor @ b.global_descriptor),
+            'stamp_sec': T0 // 10**9,
+            'stamp_nanosec': 0,
+        }
+        matches.publish(msgs.matches_to_cloud(rows, query_header))  # either order
         candidates.publish(msgs.candidates_to_cloud([row], query_header))
         probe.spin_until(lambda: overlays and markers, 30, 'overlay and markers')
         overlay, order = msgs.image_to_array(overlays[0])
         assert overlays[0].header.stamp == query_header.stamp and overlays[0].encoding == 'bgr8'
         assert overlay.shape[0] == 240 + 2 * CAPTION_HEIGHT
-        right = overlay[2 * CAPTION_HEIGHT:, round(a_img.shape[1] * 240 / a_img.shape[0]):]
+        right = overlay[2 * CAPTION_HEIGHT :, round(a_img.shape[1] * 240 / a_img.shape[0]) :]
         assert right.std() > 20, 'the keyframe panel should show the keyframe image, not the grey placeholder'
         arcs = [m for m in markers[0].markers if m.ns == 'loop_closures']
         assert len(arcs) == 1 and arcs[0].header.frame_id == 'lln_timeline'

@@ -1,12 +1,13 @@
 """lln-bag: make, inspect and play MCAP bags on machines without rosbag2.
 
-    lln-bag from-images DIR OUT [--glob '*.jpg'] [--topic /camera/image_raw] [--rate HZ]
-                                [--compressed] [--frame-id camera] [--start SEC]
-    lln-bag info BAG [--json]
-    lln-bag play BAG [--rate R] [--topic-remap A:=B ...] [--qos reliable|best_effort]
-                     [--wait-subscribers N --wait-timeout S] [--clock [HZ]]
-                     [--pace TOPIC [--pace-timeout S]]
+lln-bag from-images DIR OUT [--glob '*.jpg'] [--topic /camera/image_raw] [--rate HZ]
+                            [--compressed] [--frame-id camera] [--start SEC]
+lln-bag info BAG [--json]
+lln-bag play BAG [--rate R] [--topic-remap A:=B ...] [--qos reliable|best_effort]
+                 [--wait-subscribers N --wait-timeout S] [--clock [HZ]]
+                 [--pace TOPIC [--pace-timeout S]]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -25,88 +26,163 @@ def _positive(text: str) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     from ..io.bag import DEFAULT_START_NS, DEFAULT_TOPIC
+
     p = argparse.ArgumentParser(prog='lln-bag', description=__doc__.strip().splitlines()[0])
     sub = p.add_subparsers(dest='command', required=True, metavar='COMMAND')
 
-    f = sub.add_parser('from-images', help='write an ordered image folder as an MCAP bag',
-                       description='Write the images of DIR (natural sort: 2.jpg before 10.jpg) as one '
-                                   'image topic of a new MCAP bag OUT, stamped at a fixed rate.')
+    f = sub.add_parser(
+        'from-images',
+        help='write an ordered image folder as an MCAP bag',
+        description='Write the images of DIR (natural sort: 2.jpg before 10.jpg) as one '
+        'image topic of a new MCAP bag OUT, stamped at a fixed rate.',
+    )
     f.add_argument('folder', metavar='DIR')
     f.add_argument('out', metavar='OUT', help='bag directory to create (must not exist)')
-    f.add_argument('--glob', metavar='PATTERN',
-                   help="only the files of DIR matching PATTERN, e.g. '*.jpg' (default: every image file)")
+    f.add_argument(
+        '--glob',
+        metavar='PATTERN',
+        help="only the files of DIR matching PATTERN, e.g. '*.jpg' (default: every image file)",
+    )
     f.add_argument('--topic', default=DEFAULT_TOPIC, help=f'image topic (default {DEFAULT_TOPIC})')
     f.add_argument('--rate', type=_positive, default=10.0, help='frames per second (default 10)')
-    f.add_argument('--compressed', action='store_true',
-                   help='sensor_msgs/CompressedImage jpeg instead of sensor_msgs/Image rgb8')
+    f.add_argument(
+        '--compressed', action='store_true', help='sensor_msgs/CompressedImage jpeg instead of sensor_msgs/Image rgb8'
+    )
     f.add_argument('--frame-id', default='camera', help='header frame_id (default camera)')
-    f.add_argument('--start', type=float, default=DEFAULT_START_NS / 1e9,
-                   help=f'stamp of the first frame, seconds since the epoch (default {DEFAULT_START_NS // 10**9})')
+    f.add_argument(
+        '--start',
+        type=float,
+        default=DEFAULT_START_NS / 1e9,
+        help=f'stamp of the first frame, seconds since the epoch (default {DEFAULT_START_NS // 10**9})',
+    )
     f.add_argument('--jpeg-quality', type=int, default=95, help='with --compressed (default 95)')
 
     i = sub.add_parser('info', help='topics, types, counts and duration of a bag')
     i.add_argument('bag', metavar='BAG')
     i.add_argument('--json', action='store_true', help='print one JSON object')
 
-    pl = sub.add_parser('play', help='publish a bag into the ROS graph with rclpy',
-                        description='Publish the recorded messages (raw CDR) at the recorded timing '
-                                    'divided by --rate.')
+    pl = sub.add_parser(
+        'play',
+        help='publish a bag into the ROS graph with rclpy',
+        description='Publish the recorded messages (raw CDR) at the recorded timing divided by --rate.',
+    )
     pl.add_argument('bag', metavar='BAG')
     pl.add_argument('--rate', type=_positive, default=1.0, help='playback speed factor (default 1)')
-    pl.add_argument('--topic-remap', action='append', default=[], metavar='A:=B',
-                    help='publish bag topic A on B (repeatable)')
-    pl.add_argument('--topics', type=lambda text: [t for t in text.split(',') if t], metavar='T1,T2',
-                    help='play only these bag topics (comma-separated; default: all)')
+    pl.add_argument(
+        '--topic-remap', action='append', default=[], metavar='A:=B', help='publish bag topic A on B (repeatable)'
+    )
+    pl.add_argument(
+        '--topics',
+        type=lambda text: [t for t in text.split(',') if t],
+        metavar='T1,T2',
+        help='play only these bag topics (comma-separated; default: all)',
+    )
     pl.add_argument('--qos', choices=['reliable', 'best_effort'], default='reliable')
     pl.add_argument('--qos-depth', type=int, default=100, help='publisher history depth (default 100)')
-    pl.add_argument('--wait-subscribers', type=int, default=0, metavar='N',
-                    help='start only when every played topic has N subscribers (default 0: start now)')
-    pl.add_argument('--wait-timeout', type=_positive, default=10.0, metavar='S',
-                    help='give up waiting for subscribers after S seconds (default 10)')
-    pl.add_argument('--start-delay', type=float, default=0.0, metavar='S',
-                    help='sleep S seconds after the subscribers are there (default 0)')
-    pl.add_argument('--clock', type=_positive, nargs='?', const=40.0, default=0.0, metavar='HZ',
-                    help='publish the bag time on /clock (rosgraph_msgs/Clock) at HZ (default 40 when '
-                         'given), for nodes started with -p use_sim_time:=true (as ros2 bag play --clock)')
-    pl.add_argument('--pace', metavar='TOPIC', default='',
-                    help='lossless replay into a slower node: after each message wait for one message on '
-                         'TOPIC (e.g. the extractor\'s landmarks), at most --pace-timeout s; the recorded '
-                         'timing stays the fastest pace')
-    pl.add_argument('--pace-timeout', type=_positive, default=10.0, metavar='S',
-                    help='with --pace: give up waiting for one output after S seconds and go on (default 10)')
+    pl.add_argument(
+        '--wait-subscribers',
+        type=int,
+        default=0,
+        metavar='N',
+        help='start only when every played topic has N subscribers (default 0: start now)',
+    )
+    pl.add_argument(
+        '--wait-timeout',
+        type=_positive,
+        default=10.0,
+        metavar='S',
+        help='give up waiting for subscribers after S seconds (default 10)',
+    )
+    pl.add_argument(
+        '--start-delay',
+        type=float,
+        default=0.0,
+        metavar='S',
+        help='sleep S seconds after the subscribers are there (default 0)',
+    )
+    pl.add_argument(
+        '--clock',
+        type=_positive,
+        nargs='?',
+        const=40.0,
+        default=0.0,
+        metavar='HZ',
+        help='publish the bag time on /clock (rosgraph_msgs/Clock) at HZ (default 40 when '
+        'given), for nodes started with -p use_sim_time:=true (as ros2 bag play --clock)',
+    )
+    pl.add_argument(
+        '--pace',
+        metavar='TOPIC',
+        default='',
+        help='lossless replay into a slower node: after each message wait for one message on '
+        "TOPIC (e.g. the extractor's landmarks), at most --pace-timeout s; the recorded "
+        'timing stays the fastest pace',
+    )
+    pl.add_argument(
+        '--pace-timeout',
+        type=_positive,
+        default=10.0,
+        metavar='S',
+        help='with --pace: give up waiting for one output after S seconds and go on (default 10)',
+    )
     pl.add_argument('--quiet', action='store_true', help='print nothing but errors')
     return p
 
 
 def run(args) -> int:
     from ..io import bag
+
     if args.command == 'from-images':
         paths = bag.list_images(args.folder, args.glob)
         suffixes = sorted({p.suffix.lower() for p in paths})
         if len(suffixes) > 1:
-            print(f'lln-bag: warning: {args.folder} mixes {", ".join(suffixes)} files; all {len(paths)} become '
-                  "frames (use --glob '*.jpg' to pick one kind)", file=sys.stderr)
-        stamps = bag.write_image_bag(paths, args.out, topic=args.topic, rate=args.rate,
-                                     compressed=args.compressed, frame_id=args.frame_id,
-                                     start_ns=int(round(args.start * 1e9)), jpeg_quality=args.jpeg_quality)
+            print(
+                f'lln-bag: warning: {args.folder} mixes {", ".join(suffixes)} files; all {len(paths)} become '
+                "frames (use --glob '*.jpg' to pick one kind)",
+                file=sys.stderr,
+            )
+        stamps = bag.write_image_bag(
+            paths,
+            args.out,
+            topic=args.topic,
+            rate=args.rate,
+            compressed=args.compressed,
+            frame_id=args.frame_id,
+            start_ns=int(round(args.start * 1e9)),
+            jpeg_quality=args.jpeg_quality,
+        )
         kind = 'sensor_msgs/msg/CompressedImage jpeg' if args.compressed else 'sensor_msgs/msg/Image rgb8'
-        print(f'wrote {len(stamps)} images to {args.out} on {args.topic} ({kind}, {args.rate:g} Hz, '
-              f'{(stamps[-1] - stamps[0]) / 1e9:.3f} s)')
+        print(
+            f'wrote {len(stamps)} images to {args.out} on {args.topic} ({kind}, {args.rate:g} Hz, '
+            f'{(stamps[-1] - stamps[0]) / 1e9:.3f} s)'
+        )
     elif args.command == 'info':
         info = bag.bag_info(args.bag)
         print(json.dumps(info) if args.json else bag.format_info(info))
     elif args.command == 'play':
         from ..dds import apply_large_data_profile
+
         log = (lambda _m: None) if args.quiet else (lambda m: print(f'lln-bag: {m}', flush=True))
         level, note = apply_large_data_profile()  # a player publishes camera-sized frames: before rclpy.init
         if level == 'warn':
             print(f'lln-bag: warning: {note}', file=sys.stderr)
         else:
             log(note)
-        bag.play_bag(args.bag, rate=args.rate, remaps=bag.parse_remaps(args.topic_remap), qos=args.qos,
-                     qos_depth=args.qos_depth, wait_subscribers=args.wait_subscribers,
-                     wait_timeout=args.wait_timeout, topics=args.topics, start_delay=args.start_delay,
-                     log=log, clock_hz=args.clock, pace_topic=args.pace, pace_timeout=args.pace_timeout)
+        bag.play_bag(
+            args.bag,
+            rate=args.rate,
+            remaps=bag.parse_remaps(args.topic_remap),
+            qos=args.qos,
+            qos_depth=args.qos_depth,
+            wait_subscribers=args.wait_subscribers,
+            wait_timeout=args.wait_timeout,
+            topics=args.topics,
+            start_delay=args.start_delay,
+            log=log,
+            clock_hz=args.clock,
+            pace_topic=args.pace,
+            pace_timeout=args.pace_timeout,
+        )
     return 0
 
 

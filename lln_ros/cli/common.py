@@ -124,9 +124,13 @@ def add_model_arguments(p: argparse.ArgumentParser, weights: bool = True) -> Non
 
 def add_runtime_argument(p: argparse.ArgumentParser) -> None:
     """--runtime, for every command that builds an Extractor (the default lives in its default_conf)."""
-    p.add_argument('--runtime', default=None, choices=('onnxruntime', 'torch'),
-                   help='what runs the network (default onnxruntime, torch when ONNX Runtime is not '
-                        'installed); the landmarks are the same')
+    p.add_argument(
+        '--runtime',
+        default=None,
+        choices=('onnxruntime', 'torch'),
+        help='what runs the network (default onnxruntime, torch when ONNX Runtime is not '
+        'installed); the landmarks are the same',
+    )
 
 
 def runtime_conf(args) -> dict:
@@ -140,12 +144,20 @@ def add_prefilter_argument(p: argparse.ArgumentParser, what: str = 'first-stage 
     from ..core.retrieval import default_conf as retrieval
 
     first, k = retrieval['prefilter'], retrieval['prefilter_k']
-    p.add_argument('--prefilter', default=first, choices=PREFILTERS,
-                   help="first stage the rerank starts from: landmarks (each query landmark's nearest map "
-                        "landmarks, voted per reference), holistic (global cosine, the paper's) or exhaustive "
-                        f'(every reference) (default {first})')
-    p.add_argument('--prefilter-k', type=int, default=k,
-                   help=f'{what} (default {k}; 0 = every reference, an exhaustive rerank, whatever --prefilter says)')
+    p.add_argument(
+        '--prefilter',
+        default=first,
+        choices=PREFILTERS,
+        help="first stage the rerank starts from: landmarks (each query landmark's nearest map "
+        "landmarks, voted per reference), holistic (global cosine, the paper's) or exhaustive "
+        f'(every reference) (default {first})',
+    )
+    p.add_argument(
+        '--prefilter-k',
+        type=int,
+        default=k,
+        help=f'{what} (default {k}; 0 = every reference, an exhaustive rerank, whatever --prefilter says)',
+    )
 
 
 def add_scale_argument(p: argparse.ArgumentParser) -> None:
@@ -200,9 +212,9 @@ def read_dataset(spec: str, frac, download: bool):
     """(Dataset or None when it must be downloaded first, the --range it got). Every image is read
     and checked by the dataset readers; a gardenspoint: folder without its traverses is None with
     --download, else a DatasetError saying to add --download."""
+    from ..errors import DatasetError
     from ..io import datasets
     from ..io.download import GARDENS_POINT_FOLDERS
-    from ..errors import DatasetError
 
     kind, _, rest = spec.partition(':')
     if kind == 'gardenspoint':

@@ -52,6 +52,7 @@ The pieces: lln_ros.ros.supervisor (executables, environment, start / stop), lln
 (collecting, paced playback), lln_ros.eval.online (scoring, online vs offline), lln_ros.eval.report
 and lln_ros.eval.figures (the one report stack lln-eval uses too). This module is the pipeline.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -87,17 +88,30 @@ NORDLAND_RANGE = (0.7, 1.0)
 BAG_TOPIC = '/camera/image_raw'
 MAP_IMAGE = '/lln_demo/map/image_raw'
 QUERY_IMAGE = '/lln_demo/query/image_raw'
-NOMINAL_HZ = 10.0                      # bag stamps in paced mode (the pace itself comes from the extractor)
-DAY_NS = 86_400 * 1_000_000_000        # the query bag starts a day after the map bag: stamps never collide
+NOMINAL_HZ = 10.0  # bag stamps in paced mode (the pace itself comes from the extractor)
+DAY_NS = 86_400 * 1_000_000_000  # the query bag starts a day after the map bag: stamps never collide
 METHODS = ('lln', 'act', 'rand', 'all', 'holistic')
 # what one run writes into DIR (removed at the start of a run, so a rerun is clean)
-OUTPUTS = ('map_bag', 'query_bag', 'map.db', 'map.db-wal', 'map.db-shm', 'results_online.json',
-           'results_online.md', 'answers_online.csv', 'rankings.npz', 'pr_online.png', 'offline', 'logs')
+OUTPUTS = (
+    'map_bag',
+    'query_bag',
+    'map.db',
+    'map.db-wal',
+    'map.db-shm',
+    'results_online.json',
+    'results_online.md',
+    'answers_online.csv',
+    'rankings.npz',
+    'pr_online.png',
+    'offline',
+    'logs',
+)
 DEFAULT_DOWNLOAD_DIR = '~/.cache/lln_ros/gardens_point'
 __all__ = ['METRICS', 'HANDSHAKE_TRIES', 'main']
 
 
 # ------------------------------------------------------------------------------------------ inputs
+
 
 def nordland_spec(data: Path) -> str:
     root = data / 'nordland_trimmed'
@@ -105,36 +119,70 @@ def nordland_spec(data: Path) -> str:
 
 
 def build_parser():
-    from ..eval.runner import default_conf as eval_defaults
     from ..core.extractor import default_conf as ext
+    from ..eval.runner import default_conf as eval_defaults
+
     p = parser_from_doc(PROG, __doc__)
     p.add_argument('--out', required=True, metavar='DIR', help='output folder (bags, map, results, plots, logs)')
     p.add_argument('--dataset', metavar='SPEC', help='default: the Nordland test split, else Gardens Point')
-    p.add_argument('--range', metavar='START:END',
-                   help='fractions of an aligned dataset (default 0.7:1 for the default Nordland split)')
-    p.add_argument('--download', action='store_true',
-                   help='fetch Gardens Point Walking when it is the dataset and is not there yet')
-    p.add_argument('--download-dir', default=DEFAULT_DOWNLOAD_DIR,
-                   help=f'where the default Gardens Point dataset lives (default {DEFAULT_DOWNLOAD_DIR})')
+    p.add_argument(
+        '--range',
+        metavar='START:END',
+        help='fractions of an aligned dataset (default 0.7:1 for the default Nordland split)',
+    )
+    p.add_argument(
+        '--download',
+        action='store_true',
+        help='fetch Gardens Point Walking when it is the dataset and is not there yet',
+    )
+    p.add_argument(
+        '--download-dir',
+        default=DEFAULT_DOWNLOAD_DIR,
+        help=f'where the default Gardens Point dataset lives (default {DEFAULT_DOWNLOAD_DIR})',
+    )
     p.add_argument('--download-url', default=None, help='where --download fetches from (default: the public archive)')
-    p.add_argument('--rate', type=positive_float, metavar='HZ',
-                   help='play the bags at HZ frames/s with lln-bag play (default: paced by the extractor)')
-    p.add_argument('--method', default=ext['method'], choices=METHODS,
-                   help='landmark selection of the extractor (lln, act, rand, all) or holistic (the matcher '
-                        f'ranks by the global descriptor alone); default {ext["method"]}')
+    p.add_argument(
+        '--rate',
+        type=positive_float,
+        metavar='HZ',
+        help='play the bags at HZ frames/s with lln-bag play (default: paced by the extractor)',
+    )
+    p.add_argument(
+        '--method',
+        default=ext['method'],
+        choices=METHODS,
+        help='landmark selection of the extractor (lln, act, rand, all) or holistic (the matcher '
+        f'ranks by the global descriptor alone); default {ext["method"]}',
+    )
     p.add_argument('--top-n', type=int, default=ext['top_n'], help=f'landmarks per image (default {ext["top_n"]})')
     add_prefilter_argument(p)
     p.add_argument('--weights', default=ext['weights'], help="LLN head checkpoint (default '': the shipped head)")
-    p.add_argument('--threads', type=int, default=1,
-                   help='torch threads per extractor and offline, BLAS threads per node (default 1)')
+    p.add_argument(
+        '--threads',
+        type=int,
+        default=1,
+        help='torch threads per extractor and offline, BLAS threads per node (default 1)',
+    )
     add_runtime_argument(p)
-    p.add_argument('--offline', action=argparse.BooleanOptionalAction, default=True,
-                   help='also run the offline evaluator and compare (default on)')
+    p.add_argument(
+        '--offline',
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help='also run the offline evaluator and compare (default on)',
+    )
     p.add_argument('--cache', metavar='DIR', help='offline feature cache (default DIR/cache/features)')
-    p.add_argument('--examples', type=int, default=eval_defaults['examples'],
-                   help=f'success and failure match pictures (default {eval_defaults["examples"]} each)')
-    p.add_argument('--timeout', type=positive_float, default=120.0,
-                   help='seconds to wait for a node (start, one frame, the last answers) (default 120)')
+    p.add_argument(
+        '--examples',
+        type=int,
+        default=eval_defaults['examples'],
+        help=f'success and failure match pictures (default {eval_defaults["examples"]} each)',
+    )
+    p.add_argument(
+        '--timeout',
+        type=positive_float,
+        default=120.0,
+        help='seconds to wait for a node (start, one frame, the last answers) (default 120)',
+    )
     p.add_argument('--domain-id', type=int, help='ROS_DOMAIN_ID (default: a free one, probed)')
     p.add_argument('--check', action='store_true', help='read and check the inputs, print the plan, stop')
     p.add_argument('--quiet', action='store_true', help='no progress output')
@@ -165,6 +213,7 @@ def check_args(args) -> None:
 def choose_dataset(args) -> tuple[str, tuple | None, str]:
     """(spec, range, why) from --dataset / --range or the defaults."""
     from ..io.datasets import parse_range
+
     frac = parse_range(args.range)  # DatasetError (exit 2) on a bad --range
     if args.dataset:
         return args.dataset, frac, 'given with --dataset'
@@ -176,18 +225,23 @@ def choose_dataset(args) -> tuple[str, tuple | None, str]:
         return f'gardenspoint:{gp}', frac, f'Gardens Point Walking in {gp}'
     if args.download:
         return f'gardenspoint:{gp}', frac, f'Gardens Point Walking, downloaded into {gp}'
-    raise UsageError(f'no dataset: ${DATA_ENV} does not name a folder with nordland_trimmed/ and Gardens Point is '
-                     f'not in {gp}; give --dataset SPEC (e.g. aligned:MAP_DIR,QUERY_DIR,2), set {DATA_ENV}, or add '
-                     '--download to fetch Gardens Point Walking')
+    raise UsageError(
+        f'no dataset: ${DATA_ENV} does not name a folder with nordland_trimmed/ and Gardens Point is '
+        f'not in {gp}; give --dataset SPEC (e.g. aligned:MAP_DIR,QUERY_DIR,2), set {DATA_ENV}, or add '
+        '--download to fetch Gardens Point Walking'
+    )
 
 
 def load_dataset(spec: str, frac, args, log):
     """The checked Dataset (every image decoded); Gardens Point fetched when needed and allowed."""
     from ..errors import DatasetError
+
     kind = spec.partition(':')[0]
     if kind == 'loop':
-        raise UsageError('loop: datasets are one sequence (mapping mode); lln-demo needs two traverses '
-                         '(aligned:, vprbench: or gardenspoint:)')
+        raise UsageError(
+            'loop: datasets are one sequence (mapping mode); lln-demo needs two traverses '
+            '(aligned:, vprbench: or gardenspoint:)'
+        )
     if frac is not None and kind != 'aligned':
         raise UsageError(f'--range applies to aligned: datasets only, not {kind}:')
     ds, _ = read_dataset(spec, frac, args.download)
@@ -200,6 +254,7 @@ def load_dataset(spec: str, frac, args, log):
 
 # ------------------------------------------------------------------------------------ the online run
 
+
 def run_online(ds, args, out: Path, exes: dict, log) -> dict:
     from tqdm import tqdm
 
@@ -209,11 +264,14 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
     timing = {}
     t = time.monotonic()
     hz = args.rate or NOMINAL_HZ
-    log(f'{PROG}: writing {out / "map_bag"} ({len(ds.ref_paths)} frames) and {out / "query_bag"} '
-        f'({len(ds.query_paths)} frames)')
+    log(
+        f'{PROG}: writing {out / "map_bag"} ({len(ds.ref_paths)} frames) and {out / "query_bag"} '
+        f'({len(ds.query_paths)} frames)'
+    )
     ref_stamps = bag.write_image_bag(ds.ref_paths, out / 'map_bag', BAG_TOPIC, rate=hz, start_ns=DEFAULT_START_NS)
-    query_stamps = bag.write_image_bag(ds.query_paths, out / 'query_bag', BAG_TOPIC, rate=hz,
-                                       start_ns=DEFAULT_START_NS + DAY_NS)
+    query_stamps = bag.write_image_bag(
+        ds.query_paths, out / 'query_bag', BAG_TOPIC, rate=hz, start_ns=DEFAULT_START_NS + DAY_NS
+    )
     timing['write_bags'] = time.monotonic() - t
 
     k = min(args.prefilter_k or len(ds.ref_paths), len(ds.ref_paths))
@@ -229,24 +287,86 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
         env = ros_env(graph.domain, out / 'logs' / 'ros', args.threads)
         log(f'{PROG}: starting the nodes on ROS_DOMAIN_ID={graph.domain} (localhost only); logs in {logs}')
         common = ['-p', 'diagnostics_period:=0.5']
-        extractor_params = ['-p', 'reliability:=reliable', '-p', f'num_threads:={args.threads}',
-                            '-p', f'method:={ext_method}', '-p', f'top_n:={args.top_n}', *common]
+        extractor_params = [
+            '-p',
+            'reliability:=reliable',
+            '-p',
+            f'num_threads:={args.threads}',
+            '-p',
+            f'method:={ext_method}',
+            '-p',
+            f'top_n:={args.top_n}',
+            *common,
+        ]
         if args.weights:
             extractor_params += ['-p', f'weights:={Path(args.weights).expanduser().resolve()}']
         if args.runtime:
             extractor_params += ['-p', f'runtime:={args.runtime}']
-        procs.append(NodeProcess(exes['matcher'], [
-            '-p', f'map_path:={(out / "map.db").resolve()}', '-p', 'mode:=localization',
-            '-p', f'prefilter:={args.prefilter}', '-p', f'prefilter_k:={args.prefilter_k}', '-p', f'k:={k}',
-            '-p', f'method:={"holistic" if args.method == "holistic" else "lln"}',
-            '-p', 'min_score:=-1.0e9', *common], env, logs / 'matcher.log', 'matcher', out, new_session=True))
-        procs.append(NodeProcess(exes['extractor'], [
-            '-r', '__node:=lln_extractor_map', '-r', f'image:={MAP_IMAGE}', '-r', 'landmarks:=/keyframes',
-            *extractor_params], env, logs / 'extractor_map.log', 'extractor (map)', out, new_session=True))
-        procs.append(NodeProcess(exes['extractor'], [
-            '-r', '__node:=lln_extractor_query', '-r', f'image:={QUERY_IMAGE}', '-r', 'landmarks:=/query',
-            *extractor_params], env, logs / 'extractor_query.log', 'extractor (query)', out,
-                                 new_session=True))
+        procs.append(
+            NodeProcess(
+                exes['matcher'],
+                [
+                    '-p',
+                    f'map_path:={(out / "map.db").resolve()}',
+                    '-p',
+                    'mode:=localization',
+                    '-p',
+                    f'prefilter:={args.prefilter}',
+                    '-p',
+                    f'prefilter_k:={args.prefilter_k}',
+                    '-p',
+                    f'k:={k}',
+                    '-p',
+                    f'method:={"holistic" if args.method == "holistic" else "lln"}',
+                    '-p',
+                    'min_score:=-1.0e9',
+                    *common,
+                ],
+                env,
+                logs / 'matcher.log',
+                'matcher',
+                out,
+                new_session=True,
+            )
+        )
+        procs.append(
+            NodeProcess(
+                exes['extractor'],
+                [
+                    '-r',
+                    '__node:=lln_extractor_map',
+                    '-r',
+                    f'image:={MAP_IMAGE}',
+                    '-r',
+                    'landmarks:=/keyframes',
+                    *extractor_params,
+                ],
+                env,
+                logs / 'extractor_map.log',
+                'extractor (map)',
+                out,
+                new_session=True,
+            )
+        )
+        procs.append(
+            NodeProcess(
+                exes['extractor'],
+                [
+                    '-r',
+                    '__node:=lln_extractor_query',
+                    '-r',
+                    f'image:={QUERY_IMAGE}',
+                    '-r',
+                    'landmarks:=/query',
+                    *extractor_params,
+                ],
+                env,
+                logs / 'extractor_query.log',
+                'extractor (query)',
+                out,
+                new_session=True,
+            )
+        )
         graph.watch = procs
         graph.collect_answers()
         graph.collect_diagnostics()
@@ -256,16 +376,23 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
         node = graph.node
 
         def ready() -> bool:
-            return (node.count_subscribers(MAP_IMAGE) >= 1 and node.count_subscribers(QUERY_IMAGE) >= 1
-                    and node.count_publishers('/keyframes') >= 1 and node.count_publishers('/query') >= 1
-                    and node.count_subscribers('/keyframes') >= 2 and node.count_subscribers('/query') >= 2
-                    and node.count_publishers('/candidates') >= 1)
+            return (
+                node.count_subscribers(MAP_IMAGE) >= 1
+                and node.count_subscribers(QUERY_IMAGE) >= 1
+                and node.count_publishers('/keyframes') >= 1
+                and node.count_publishers('/query') >= 1
+                and node.count_subscribers('/keyframes') >= 2
+                and node.count_subscribers('/query') >= 2
+                and node.count_publishers('/candidates') >= 1
+            )
+
         graph.spin_until(ready, args.timeout, 'the extractors and the matcher to come up')
         info = {}
 
         def model_known() -> bool:
             info.update(graph.matcher_info(args.timeout))
             return bool(info.get('model')) or graph.spin_for(0.3)
+
         graph.spin_until(model_known, args.timeout, "the matcher to learn the extractors' model")
         if info.get('keyframes'):
             raise RunError(f'the map {info.get("path")} is not empty ({info["keyframes"]} keyframes)')
@@ -275,8 +402,10 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
         graph.spin_for(3.0 if args.rate else 1.0)
         timing['start_nodes'] = time.monotonic() - t
         model = info['model']
-        log(f'{PROG}: nodes up in {timing["start_nodes"]:.1f} s; model {model.get("descriptor_space")}, '
-            f'head {model.get("head", "?")}{"" if model.get("head_trained", True) else " (UNTRAINED)"}')
+        log(
+            f'{PROG}: nodes up in {timing["start_nodes"]:.1f} s; model {model.get("descriptor_space")}, '
+            f'head {model.get("head", "?")}{"" if model.get("head_trained", True) else " (UNTRAINED)"}'
+        )
 
         mode = 'paced' if not args.rate else f'{args.rate:g} Hz'
         tick = 0.1 if sys.stderr.isatty() else 10.0  # progress lines in a log file: one per 10 s
@@ -284,30 +413,58 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
         def play(phase: str, stamps: list, topic: str, kind: str, publisher, confirm, backlog=None) -> dict:
             """One traverse through its extractor: paced by the probe, or `lln-bag play` at --rate."""
             log(f'{PROG}: {phase}: playing {len(stamps)} frames ({mode}) -> lln_extractor_{phase} -> {kind}')
-            bar = tqdm(total=len(stamps), desc=phase, unit='frame', disable=args.quiet, file=sys.stderr,
-                       mininterval=tick)
+            bar = tqdm(
+                total=len(stamps), desc=phase, unit='frame', disable=args.quiet, file=sys.stderr, mininterval=tick
+            )
             try:
                 if args.rate:
-                    return graph.play_fixed(exes['lln-bag'], out / f'{phase}_bag', topic, hz, kind, stamps, env,
-                                            out, args.timeout, logs / f'play_{phase}.log', bar)
-                return graph.play_paced(out / f'{phase}_bag', publisher, kind, stamps, args.timeout,
-                                        f'/lln_extractor_{phase}', confirm, bar, backlog)
+                    return graph.play_fixed(
+                        exes['lln-bag'],
+                        out / f'{phase}_bag',
+                        topic,
+                        hz,
+                        kind,
+                        stamps,
+                        env,
+                        out,
+                        args.timeout,
+                        logs / f'play_{phase}.log',
+                        bar,
+                    )
+                return graph.play_paced(
+                    out / f'{phase}_bag',
+                    publisher,
+                    kind,
+                    stamps,
+                    args.timeout,
+                    f'/lln_extractor_{phase}',
+                    confirm,
+                    bar,
+                    backlog,
+                )
             finally:
                 bar.close()
 
         # ---- phase 1: the map traverse -> keyframes
         def map_has_it(_stamp) -> bool:
-            return graph.wait_quietly(lambda: graph.matcher_info(args.timeout).get('keyframes', 0) >= 1
-                                      or graph.spin_for(0.2), HANDSHAKE_WAIT)
+            return graph.wait_quietly(
+                lambda: graph.matcher_info(args.timeout).get('keyframes', 0) >= 1 or graph.spin_for(0.2), HANDSHAKE_WAIT
+            )
+
         play_map = play('map', ref_stamps, MAP_IMAGE, 'keyframes', map_pub, map_has_it)
         expected = len(graph.landmarks['keyframes'])
 
         def stored() -> int:
             info.update(graph.matcher_info(args.timeout))
             return int(info.get('keyframes', 0))
+
         try:
-            graph.spin_until(lambda: stored() >= expected or graph.spin_for(0.3), min(args.timeout, 30.0),
-                             f'the matcher to store {expected} keyframes', progress=lambda: info.get('keyframes'))
+            graph.spin_until(
+                lambda: stored() >= expected or graph.spin_for(0.3),
+                min(args.timeout, 30.0),
+                f'the matcher to store {expected} keyframes',
+                progress=lambda: info.get('keyframes'),
+            )
         except ProbeTimeout as e:
             graph.check_nodes()
             log(f'{PROG}: warning: {str(e).splitlines()[0]}; the missing keyframes are counted as lost')
@@ -315,13 +472,23 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
         log(f'{PROG}: map: {map_info["keyframes"]} keyframes stored in {play_map["seconds"]:.1f} s')
 
         # ---- phase 2: the query traverse -> query -> candidates
-        play_query = play('query', query_stamps, QUERY_IMAGE, 'query', query_pub,
-                          lambda stamp: graph.wait_quietly(lambda: stamp in graph.candidates, HANDSHAKE_WAIT),
-                          backlog=lambda: len(graph.landmarks['query']) - len(graph.candidates))
+        play_query = play(
+            'query',
+            query_stamps,
+            QUERY_IMAGE,
+            'query',
+            query_pub,
+            lambda stamp: graph.wait_quietly(lambda: stamp in graph.candidates, HANDSHAKE_WAIT),
+            backlog=lambda: len(graph.landmarks['query']) - len(graph.candidates),
+        )
         sent = set(graph.landmarks['query'])
         try:
-            graph.spin_until(lambda: sent <= set(graph.candidates), min(args.timeout, 30.0),
-                             'the answers to every query', progress=lambda: len(graph.candidates))
+            graph.spin_until(
+                lambda: sent <= set(graph.candidates),
+                min(args.timeout, 30.0),
+                'the answers to every query',
+                progress=lambda: len(graph.candidates),
+            )
         except ProbeTimeout as e:
             graph.check_nodes()
             log(f'{PROG}: warning: {str(e).splitlines()[0]}; the queries without an answer are counted as lost')
@@ -329,10 +496,15 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
         # final counters: wait for a /diagnostics round that has seen everything
         names = ('/lln_extractor_map', '/lln_extractor_query', '/lln_matcher')
         try:
-            graph.spin_until(lambda: graph.counter('/lln_extractor_map', 'received') >= len(ref_stamps)
-                             and graph.counter('/lln_extractor_query', 'received') >= len(query_stamps)
-                             and graph.counter('/lln_matcher', 'queries_answered') >= len(graph.candidates),
-                             5.0, 'final /diagnostics')
+            graph.spin_until(
+                lambda: (
+                    graph.counter('/lln_extractor_map', 'received') >= len(ref_stamps)
+                    and graph.counter('/lln_extractor_query', 'received') >= len(query_stamps)
+                    and graph.counter('/lln_matcher', 'queries_answered') >= len(graph.candidates)
+                ),
+                5.0,
+                'final /diagnostics',
+            )
         except ProbeTimeout:
             pass
         graph.spin_for(1.2)  # one more round (period 0.5 s): counters of the last frame are in
@@ -340,13 +512,21 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
         timing['map_phase'] = play_map['seconds']
         timing['query_phase'] = play_query['seconds']
         result = {
-            'ref_stamps': ref_stamps, 'query_stamps': query_stamps,
-            'landmarks': graph.landmarks, 'candidates': dict(graph.candidates), 'matches': dict(graph.matches),
+            'ref_stamps': ref_stamps,
+            'query_stamps': query_stamps,
+            'landmarks': graph.landmarks,
+            'candidates': dict(graph.candidates),
+            'matches': dict(graph.matches),
             'diagnostics': {n: dict(graph.diag.get(n, {})) for n in names},
-            'map_info': map_info, 'final_info': final_info, 'model': model,
-            'duplicates': dict(graph.duplicates), 'bad_messages': list(graph.bad_messages),
+            'map_info': map_info,
+            'final_info': final_info,
+            'model': model,
+            'duplicates': dict(graph.duplicates),
+            'bad_messages': list(graph.bad_messages),
             'play': {'map': play_map, 'query': play_query, 'mode': mode},
-            'domain_id': graph.domain, 'k': k, 'timing': timing,
+            'domain_id': graph.domain,
+            'k': k,
+            'timing': timing,
             'commands': {p.name: ' '.join(shlex.quote(c) for c in p.command) for p in procs},
         }
     finally:
@@ -361,6 +541,7 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
 
 
 # ------------------------------------------------------------------------------------------- main
+
 
 def prepare_out(out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
@@ -383,14 +564,18 @@ def run(args, argv, log) -> int:
     ds = load_dataset(spec, frac, args, log)
     name = ds.name
     rng = f'{frac[0]:g}:{frac[1]:g}' if frac else None
-    log(f'{PROG}: dataset {name} ({why}): {len(ds.ref_paths)} map frames, {len(ds.query_paths)} queries '
-        f'({ds.queries_with_match} with a true match); {spec}' + (f' --range {rng}' if rng else ''))
+    log(
+        f'{PROG}: dataset {name} ({why}): {len(ds.ref_paths)} map frames, {len(ds.query_paths)} queries '
+        f'({ds.queries_with_match} with a true match); {spec}' + (f' --range {rng}' if rng else '')
+    )
     if len(ds.query_paths) == 0:
         raise UsageError(f'{spec}: no queries left (every query frame is blank?)')
     log(f'{PROG}: nodes: {where}')
     if args.check:
-        print(f'{PROG}: OK: {name}: {len(ds.ref_paths)} map frames, {len(ds.query_paths)} queries; '
-              f'nodes from {where}; would write {args.out}')
+        print(
+            f'{PROG}: OK: {name}: {len(ds.ref_paths)} map frames, {len(ds.query_paths)} queries; '
+            f'nodes from {where}; would write {args.out}'
+        )
         return 0
     out = Path(args.out).resolve()  # absolute: the nodes run with DIR as their working folder
     prepare_out(out)
@@ -404,17 +589,27 @@ def run(args, argv, log) -> int:
         log(f'{PROG}: {line}')
     dropped = tr['map']['extractor_dropped'] + tr['query']['extractor_dropped']
     if dropped:
-        ms = [float(online_run['diagnostics'].get(n, {}).get('last_latency_ms', 0) or 0)
-              for n in ('/lln_extractor_map', '/lln_extractor_query')]
+        ms = [
+            float(online_run['diagnostics'].get(n, {}).get('last_latency_ms', 0) or 0)
+            for n in ('/lln_extractor_map', '/lln_extractor_query')
+        ]
         advice = f' (last extraction {max(ms):.0f} ms: play at most {800 / max(ms):.1f} Hz)' if max(ms) > 0 else ''
-        why = (f'--rate {args.rate:g} is faster than extraction{advice}, or omit --rate to pace the bags by '
-               'the extractor') if args.rate else 'this should not happen with paced playback'
+        why = (
+            (
+                f'--rate {args.rate:g} is faster than extraction{advice}, or omit --rate to pace the bags by '
+                'the extractor'
+            )
+            if args.rate
+            else 'this should not happen with paced playback'
+        )
         print(f'{PROG}: warning: the extractors dropped {dropped} frames: {why}', file=sys.stderr)
 
     offline, comparison, offline_error = None, None, None
     if args.offline:
-        log(f'{PROG}: offline: the same dataset through lln_ros.eval (method {args.method}, top-n '
-            f'{args.top_n}, prefilter {args.prefilter}, prefilter-k {args.prefilter_k}) into {out / "offline"}')
+        log(
+            f'{PROG}: offline: the same dataset through lln_ros.eval (method {args.method}, top-n '
+            f'{args.top_n}, prefilter {args.prefilter}, prefilter-k {args.prefilter_k}) into {out / "offline"}'
+        )
         try:
             offline = run_offline(ds, spec, args, out, log)
         except (KeyboardInterrupt, MemoryError):
@@ -424,16 +619,27 @@ def run(args, argv, log) -> int:
             print(f'{PROG}: error: the offline evaluation failed: {offline_error}', file=sys.stderr)
         else:
             timing['offline'] = offline['seconds']
-            comparison = compare(online, offline['ranked'], offline['scores'], offline['summary'], tr,
-                                 models=(online_run['model'], offline['model']))
+            comparison = compare(
+                online,
+                offline['ranked'],
+                offline['scores'],
+                offline['summary'],
+                tr,
+                models=(online_run['model'], offline['model']),
+            )
 
     from ..eval.figures import online_curves, plot_online_examples, plot_pr
+
     title = f'{name}: precision-recall (threshold on the top-1 score), method {args.method}'
     plot_pr(online_curves(online, offline), ds.gt, out / 'pr_online.png', title)
     examples = plot_online_examples(ds, online_run, online, out, args.examples)
     write_answers(ds, online_run, online, offline, out / 'answers_online.csv')
-    arrays = {'online_ranked': online['ranked'], 'online_scores': online['scores'],
-              'online_holistic': online['holistic'], 'gt': ds.gt}
+    arrays = {
+        'online_ranked': online['ranked'],
+        'online_scores': online['scores'],
+        'online_holistic': online['holistic'],
+        'gt': ds.gt,
+    }
     if offline:
         arrays.update(offline_ranked=offline['ranked'], offline_scores=offline['scores'])
     np.savez_compressed(out / 'rankings.npz', **arrays)
@@ -441,21 +647,44 @@ def run(args, argv, log) -> int:
 
     report = {
         'command': f'{PROG} ' + ' '.join(shlex.quote(a) for a in argv),
-        'dataset': {'name': name, 'spec': spec, 'range': rng, 'chosen': why, 'refs': len(ds.ref_paths),
-                    'queries': len(ds.query_paths), 'queries_with_match': ds.queries_with_match,
-                    'info': {k: v for k, v in ds.info.items() if not k.endswith('_sizes')}},
-        'parameters': {'method': args.method, 'top_n': args.top_n, 'prefilter': args.prefilter,
-                       'prefilter': args.prefilter, 'prefilter_k': args.prefilter_k,
-                       'k': online_run['k'], 'threads': args.threads, 'weights': args.weights,
-                       'playback': online_run['play']['mode'], 'domain_id': online_run['domain_id'],
-                       'executables': where, 'node_commands': online_run['commands'],
-                       'model': online_run['model']},
+        'dataset': {
+            'name': name,
+            'spec': spec,
+            'range': rng,
+            'chosen': why,
+            'refs': len(ds.ref_paths),
+            'queries': len(ds.query_paths),
+            'queries_with_match': ds.queries_with_match,
+            'info': {k: v for k, v in ds.info.items() if not k.endswith('_sizes')},
+        },
+        'parameters': {
+            'method': args.method,
+            'top_n': args.top_n,
+            'prefilter': args.prefilter,
+            'prefilter_k': args.prefilter_k,
+            'k': online_run['k'],
+            'threads': args.threads,
+            'weights': args.weights,
+            'playback': online_run['play']['mode'],
+            'domain_id': online_run['domain_id'],
+            'executables': where,
+            'node_commands': online_run['commands'],
+            'model': online_run['model'],
+        },
         'online': {**online['summary'], 'answered': online['answered'], 'queries': len(ds.query_paths)},
         'transport': tr,
         'playback': online_run['play'],
-        'offline': ({**offline['summary'], 'row': offline['row'], 'results': offline['results'],
-                     'extract_ms': offline['entry'].get('extract_ms'),
-                     'match_ms_per_pair': offline['entry'].get('match_ms_per_pair')} if offline else None),
+        'offline': (
+            {
+                **offline['summary'],
+                'row': offline['row'],
+                'results': offline['results'],
+                'extract_ms': offline['entry'].get('extract_ms'),
+                'match_ms_per_pair': offline['entry'].get('match_ms_per_pair'),
+            }
+            if offline
+            else None
+        ),
         'comparison': comparison,
         'offline_error': offline_error,
         'node_exit_status': online_run['exit_status'],
@@ -465,12 +694,18 @@ def run(args, argv, log) -> int:
     write_json(report, out / 'results_online.json')
     (out / 'results_online.md').write_text(online_markdown(report, online, offline, comparison))
 
-    print(f'\n{name}: {len(ds.ref_paths)} map frames, {len(ds.query_paths)} queries, method {args.method} '
-          f'(top-n {args.top_n}, prefilter {args.prefilter}, prefilter-k {args.prefilter_k}), playback {online_run["play"]["mode"]}')
+    print(
+        f'\n{name}: {len(ds.ref_paths)} map frames, {len(ds.query_paths)} queries, method {args.method} '
+        f'(top-n {args.top_n}, prefilter {args.prefilter}, prefilter-k {args.prefilter_k}), '
+        f'playback {online_run["play"]["mode"]}'
+    )
     print(online_console(online, offline, comparison))
-    print(f'wrote {out / "results_online.json"}, {out / "results_online.md"}, {out / "pr_online.png"}, '
-          f'{len(examples)} match pictures' + (f', {out / "offline"}/' if offline else '') +
-          f' in {timing["total"]:.0f} s')
+    print(
+        f'wrote {out / "results_online.json"}, {out / "results_online.md"}, {out / "pr_online.png"}, '
+        f'{len(examples)} match pictures'
+        + (f', {out / "offline"}/' if offline else '')
+        + f' in {timing["total"]:.0f} s'
+    )
     return 1 if offline_error else 0
 
 
@@ -483,6 +718,7 @@ def main(argv=None) -> int:
             return run(args, argv, progress_log(args.quiet))
         except SupervisorError as e:  # a node died or timed out: the run failed, the input was fine
             raise RunError(str(e)) from e
+
     return run_cli(PROG, go, interrupted='interrupted; the nodes were stopped', catch_signals=True)
 
 

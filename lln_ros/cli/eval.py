@@ -19,6 +19,7 @@ row per holistic/local row: its scores through the matcher's online sequence sea
 Every dataset is read and checked, and every head loaded, before any feature is computed. Bad input
 exits 2 with one line on stderr. Writes DIR/results.json, DIR/results.md and PNGs.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -47,55 +48,108 @@ def build_parser() -> argparse.ArgumentParser:
     from ..eval.methods import ALL_METHODS, METHODS
     from ..eval.runner import default_conf as conf
     from ..reloc import DETECTORS
+
     p = parser_from_doc(PROG, __doc__)
     p.add_argument('--dataset', action='append', required=True, metavar='SPEC', help='dataset (repeatable)')
-    p.add_argument('--methods', default=','.join(METHODS),
-                   help=f'comma-separated subset of {",".join(ALL_METHODS)} (default: {",".join(METHODS)})')
+    p.add_argument(
+        '--methods',
+        default=','.join(METHODS),
+        help=f'comma-separated subset of {",".join(ALL_METHODS)} (default: {",".join(METHODS)})',
+    )
     add_prefilter_argument(p, 'first-stage candidates every local method reranks')
     add_scale_argument(p)
-    p.add_argument('--sequence', type=int, default=conf['sequence'], metavar='L',
-                   help='add an X+seq row per holistic/local method: sequence search over L queries '
-                        f'(0 = off; seqslam uses L, or {conf["seqslam_length"]})')
+    p.add_argument(
+        '--sequence',
+        type=int,
+        default=conf['sequence'],
+        metavar='L',
+        help='add an X+seq row per holistic/local method: sequence search over L queries '
+        f'(0 = off; seqslam uses L, or {conf["seqslam_length"]})',
+    )
     p.add_argument('--out', required=True, metavar='DIR', help='output folder (results.json, results.md, PNGs)')
     p.add_argument('--range', help='START:END fractions of every aligned dataset (e.g. 0.7:1)')
-    p.add_argument('--weights', action='append', metavar='[LABEL=]CKPT',
-                   help='LLN head checkpoint, one lln row each (repeatable); empty or "xavier" = untrained')
-    p.add_argument('--label', action='append', metavar='NAME',
-                   help='row label for the --weights given in the same position (repeatable)')
-    p.add_argument('--heads', action='append', metavar='LABEL=CKPT[,LABEL=CKPT]',
-                   help='several labelled heads at once, e.g. trained=best.pt,untrained=')
+    p.add_argument(
+        '--weights',
+        action='append',
+        metavar='[LABEL=]CKPT',
+        help='LLN head checkpoint, one lln row each (repeatable); empty or "xavier" = untrained',
+    )
+    p.add_argument(
+        '--label',
+        action='append',
+        metavar='NAME',
+        help='row label for the --weights given in the same position (repeatable)',
+    )
+    p.add_argument(
+        '--heads',
+        action='append',
+        metavar='LABEL=CKPT[,LABEL=CKPT]',
+        help='several labelled heads at once, e.g. trained=best.pt,untrained=',
+    )
     add_model_arguments(p, weights=False)
     p.add_argument('--cache', default=conf['cache_dir'], help=f'backbone feature cache (default {conf["cache_dir"]})')
-    p.add_argument('--download', action='store_true',
-                   help='gardenspoint:DIR lacking its folders: fetch GardensPoint_Walking.zip into DIR')
+    p.add_argument(
+        '--download',
+        action='store_true',
+        help='gardenspoint:DIR lacking its folders: fetch GardensPoint_Walking.zip into DIR',
+    )
     p.add_argument('--download-url', default=None, help='where --download fetches from (default: the public archive)')
-    p.add_argument('--threads', type=int, default=0,
-                   help='extractor runtime threads, and numpy BLAS threads when run as a command (0 = defaults)')
-    p.add_argument('--timing-images', type=int, default=conf['timing_images'],
-                   help='images per dataset extraction is timed on')
-    p.add_argument('--timing-queries', type=int, default=conf['timing_queries'],
-                   help='queries per dataset matching is timed on')
-    p.add_argument('--timing-repeats', type=int, default=conf['timing_repeats'],
-                   help='timing rounds; the best of them counts')
-    p.add_argument('--examples', type=int, default=conf['examples'],
-                   help='success and failure match pictures per dataset')
-    p.add_argument('--heatmap-images', type=int, default=conf['heatmap_images'],
-                   help='images in the heatmap figure (0 = none)')
+    p.add_argument(
+        '--threads',
+        type=int,
+        default=0,
+        help='extractor runtime threads, and numpy BLAS threads when run as a command (0 = defaults)',
+    )
+    p.add_argument(
+        '--timing-images', type=int, default=conf['timing_images'], help='images per dataset extraction is timed on'
+    )
+    p.add_argument(
+        '--timing-queries', type=int, default=conf['timing_queries'], help='queries per dataset matching is timed on'
+    )
+    p.add_argument(
+        '--timing-repeats', type=int, default=conf['timing_repeats'], help='timing rounds; the best of them counts'
+    )
+    p.add_argument(
+        '--examples', type=int, default=conf['examples'], help='success and failure match pictures per dataset'
+    )
+    p.add_argument(
+        '--heatmap-images', type=int, default=conf['heatmap_images'], help='images in the heatmap figure (0 = none)'
+    )
     p.add_argument('--no-plots', action='store_true', help='write results.json and results.md only')
-    p.add_argument('--reloc', action='store_true',
-                   help='also relocalization: top-5 lln candidates, region-constrained vs all-keypoint matching')
-    p.add_argument('--reloc-min-inliers', type=int, default=conf['reloc_min_inliers'],
-                   help=f'inliers a true candidate needs (default {conf["reloc_min_inliers"]})')
-    p.add_argument('--reloc-top', type=int, default=conf['reloc_top'],
-                   help=f'lln candidates per query for --reloc (default {conf["reloc_top"]})')
-    p.add_argument('--reloc-queries', type=int, default=conf['reloc_queries'],
-                   help='evenly spaced queries for --reloc (0 = all)')
+    p.add_argument(
+        '--reloc',
+        action='store_true',
+        help='also relocalization: top-5 lln candidates, region-constrained vs all-keypoint matching',
+    )
+    p.add_argument(
+        '--reloc-min-inliers',
+        type=int,
+        default=conf['reloc_min_inliers'],
+        help=f'inliers a true candidate needs (default {conf["reloc_min_inliers"]})',
+    )
+    p.add_argument(
+        '--reloc-top',
+        type=int,
+        default=conf['reloc_top'],
+        help=f'lln candidates per query for --reloc (default {conf["reloc_top"]})',
+    )
+    p.add_argument(
+        '--reloc-queries', type=int, default=conf['reloc_queries'], help='evenly spaced queries for --reloc (0 = all)'
+    )
     p.add_argument('--reloc-detector', default=conf['reloc_detector'], choices=DETECTORS)
-    p.add_argument('--reloc-margin', type=float, default=conf['reloc_margin'],
-                   help=f'region growth in cells (default {conf["reloc_margin"]:g})')
-    p.add_argument('--reloc-fast-threshold', type=int, default=conf['reloc_fast_threshold'],
-                   help=f'ORB FAST threshold (default {conf["reloc_fast_threshold"]}; 5 for blurry upsampled '
-                        'images such as Nordland)')
+    p.add_argument(
+        '--reloc-margin',
+        type=float,
+        default=conf['reloc_margin'],
+        help=f'region growth in cells (default {conf["reloc_margin"]:g})',
+    )
+    p.add_argument(
+        '--reloc-fast-threshold',
+        type=int,
+        default=conf['reloc_fast_threshold'],
+        help=f'ORB FAST threshold (default {conf["reloc_fast_threshold"]}; 5 for blurry upsampled '
+        'images such as Nordland)',
+    )
     p.add_argument('--check', action='store_true', help='read and check every dataset and head, then stop')
     p.add_argument('--quiet', action='store_true', help='no progress output')
     return p
@@ -103,6 +157,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def head_specs(args):
     from ..eval.methods import parse_head
+
     weights, labels = args.weights or [], args.label or []
     if len(labels) > len(weights):
         raise UsageError(f'--label given {len(labels)} times but --weights only {len(weights)} times')
@@ -136,6 +191,7 @@ def run(args, argv) -> dict:
     if args.sequence < 0:
         raise UsageError(f'--sequence must be 0 (off) or a length of at least 1, got {args.sequence}')
     from ..io.datasets import parse_range
+
     frac = parse_range(args.range)
     heads = head_specs(args)
 
@@ -146,6 +202,7 @@ def run(args, argv) -> dict:
 
     # 2. the model and every head (checkpoint metadata must fit the backbone)
     from ..core.extractor import Extractor
+
     extractor = Extractor(extractor_conf(args, num_threads=args.threads))
     heads = load_heads(extractor, heads)
 
@@ -159,16 +216,29 @@ def run(args, argv) -> dict:
     if args.check:
         return {'checked': [ds.name for ds in dsets]}
 
-    conf = {'methods': methods, 'top_n': args.top_n, 'prefilter': args.prefilter, 'prefilter_k': args.prefilter_k,
-            'scale': args.scale,
-            'sequence': args.sequence,
-            'timing_images': args.timing_images, 'timing_queries': args.timing_queries,
-            'timing_repeats': args.timing_repeats,
-            'examples': args.examples, 'heatmap_images': args.heatmap_images, 'cache_dir': args.cache,
-            'plots': not args.no_plots, 'progress': not args.quiet,
-            'reloc': args.reloc, 'reloc_min_inliers': args.reloc_min_inliers, 'reloc_top': args.reloc_top,
-            'reloc_queries': args.reloc_queries, 'reloc_detector': args.reloc_detector,
-            'reloc_margin': args.reloc_margin, 'reloc_fast_threshold': args.reloc_fast_threshold}
+    conf = {
+        'methods': methods,
+        'top_n': args.top_n,
+        'prefilter': args.prefilter,
+        'prefilter_k': args.prefilter_k,
+        'scale': args.scale,
+        'sequence': args.sequence,
+        'timing_images': args.timing_images,
+        'timing_queries': args.timing_queries,
+        'timing_repeats': args.timing_repeats,
+        'examples': args.examples,
+        'heatmap_images': args.heatmap_images,
+        'cache_dir': args.cache,
+        'plots': not args.no_plots,
+        'progress': not args.quiet,
+        'reloc': args.reloc,
+        'reloc_min_inliers': args.reloc_min_inliers,
+        'reloc_top': args.reloc_top,
+        'reloc_queries': args.reloc_queries,
+        'reloc_detector': args.reloc_detector,
+        'reloc_margin': args.reloc_margin,
+        'reloc_fast_threshold': args.reloc_fast_threshold,
+    }
     command = f'{PROG} ' + ' '.join(shlex.quote(a) for a in argv)
     result = evaluate(dsets, extractor, conf, heads, args.out, specs=args.dataset, command=command, log=log)
     if not any(h.trained for h in heads) and 'lln' in methods:
@@ -192,9 +262,9 @@ def main(argv=None) -> int:
             print(f'{PROG}: {len(out["checked"])} dataset(s) OK: {", ".join(out["checked"])}')
         else:
             out_dir = Path(out['out'])
-            print(f'{PROG}: wrote {out_dir / "results.json"}, {out_dir / "results.md"} and '
-                  f'{len(out["figures"])} PNGs')
+            print(f'{PROG}: wrote {out_dir / "results.json"}, {out_dir / "results.md"} and {len(out["figures"])} PNGs')
         return 0
+
     return run_cli(PROG, go)
 
 

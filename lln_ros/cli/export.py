@@ -7,6 +7,7 @@ Never needed by hand: the extractor exports on first use into the cache (lln_ros
 of time, or writes a file elsewhere with --output, and checks the exported graph against torch on a
 real photograph (the largest feature and logit difference is printed).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -38,8 +39,13 @@ def run(args) -> dict:
     from ..io.image import resize_for_network
 
     # the torch extractor builds and checks the model exactly as extraction does
-    ex = Extractor({'backbone': {'name': args.backbone, 'layer': args.layer, 'weights_path': args.backbone_weights},
-                    'weights': args.weights, 'runtime': 'torch'})
+    ex = Extractor(
+        {
+            'backbone': {'name': args.backbone, 'layer': args.layer, 'weights_path': args.backbone_weights},
+            'weights': args.weights,
+            'runtime': 'torch',
+        }
+    )
     name, layer = ex.model_info['backbone'], ex.model_info['layer']
     path = runtime.onnx_path(name, layer, ex.backbone, ex.head)
     if args.output:
@@ -49,15 +55,20 @@ def run(args) -> dict:
     if not runtime.onnxruntime_available():
         raise LLNError(f'exported {path}, but onnxruntime is not installed to check it (pip install onnxruntime)')
     import matplotlib.cbook as cbook
+
     from ..io.image import load_image
+
     with cbook.get_sample_data('grace_hopper.jpg') as f:
         rgb = resize_for_network(load_image(f.name), 288)[None]
     t_feats, t_logits = ex.network(rgb)
     o_feats, o_logits = runtime.OnnxRuntimeNetwork(path)(rgb)
-    return {'path': str(path), 'model': {**ex.model_info, 'runtime': 'onnxruntime'},
-            'check_input': list(rgb.shape[1:3][::-1]),
-            'max_feature_diff': float(np.abs(t_feats - o_feats).max()),
-            'max_logit_diff': float(np.abs(t_logits - o_logits).max())}
+    return {
+        'path': str(path),
+        'model': {**ex.model_info, 'runtime': 'onnxruntime'},
+        'check_input': list(rgb.shape[1:3][::-1]),
+        'max_feature_diff': float(np.abs(t_feats - o_feats).max()),
+        'max_logit_diff': float(np.abs(t_logits - o_logits).max()),
+    }
 
 
 def main(argv=None) -> int:
@@ -71,8 +82,10 @@ def main(argv=None) -> int:
         print(json.dumps(out))
     else:
         print(f'{out["path"]}')
-        print(f'checked against torch at {out["check_input"][0]}x{out["check_input"][1]}: largest difference '
-              f'{out["max_feature_diff"]:.2g} in features, {out["max_logit_diff"]:.2g} in logits')
+        print(
+            f'checked against torch at {out["check_input"][0]}x{out["check_input"][1]}: largest difference '
+            f'{out["max_feature_diff"]:.2g} in features, {out["max_logit_diff"]:.2g} in logits'
+        )
     return 0
 
 

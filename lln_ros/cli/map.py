@@ -8,6 +8,7 @@
 
 MAP, DEST, SRC: a path (SQLite), milvus-lite:///path.db or milvus://host:port[/db][?map=name].
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,9 +22,12 @@ _BATCH = 256  # keyframes per transaction / insert while copying
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog='lln-map', description=__doc__.strip().splitlines()[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter,
-                                epilog='\n'.join(__doc__.strip().splitlines()[2:]))
+    p = argparse.ArgumentParser(
+        prog='lln-map',
+        description=__doc__.strip().splitlines()[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog='\n'.join(__doc__.strip().splitlines()[2:]),
+    )
     sub = p.add_subparsers(dest='command', required=True)
     info = sub.add_parser('info', help='describe a map')
     info.add_argument('map')
@@ -42,6 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
 def copy_map(src_uri: str, dst_uri: str) -> int:
     """Copy every keyframe of src into dst (created if missing), keeping ids and stamps; returns the count."""
     from ..mapstore import MapStore
+
     with MapStore.open(src_uri, create=False) as src:
         if src.model is None:
             raise MapError(f'map {src.path} has no model record (never used); nothing to copy')
@@ -67,6 +72,7 @@ def _flush(dst, batch: list) -> int:
 def check(uri: str) -> list[str]:
     """Problems of the map at uri; a map that cannot even be opened is one problem saying why."""
     from ..mapstore import MapStore
+
     try:
         store = MapStore.open(uri, create=False, verify=False)
     except MapError as e:
@@ -83,6 +89,7 @@ def main(argv=None) -> int:
 
 def run(args) -> int:
     from ..mapstore import MapStore
+
     if args.command == 'info':
         with MapStore.open(args.map, create=False) as store:
             info = store.info()
@@ -102,8 +109,11 @@ def run(args) -> int:
     elif args.command == 'compact':
         with MapStore.open(args.map, create=False) as store:
             result = store.compact()
-        sizes = (f": {result['bytes_before']} -> {result['bytes_after']} bytes"
-                 if result else ' (Milvus compacts in the background)')
+        sizes = (
+            f': {result["bytes_before"]} -> {result["bytes_after"]} bytes'
+            if result
+            else ' (Milvus compacts in the background)'
+        )
         print(f'compacted {args.map}{sizes}')
     else:
         src, dst = (args.map, args.dest) if args.command == 'export' else (args.src, args.map)

@@ -1,8 +1,9 @@
 """lln-match: how similar are two images, and which regions match?
 
-    lln-match A.jpg B.jpg [--method lln|act|rand|all] [--top-n 50] [--runtime onnxruntime|torch]
-              [--plot out.png] [--json]
+lln-match A.jpg B.jpg [--method lln|act|rand|all] [--top-n 50] [--runtime onnxruntime|torch]
+          [--plot out.png] [--json]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -19,6 +20,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('image_a')
     p.add_argument('image_b')
     from ..core.landmarks import METHODS
+
     p.add_argument('--method', default=METHODS[0], choices=METHODS)
     add_model_arguments(p)
     add_scale_argument(p)
@@ -29,12 +31,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def extractor_from_args(args, method: str = 'lln'):
     from ..core.extractor import Extractor
+
     return Extractor(extractor_conf(args, method=method))
 
 
 def run(args) -> dict:
-    from ..io.image import load_image
     from ..core.similarity import match_pair
+    from ..io.image import load_image
 
     check_output_file(args.plot, '--plot')
     images = [load_image(args.image_a), load_image(args.image_b)]
@@ -44,9 +47,17 @@ def run(args) -> dict:
     pairs = result.pairs(0)
     if args.plot:
         from ..plotting import plot_matches
-        plot_matches(images[0], images[1], a, b, pairs, args.plot,
-                     title=f'{args.method}: S = {result.scores[0]:.2f}, {len(pairs["weight"])} mutual pairs, '
-                           f'offset {tuple(int(v) for v in result.offsets[0])} cells')
+
+        plot_matches(
+            images[0],
+            images[1],
+            a,
+            b,
+            pairs,
+            args.plot,
+            title=f'{args.method}: S = {result.scores[0]:.2f}, {len(pairs["weight"])} mutual pairs, '
+            f'offset {tuple(int(v) for v in result.offsets[0])} cells',
+        )
     return {
         'similarity': float(result.scores[0]),
         'holistic': float(a.global_descriptor @ b.global_descriptor),
@@ -56,10 +67,15 @@ def run(args) -> dict:
         'method': args.method,
         'grid': [list(a.grid), list(b.grid)],
         'model': extractor.model_info,
-        'matches': [{'query_uv': [float(x) for x in a.centers[i]], 'map_uv': [float(x) for x in b.centers[j]],
-                     'similarity': float(s), 'weight': float(w)}
-                    for i, j, s, w in zip(pairs['query_index'], pairs['map_index'],
-                                          pairs['similarity'], pairs['weight'])],
+        'matches': [
+            {
+                'query_uv': [float(x) for x in a.centers[i]],
+                'map_uv': [float(x) for x in b.centers[j]],
+                'similarity': float(s),
+                'weight': float(w),
+            }
+            for i, j, s, w in zip(pairs['query_index'], pairs['map_index'], pairs['similarity'], pairs['weight'])
+        ],
         'plot': args.plot or None,
     }
 
@@ -73,13 +89,16 @@ def main(argv=None) -> int:
             print(json.dumps(out))
             return 0
         print(f'similarity S = {out["similarity"]:.3f}  (holistic cosine {out["holistic"]:.3f})')
-        print(f'{out["pairs"]} mutual pairs of {out["n"]} landmarks ({out["method"]}), '
-              f'offset (dx, dy) = {tuple(out["offset"])} grid cells')
+        print(
+            f'{out["pairs"]} mutual pairs of {out["n"]} landmarks ({out["method"]}), '
+            f'offset (dx, dy) = {tuple(out["offset"])} grid cells'
+        )
         if not out['model']['head_trained']:
             print('note: the LLN head is untrained (seeded Xavier init); see README', file=sys.stderr)
         if out['plot']:
             print(f'plot written to {out["plot"]}')
         return 0
+
     return run_cli(PROG, go)
 
 

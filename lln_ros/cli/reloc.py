@@ -7,6 +7,7 @@ Runs LLN place matching (the mutually matched landmark regions), then keypoint m
 only inside the matched region pairs (mLLN) and all keypoints against all (the plain baseline),
 each followed by RANSAC (fundamental matrix; essential matrix and relative pose with --intrinsics).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,34 +22,53 @@ PROG = 'lln-reloc'
 
 def build_parser() -> argparse.ArgumentParser:
     from ..reloc import DETECTORS, default_conf
+
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.strip().splitlines()[0])
     p.add_argument('query')
     p.add_argument('keyframe')
     p.add_argument('--detector', default=default_conf['detector'], choices=DETECTORS)
     p.add_argument('--max-keypoints', type=int, default=default_conf['max_keypoints'])
     p.add_argument('--ratio', type=float, default=default_conf['ratio'], help='Lowe ratio (default 0.8)')
-    p.add_argument('--margin', type=float, default=default_conf['margin'],
-                   help='region growth in grid cells on each side (default 1)')
-    p.add_argument('--min-inliers', type=int, default=default_conf['min_inliers'],
-                   help='RANSAC inliers needed to call a pair verified (default 15)')
-    p.add_argument('--intrinsics', metavar='YAML',
-                   help='ROS camera-calibration YAML (camera_matrix) or a YAML with K: essential matrix + pose')
+    p.add_argument(
+        '--margin',
+        type=float,
+        default=default_conf['margin'],
+        help='region growth in grid cells on each side (default 1)',
+    )
+    p.add_argument(
+        '--min-inliers',
+        type=int,
+        default=default_conf['min_inliers'],
+        help='RANSAC inliers needed to call a pair verified (default 15)',
+    )
+    p.add_argument(
+        '--intrinsics',
+        metavar='YAML',
+        help='ROS camera-calibration YAML (camera_matrix) or a YAML with K: essential matrix + pose',
+    )
     add_model_arguments(p)
-    p.add_argument('--plot', metavar='PNG', help='write both pipelines\' inlier matches side by side')
+    p.add_argument('--plot', metavar='PNG', help="write both pipelines' inlier matches side by side")
     p.add_argument('--json', action='store_true', help='print one JSON object instead of text')
     return p
 
 
 def run(args) -> dict:
+    from ..core.similarity import match_pair
     from ..io.image import load_image
     from ..reloc import Relocalizer, camera_matrix, pair_boxes
-    from ..core.similarity import match_pair
 
     check_output_file(args.plot, '--plot')
     images = [load_image(args.query), load_image(args.keyframe)]
     K = camera_matrix(args.intrinsics) if args.intrinsics else None
-    reloc = Relocalizer({'detector': args.detector, 'max_keypoints': args.max_keypoints, 'ratio': args.ratio,
-                         'margin': args.margin, 'min_inliers': args.min_inliers})
+    reloc = Relocalizer(
+        {
+            'detector': args.detector,
+            'max_keypoints': args.max_keypoints,
+            'ratio': args.ratio,
+            'margin': args.margin,
+            'min_inliers': args.min_inliers,
+        }
+    )
     extractor = extractor_from_args(args)
     a, b = extractor.extract_batch(images)
     place = match_pair(a, b)
@@ -59,19 +79,39 @@ def run(args) -> dict:
     plain = reloc.relocalize(kq, km, K=K)
     if args.plot:
         from ..plotting import plot_keypoint_matches
-        plot_keypoint_matches(images[0], images[1], [
-            {'label': f'mLLN ({len(qb)} region pairs)', 'query': kq, 'map': km, 'result': regions,
-             'query_boxes': qb, 'map_boxes': mb},
-            {'label': 'all keypoints', 'query': kq, 'map': km, 'result': plain}], args.plot,
-            title=f'{args.detector}: S = {place.scores[0]:.2f}, {len(qb)} mutual landmark pairs')
+
+        plot_keypoint_matches(
+            images[0],
+            images[1],
+            [
+                {
+                    'label': f'mLLN ({len(qb)} region pairs)',
+                    'query': kq,
+                    'map': km,
+                    'result': regions,
+                    'query_boxes': qb,
+                    'map_boxes': mb,
+                },
+                {'label': 'all keypoints', 'query': kq, 'map': km, 'result': plain},
+            ],
+            args.plot,
+            title=f'{args.detector}: S = {place.scores[0]:.2f}, {len(qb)} mutual landmark pairs',
+        )
     return {
-        'inliers_regions': regions.inliers, 'inliers_all': plain.inliers,
-        'ms_regions': regions.matches.ms + regions.ms, 'ms_all': plain.matches.ms + plain.ms,
-        'verified_regions': regions.verified, 'verified_all': plain.verified,
-        'regions': regions.summary(), 'all': plain.summary(),
-        'keypoints': [len(kq), len(km)], 'detector': args.detector,
-        'similarity': float(place.scores[0]), 'region_pairs': int(len(qb)),
-        'model': extractor.model_info, 'plot': args.plot or None,
+        'inliers_regions': regions.inliers,
+        'inliers_all': plain.inliers,
+        'ms_regions': regions.matches.ms + regions.ms,
+        'ms_all': plain.matches.ms + plain.ms,
+        'verified_regions': regions.verified,
+        'verified_all': plain.verified,
+        'regions': regions.summary(),
+        'all': plain.summary(),
+        'keypoints': [len(kq), len(km)],
+        'detector': args.detector,
+        'similarity': float(place.scores[0]),
+        'region_pairs': int(len(qb)),
+        'model': extractor.model_info,
+        'plot': args.plot or None,
     }
 
 
@@ -84,13 +124,16 @@ def report(out: dict, as_json: bool) -> int:
     if as_json:
         print(json.dumps(out))
         return 0
-    print(f'place: S = {out["similarity"]:.3f}, {out["region_pairs"]} mutual landmark pairs; '
-          f'{out["keypoints"][0]} / {out["keypoints"][1]} {out["detector"]} keypoints')
+    print(
+        f'place: S = {out["similarity"]:.3f}, {out["region_pairs"]} mutual landmark pairs; '
+        f'{out["keypoints"][0]} / {out["keypoints"][1]} {out["detector"]} keypoints'
+    )
     for label, key in (('regions (mLLN)', 'regions'), ('all keypoints', 'all')):
         r = out[key]
         status = 'verified' if r['verified'] else f'not verified ({r["reason"]})'
-        print(f'{label:<15} {r["inliers"]:4d} inliers / {r["matches"]:4d} matches  '
-              f'{out["ms_" + key]:7.1f} ms  {status}')
+        print(
+            f'{label:<15} {r["inliers"]:4d} inliers / {r["matches"]:4d} matches  {out["ms_" + key]:7.1f} ms  {status}'
+        )
     if out['plot']:
         print(f'plot written to {out["plot"]}')
     return 0

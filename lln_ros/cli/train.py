@@ -13,6 +13,7 @@ poses:DIR[,MAX_DEG,MAX_M,MIN_GAP_S]), or places:DIR (DIR/<place>/*.jpg), or sfm:
 with the best MEAN validation precision at 100% recall over all --val sets is DIR/best.pt;
 DIR/last.pt resumes an interrupted run.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,12 +28,20 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog='lln-train', description=__doc__.strip().splitlines()[0])
     p.add_argument('--data', action='append', required=True, metavar='SPEC', help='training data (repeatable)')
     p.add_argument('--range', help='START:END fractions of every aligned --data to train on')
-    p.add_argument('--val', action='append', metavar='SPEC',
-                   help='validation dataset (an lln-eval SPEC; repeatable: best.pt is best on the mean)')
+    p.add_argument(
+        '--val',
+        action='append',
+        metavar='SPEC',
+        help='validation dataset (an lln-eval SPEC; repeatable: best.pt is best on the mean)',
+    )
     p.add_argument('--val-range', help='START:END fractions of every aligned --val')
     p.add_argument('--out', required=True, help='output folder (best.pt, last.pt, history.json)')
-    p.add_argument('--objective', choices=('rerank', 'triplet'), default='rerank',
-                   help='rerank: the test-time score (default) | triplet: the paper\'s embedding loss')
+    p.add_argument(
+        '--objective',
+        choices=('rerank', 'triplet'),
+        default='rerank',
+        help="rerank: the test-time score (default) | triplet: the paper's embedding loss",
+    )
     p.add_argument('--epochs', type=int, default=10)
     p.add_argument('--lr', type=float, default=1e-3)
     p.add_argument('--batch-size', type=int, default=10, help='tuples per step (paper: 10)')
@@ -42,13 +51,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--soft-temp', type=float, default=1.0, help='rerank: width of the soft top-n, in logits')
     p.add_argument('--top-n', type=int, default=50, help='landmarks per image (validation, and rerank training)')
     p.add_argument('--tuples-per-epoch', type=int, default=1000, help='0 = every usable query')
-    p.add_argument('--train-size', default='288',
-                   help="training input height H (aspect kept, as at test time; default 288), or WxH "
-                        "to squash (the paper's 352x352)")
+    p.add_argument(
+        '--train-size',
+        default='288',
+        help='training input height H (aspect kept, as at test time; default 288), or WxH '
+        "to squash (the paper's 352x352)",
+    )
     p.add_argument('--neg-margin', type=int, default=10, help='route data: frames beside a match are not negatives')
-    p.add_argument('--norm-prior', type=float, default=0.0,
-                   help="weight of log feature norm (ACT's score) in the head's logits; > 0 starts the head "
-                        "at ACT's selection (default 0: the plain LLN head)")
+    p.add_argument(
+        '--norm-prior',
+        type=float,
+        default=0.0,
+        help="weight of log feature norm (ACT's score) in the head's logits; > 0 starts the head "
+        "at ACT's selection (default 0: the plain LLN head)",
+    )
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--backbone', default='efficientnet_lite0')
     p.add_argument('--layer', default='')
@@ -60,8 +76,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def load_pairs(spec: str, frac, neg_margin: int):
-    from ..io import datasets
     from .. import training
+
     kind, _, rest = spec.partition(':')
     if kind == 'places':
         return training.pairs_from_places(rest)
@@ -75,6 +91,7 @@ def load_dataset(spec: str, frac):
     """A Dataset; frac (--range / --val-range) applies to aligned specs only and is kept in its name,
     so the checkpoint metadata says which part of a route was trained or validated on."""
     from ..io import datasets
+
     use = frac if spec.startswith('aligned:') else None
     ds = datasets.parse_spec(spec, use)
     if use:
@@ -83,26 +100,43 @@ def load_dataset(spec: str, frac):
 
 
 def run(args) -> dict:
-    from ..io import datasets
     from .. import training
     from ..core.extractor import Extractor
+    from ..io import datasets
+
     size = args.train_size.lower()
     train_size = tuple(int(v) for v in size.split('x')) if 'x' in size else int(size)
-    conf = {'objective': args.objective, 'tau': args.tau, 'soft_temp': args.soft_temp,
-            'val_top_n': args.top_n, 'epochs': args.epochs, 'lr': args.lr, 'batch_size': args.batch_size, 'negatives': args.negatives,
-            'margin': args.margin, 'tuples_per_epoch': args.tuples_per_epoch, 'train_size': train_size,
-            'neg_margin': args.neg_margin, 'seed': args.seed}
+    conf = {
+        'objective': args.objective,
+        'tau': args.tau,
+        'soft_temp': args.soft_temp,
+        'val_top_n': args.top_n,
+        'epochs': args.epochs,
+        'lr': args.lr,
+        'batch_size': args.batch_size,
+        'negatives': args.negatives,
+        'margin': args.margin,
+        'tuples_per_epoch': args.tuples_per_epoch,
+        'train_size': train_size,
+        'neg_margin': args.neg_margin,
+        'seed': args.seed,
+    }
     if args.norm_prior:
         conf['head'] = {'norm_prior': args.norm_prior}
     # every dataset is read and checked before any feature is computed
     frac, val_frac = datasets.parse_range(args.range), datasets.parse_range(args.val_range)
     pairs = training.combine([load_pairs(s, frac, args.neg_margin) for s in args.data])
     val = [load_dataset(v, val_frac) for v in args.val or []]
-    extractor = Extractor({'backbone': {'name': args.backbone, 'layer': args.layer,
-                                        'weights_path': args.backbone_weights}, 'num_threads': args.threads})
+    extractor = Extractor(
+        {
+            'backbone': {'name': args.backbone, 'layer': args.layer, 'weights_path': args.backbone_weights},
+            'num_threads': args.threads,
+        }
+    )
     command = 'lln-train ' + ' '.join(shlex.quote(a) for a in sys.argv[1:])
-    trainer = training.Trainer(extractor, pairs, val, conf, cache_dir=args.cache, out_dir=args.out,
-                               meta={'command': command})
+    trainer = training.Trainer(
+        extractor, pairs, val, conf, cache_dir=args.cache, out_dir=args.out, meta={'command': command}
+    )
     return trainer.fit(resume=not args.no_resume)
 
 
@@ -113,8 +147,10 @@ def main(argv=None) -> int:
         result = run(args)
         print(json.dumps({'best_val_p_at_100r': result['best_val_p_at_100r']}))
         return 0
-    return run_cli('lln-train', go,
-                   interrupted='interrupted; OUT/last.pt holds the last finished epoch (rerun to resume)')
+
+    return run_cli(
+        'lln-train', go, interrupted='interrupted; OUT/last.pt holds the last finished epoch (rerun to resume)'
+    )
 
 
 if __name__ == '__main__':

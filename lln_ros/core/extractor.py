@@ -9,6 +9,7 @@ exported once and cached, see lln_ros.core.runtime) or 'torch'. Both give the sa
 Runtime is not installed the extractor says so in one log line and runs torch. model_info['runtime']
 names the one that runs.
 """
+
 from __future__ import annotations
 
 import os
@@ -17,22 +18,22 @@ from importlib import resources
 import numpy as np
 import torch
 
-from . import backbones
 from ..errors import ModelError
 from ..io.image import check_image, resize_for_network
+from . import backbones
 from .landmarks import METHODS, LandmarkSet, l2_normalize, select_landmarks
 from .lln import LLNHead, head_fingerprint, load_checkpoint
 from .runtime import RUNTIMES, build_network
 
 default_conf = {
     'backbone': backbones.default_conf,
-    'weights': '',         # LLN head checkpoint; '' = the one shipped for this backbone/layer
+    'weights': '',  # LLN head checkpoint; '' = the one shipped for this backbone/layer
     'top_n': 50,
     'input_height': 288,
     'method': 'lln',
     'rand_seed': 0,
     'runtime': 'onnxruntime',  # torch | onnxruntime (falls back to torch when not installed)
-    'num_threads': 0,      # intra-op threads of the runtime; 0 = the runtime's default
+    'num_threads': 0,  # intra-op threads of the runtime; 0 = the runtime's default
 }
 
 
@@ -59,22 +60,24 @@ class Extractor:
         name, layer = conf['backbone']['name'], self.backbone.layer
         weights = conf['weights'] or shipped_weights(name, layer)
         if weights:
-            self.head, self.head_meta = load_checkpoint(os.path.expanduser(weights), name, layer,
-                                                        self.backbone.dim)
+            self.head, self.head_meta = load_checkpoint(os.path.expanduser(weights), name, layer, self.backbone.dim)
         else:
             # no trained head for this backbone/layer: a seeded Xavier head, and the metadata says so
             self.head = LLNHead(self.backbone.dim).eval()
             self.head_meta = {'trained': False}
         for p in self.head.parameters():
             p.requires_grad_(False)
-        self.network = build_network(name, layer, self.backbone, self.head, conf['runtime'],
-                                     int(conf['num_threads']))
+        self.network = build_network(name, layer, self.backbone, self.head, conf['runtime'], int(conf['num_threads']))
         self.descriptor_space = f'{name}/{layer}/{self.backbone.dim}'
         self.model_info = {
-            'backbone': name, 'layer': layer, 'descriptor_dim': self.backbone.dim,
+            'backbone': name,
+            'layer': layer,
+            'descriptor_dim': self.backbone.dim,
             'descriptor_space': self.descriptor_space,
-            'head': head_fingerprint(self.head), 'head_trained': bool(self.head_meta.get('trained', True)),
-            'weights': weights or '', 'input_height': int(conf['input_height']),
+            'head': head_fingerprint(self.head),
+            'head_trained': bool(self.head_meta.get('trained', True)),
+            'weights': weights or '',
+            'input_height': int(conf['input_height']),
             # not part of the descriptor space: maps built with one runtime answer the other's queries
             'runtime': self.network.runtime,
         }
@@ -94,8 +97,7 @@ class Extractor:
     def __call__(self, image: np.ndarray, channel_order: str = 'rgb') -> LandmarkSet:
         return self.extract_batch([image], channel_order)[0]
 
-    def extract_batch(self, images: list, channel_order: str = 'rgb',
-                      batch_size: int = 8) -> list[LandmarkSet]:
+    def extract_batch(self, images: list, channel_order: str = 'rgb', batch_size: int = 8) -> list[LandmarkSet]:
         """Extract many images; images of the same network size go through the network together."""
         rgb = [check_image(im, channel_order) for im in images]
         net = [resize_for_network(im, int(self.conf['input_height'])) for im in rgb]
@@ -105,7 +107,7 @@ class Extractor:
             by_size.setdefault(im.shape, []).append(i)
         for idx in by_size.values():
             for start in range(0, len(idx), batch_size):
-                chunk = idx[start:start + batch_size]
+                chunk = idx[start : start + batch_size]
                 feats, logits = self.features(np.stack([net[i] for i in chunk]))
                 for j, i in enumerate(chunk):
                     h, w = rgb[i].shape[:2]
@@ -122,7 +124,7 @@ class Extractor:
     def _landmarks(self, feats: np.ndarray, logits: np.ndarray, image_size: tuple) -> LandmarkSet:
         """feats (D, rows, cols), head logits (rows, cols) -> LandmarkSet in original image pixels."""
         d, rows, cols = feats.shape
-        local = feats.reshape(d, rows * cols).T                       # (rows*cols, D)
+        local = feats.reshape(d, rows * cols).T  # (rows*cols, D)
         method = self.conf['method']
         activation = np.maximum(logits, 0)
         # LLN ranks by the logits: the same order as the ReLU activation where it is positive, and
@@ -146,4 +148,3 @@ class Extractor:
             activation=activation.astype(np.float32),
             descriptor_space=self.descriptor_space,
         )
-

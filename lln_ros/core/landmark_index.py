@@ -36,6 +36,7 @@ and scans nprobe/lists of it. An IVF-PQ grown past conf['landmark_retrain_factor
 it was trained on is rebuilt by its owner (the map store) from the stored descriptors. Recall against exact search is
 measured by bench/bench_landmark_index.py on real descriptors.
 """
+
 from __future__ import annotations
 
 import json
@@ -56,16 +57,16 @@ PREFILTERS = ('landmarks', 'holistic', 'exhaustive')
 MAGIC = b'LLNLMIDX1\n'
 
 default_conf = {
-    'landmark_knn': 20,                     # map landmarks each query landmark retrieves
-    'landmark_tau': 0.35,                   # cosine below which a hit does not vote
-    'landmark_alpha': 3.0,                  # selectivity exponent of a hit's vote
-    'landmark_index_threshold': 20_000,     # landmarks (~400 keyframes at n=50); IVF-PQ above
-    'landmark_retrain_factor': 8,           # an IVF-PQ grown past this x its training size is rebuilt
-    'landmark_ivf_lists': 0,                # 0 = sqrt(landmarks), between 64 and 4096 (<= landmarks / 39)
-    'landmark_nprobe': 16,                  # IVF cells visited per query landmark
-    'landmark_pq_m': 0,                     # PQ sub-quantisers; 0 = D / 4 (8 bits each: D/4 bytes)
-    'landmark_pq_bits': 8,                  # bits per sub-quantiser code
-    'landmark_train_points': 100_000,       # sample the IVF-PQ is trained on
+    'landmark_knn': 20,  # map landmarks each query landmark retrieves
+    'landmark_tau': 0.35,  # cosine below which a hit does not vote
+    'landmark_alpha': 3.0,  # selectivity exponent of a hit's vote
+    'landmark_index_threshold': 20_000,  # landmarks (~400 keyframes at n=50); IVF-PQ above
+    'landmark_retrain_factor': 8,  # an IVF-PQ grown past this x its training size is rebuilt
+    'landmark_ivf_lists': 0,  # 0 = sqrt(landmarks), between 64 and 4096 (<= landmarks / 39)
+    'landmark_nprobe': 16,  # IVF cells visited per query landmark
+    'landmark_pq_m': 0,  # PQ sub-quantisers; 0 = D / 4 (8 bits each: D/4 bytes)
+    'landmark_pq_bits': 8,  # bits per sub-quantiser code
+    'landmark_train_points': 100_000,  # sample the IVF-PQ is trained on
 }
 
 _CELL_BITS = 12
@@ -102,8 +103,14 @@ def decode_ids(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return kf, cells
 
 
-def score_hits(query_cells: np.ndarray, sims: np.ndarray, keyframes: np.ndarray, map_cells: np.ndarray,
-               conf: dict, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def score_hits(
+    query_cells: np.ndarray,
+    sims: np.ndarray,
+    keyframes: np.ndarray,
+    map_cells: np.ndarray,
+    conf: dict,
+    scale: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """First-stage score of every keyframe hit (see the module doc).
 
     query_cells (n, 2) (col, row) of the query landmarks; sims (n, k) cosines of each one's k hits;
@@ -155,9 +162,10 @@ def fill(ids: np.ndarray, scores: np.ndarray, holistic_ids: np.ndarray, k: int) 
     tau (a small map, or a query with little texture), the reranker still sees k candidates."""
     if len(ids) >= k:
         return ids[:k], scores[:k]
-    extra = np.asarray([i for i in holistic_ids if i not in set(ids.tolist())], np.int64)[:k - len(ids)]
-    return np.concatenate([ids, extra]).astype(np.int64), \
-        np.concatenate([scores, np.zeros(len(extra), np.float32)]).astype(np.float32)
+    extra = np.asarray([i for i in holistic_ids if i not in set(ids.tolist())], np.int64)[: k - len(ids)]
+    return np.concatenate([ids, extra]).astype(np.int64), np.concatenate(
+        [scores, np.zeros(len(extra), np.float32)]
+    ).astype(np.float32)
 
 
 class LandmarkIndex:
@@ -167,7 +175,7 @@ class LandmarkIndex:
         self.dim = int(dim)
         self.conf = {**default_conf, **(conf or {})}
         self.index = self._exact()
-        self.trained_on = 0   # landmarks the IVF-PQ was trained on (0: exact)
+        self.trained_on = 0  # landmarks the IVF-PQ was trained on (0: exact)
 
     def _exact(self):
         return faiss.IndexIDMap2(faiss.IndexFlatIP(self.dim))
@@ -191,12 +199,21 @@ class LandmarkIndex:
         m = int(self.conf['landmark_pq_m']) or max(1, self.dim // 4)
         if self.dim % m:
             raise ValueError(f'landmark_pq_m {m} must divide the descriptor size {self.dim}')
-        index = faiss.IndexIVFPQ(faiss.IndexFlatIP(self.dim), self.dim, lists, m, int(self.conf['landmark_pq_bits']),
-                                 faiss.METRIC_INNER_PRODUCT)
+        index = faiss.IndexIVFPQ(
+            faiss.IndexFlatIP(self.dim),
+            self.dim,
+            lists,
+            m,
+            int(self.conf['landmark_pq_bits']),
+            faiss.METRIC_INNER_PRODUCT,
+        )
         index.cp.max_points_per_centroid = 64
         rng = np.random.default_rng(0)
-        sample = x if len(x) <= self.conf['landmark_train_points'] else \
-            x[np.sort(rng.choice(len(x), int(self.conf['landmark_train_points']), replace=False))]
+        sample = (
+            x
+            if len(x) <= self.conf['landmark_train_points']
+            else x[np.sort(rng.choice(len(x), int(self.conf['landmark_train_points']), replace=False))]
+        )
         index.train(np.ascontiguousarray(sample, np.float32))
         index.nprobe = int(self.conf['landmark_nprobe'])
         self.trained_on = n
@@ -213,7 +230,7 @@ class LandmarkIndex:
         ids = np.ascontiguousarray(ids, np.int64)
         index = self._compressed(x) if len(ids) > self.conf['landmark_index_threshold'] else self._exact()
         for start in range(0, len(ids), 200_000):
-            index.add_with_ids(x[start:start + 200_000], ids[start:start + 200_000])
+            index.add_with_ids(x[start : start + 200_000], ids[start : start + 200_000])
         self.index = index
 
     def add(self, descriptors: np.ndarray, keyframe_ids: np.ndarray, cells: np.ndarray) -> None:
@@ -239,7 +256,7 @@ class LandmarkIndex:
     def remove_keyframes(self, keyframe_ids) -> int:
         """Drop every landmark of these keyframes; returns how many landmarks went."""
         kids = sorted({int(i) for i in keyframe_ids})
-        if len(kids) > 4:   # one pass over the index for many keyframes, not one per keyframe
+        if len(kids) > 4:  # one pass over the index for many keyframes, not one per keyframe
             held = self.landmark_ids()
             drop = np.ascontiguousarray(held[np.isin(decode_ids(held)[0], kids)])
             return int(self.index.remove_ids(drop)) if len(drop) else 0
@@ -257,8 +274,11 @@ class LandmarkIndex:
         if self.kind == 'exact':
             return faiss.vector_to_array(self.index.id_map).astype(np.int64)
         lists = self.index.invlists
-        out = [faiss.rev_swig_ptr(lists.get_ids(c), lists.list_size(c)).copy()
-               for c in range(lists.nlist) if lists.list_size(c)]
+        out = [
+            faiss.rev_swig_ptr(lists.get_ids(c), lists.list_size(c)).copy()
+            for c in range(lists.nlist)
+            if lists.list_size(c)
+        ]
         return np.concatenate(out).astype(np.int64) if out else np.zeros(0, np.int64)
 
     def keyframe_counts(self) -> dict[int, int]:
@@ -274,8 +294,11 @@ class LandmarkIndex:
         params = None
         if below is not None:
             sel = faiss.IDSelectorRange(0, int(below) << _KF_SHIFT)
-            params = (faiss.SearchParametersIVF(sel=sel, nprobe=self.index.nprobe)
-                      if self.kind == 'ivfpq' else faiss.SearchParameters(sel=sel))
+            params = (
+                faiss.SearchParametersIVF(sel=sel, nprobe=self.index.nprobe)
+                if self.kind == 'ivfpq'
+                else faiss.SearchParameters(sel=sel)
+            )
         sims, ids = self.index.search(q, int(k), params=params)
         kf, cells = decode_ids(ids)
         return sims, kf, cells
@@ -287,15 +310,22 @@ class LandmarkIndex:
             return np.zeros(0, np.int64), np.zeros(0, np.float32)
         sims, kf, cells = self.search(query.descriptors, min(int(self.conf['landmark_knn']), self.ntotal), below)
         ids, scores = score_hits(query.cells, sims, kf, cells, self.conf, scale)
-        return ids[:int(k)], scores[:int(k)]
+        return ids[: int(k)], scores[: int(k)]
 
     # ------------------------------------------------------------------ persistence (IVF-PQ maps)
     def write(self, path: str, header: dict) -> None:
         """Serialise to path atomically (temporary file, fsync, rename): MAGIC, a JSON header
         (`header` plus D, landmark count and the CRC-32 of the FAISS bytes), the FAISS index."""
         blob = faiss.serialize_index(self.index)
-        head = json.dumps({**header, 'dim': self.dim, 'landmarks': self.ntotal, 'trained_on': self.trained_on,
-                           'crc32': zlib.crc32(blob)}).encode()
+        head = json.dumps(
+            {
+                **header,
+                'dim': self.dim,
+                'landmarks': self.ntotal,
+                'trained_on': self.trained_on,
+                'crc32': zlib.crc32(blob),
+            }
+        ).encode()
         tmp = f'{path}.tmp-{os.getpid()}'
         try:
             with open(tmp, 'wb') as f:
@@ -320,20 +350,25 @@ class LandmarkIndex:
         except OSError as e:
             raise MapError(f'cannot read landmark index {path}: {e}') from e
         try:
-            if data[:len(MAGIC)] != MAGIC:
+            if data[: len(MAGIC)] != MAGIC:
                 raise ValueError('not an lln_ros landmark index (bad magic)')
-            (n,) = struct.unpack('<I', data[len(MAGIC):len(MAGIC) + 4])
-            header = json.loads(data[len(MAGIC) + 4:len(MAGIC) + 4 + n])
+            (n,) = struct.unpack('<I', data[len(MAGIC) : len(MAGIC) + 4])
+            header = json.loads(data[len(MAGIC) + 4 : len(MAGIC) + 4 + n])
             blob = np.frombuffer(data, np.uint8, offset=len(MAGIC) + 4 + n)
             if zlib.crc32(blob) != header.get('crc32'):
                 raise ValueError(f'checksum mismatch ({len(blob)} bytes of index data: truncated or corrupt)')
             index = faiss.deserialize_index(blob)
         except (ValueError, struct.error, RuntimeError) as e:
             raise MapError(f'landmark index {path} is unusable: {str(e).splitlines()[0][:200]}') from None
-        if index.d != int(dim) or not isinstance(index, (faiss.IndexIVFPQ, faiss.IndexIDMap2)) or \
-                index.ntotal != header.get('landmarks'):
-            raise MapError(f'landmark index {path} holds {type(index).__name__} of D={index.d} with '
-                           f'{index.ntotal} landmarks; expected D={dim} and {header.get("landmarks")}')
+        if (
+            index.d != int(dim)
+            or not isinstance(index, (faiss.IndexIVFPQ, faiss.IndexIDMap2))
+            or index.ntotal != header.get('landmarks')
+        ):
+            raise MapError(
+                f'landmark index {path} holds {type(index).__name__} of D={index.d} with '
+                f'{index.ntotal} landmarks; expected D={dim} and {header.get("landmarks")}'
+            )
         out = cls(dim, conf)
         if isinstance(index, faiss.IndexIVF):
             index.nprobe = int(out.conf['landmark_nprobe'])

@@ -12,6 +12,7 @@ A `LandmarkSet` holds, for one image with a (rows, cols) feature grid and n land
     activation         (rows, cols)  the full LLN activation map (for plots and the `score` of row 0)
     descriptor_space   str       backbone/layer/D: sets from different spaces must never be compared
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -51,10 +52,14 @@ class LandmarkSet:
             raise DescriptorError(f'global descriptor must be a non-empty vector, got shape {d.shape}')
         n = self.descriptors.shape[0]
         if self.descriptors.ndim != 2 or self.descriptors.shape[1] != d.shape[0]:
-            raise DescriptorError(f'landmark descriptors have shape {self.descriptors.shape}, '
-                                  f'expected (n, {d.shape[0]})')
-        for name, arr, shape in (('cells', self.cells, (n, 2)), ('centers', self.centers, (n, 2)),
-                                 ('scores', self.scores, (n,))):
+            raise DescriptorError(
+                f'landmark descriptors have shape {self.descriptors.shape}, expected (n, {d.shape[0]})'
+            )
+        for name, arr, shape in (
+            ('cells', self.cells, (n, 2)),
+            ('centers', self.centers, (n, 2)),
+            ('scores', self.scores, (n,)),
+        ):
             if arr.shape != shape:
                 raise DescriptorError(f'{name} has shape {arr.shape}, expected {shape}')
         if not (np.isfinite(d).all() and np.isfinite(self.descriptors).all()):
@@ -70,8 +75,7 @@ def l2_normalize(x: np.ndarray, axis: int = -1) -> np.ndarray:
     return x / np.maximum(norm, 1e-12)
 
 
-def select_landmarks(score_map: np.ndarray, n: int, method: str = 'lln',
-                     seed: int = 0) -> np.ndarray:
+def select_landmarks(score_map: np.ndarray, n: int, method: str = 'lln', seed: int = 0) -> np.ndarray:
     """Flat indices (row * cols + col) of the selected cells, ordered by descending score.
 
     score_map (rows, cols): the map to rank by (LLN activation for lln/rand/all, feature norm for act).
@@ -100,6 +104,7 @@ class LandmarkBatch:
 
     descriptors (K, n, D) float32, cells (K, n, 2) int32, valid (K, n) bool, globals (K, D) float32.
     """
+
     descriptors: np.ndarray
     cells: np.ndarray
     valid: np.ndarray
@@ -121,8 +126,9 @@ def stack_landmarks(sets: list[LandmarkSet], dtype=np.float32) -> LandmarkBatch:
     dims = {s.dim for s in sets}
     spaces = {s.descriptor_space for s in sets}
     if len(dims) > 1 or len(spaces) > 1:
-        raise DescriptorError(f'cannot stack landmark sets from different models: sizes {sorted(dims)}, '
-                              f'spaces {sorted(spaces)}')
+        raise DescriptorError(
+            f'cannot stack landmark sets from different models: sizes {sorted(dims)}, spaces {sorted(spaces)}'
+        )
     k, n, d = len(sets), max(len(s) for s in sets), dims.pop()
     desc = np.zeros((k, n, d), dtype)
     cells = np.zeros((k, n, 2), np.int32)

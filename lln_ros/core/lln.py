@@ -8,6 +8,7 @@ A checkpoint is one torch file holding the head's state dict and the metadata th
 descriptor space it belongs to (backbone, layer, descriptor size), so a head, or a map built with it,
 is never silently combined with features from another model.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -22,8 +23,8 @@ CHECKPOINT_VERSION = 1
 
 default_conf = {
     'kernel_sizes': (1, 3, 5),  # multi-scale: robustness to viewpoint change and occlusion
-    'channels': 64,             # per branch
-    'seed': 0,                  # Xavier init is seeded so an untrained head is the same everywhere
+    'channels': 64,  # per branch
+    'seed': 0,  # Xavier init is seeded so an untrained head is the same everywhere
     # weight of log |f_ij| (the feature norm ACT ranks by) added to the logits. > 0 also starts the
     # 1x1 fuse at zero, so the untrained head ranks exactly as ACT and training learns a correction
     # to ACT's choice instead of a selection from scratch (see docs/generalisation.md)
@@ -37,7 +38,8 @@ class LLNHead(nn.Module):
         self.conf = conf = {**default_conf, **(conf or {})}
         self.in_dim = int(in_dim)
         self.branches = nn.ModuleList(
-            nn.Conv2d(in_dim, conf['channels'], k, padding=k // 2) for k in conf['kernel_sizes'])
+            nn.Conv2d(in_dim, conf['channels'], k, padding=k // 2) for k in conf['kernel_sizes']
+        )
         self.fuse = nn.Conv2d(conf['channels'] * len(conf['kernel_sizes']), 1, 1)
         generator = torch.Generator().manual_seed(int(conf['seed']))
         for conv in [*self.branches, self.fuse]:
@@ -97,8 +99,9 @@ def save_checkpoint(path: str, head: LLNHead, backbone: str, layer: str, **extra
     os.replace(tmp, path)  # never leave a half-written checkpoint under the real name
 
 
-def load_checkpoint(path: str, backbone: str | None = None, layer: str | None = None,
-                    descriptor_dim: int | None = None) -> tuple[LLNHead, dict]:
+def load_checkpoint(
+    path: str, backbone: str | None = None, layer: str | None = None, descriptor_dim: int | None = None
+) -> tuple[LLNHead, dict]:
     """Load a head; when backbone / layer / descriptor_dim are given they must match its metadata."""
     if not os.path.isfile(path):
         raise ModelError(f'LLN checkpoint not found: {path!r}')
@@ -108,18 +111,22 @@ def load_checkpoint(path: str, backbone: str | None = None, layer: str | None = 
     except Exception as e:
         raise ModelError(f'{path!r} is not an lln_ros checkpoint: {e}') from e
     if meta.get('version') != CHECKPOINT_VERSION:
-        raise ModelError(f'{path!r}: checkpoint version {meta.get("version")} is not supported '
-                         f'(this lln_ros reads version {CHECKPOINT_VERSION})')
+        raise ModelError(
+            f'{path!r}: checkpoint version {meta.get("version")} is not supported '
+            f'(this lln_ros reads version {CHECKPOINT_VERSION})'
+        )
     for key, want in (('backbone', backbone), ('layer', layer), ('descriptor_dim', descriptor_dim)):
         if want is not None and meta.get(key) != want:
-            raise ModelError(f'{path!r} was trained for {key}={meta.get(key)!r}, but the model is '
-                             f'configured with {key}={want!r}')
+            raise ModelError(
+                f'{path!r} was trained for {key}={meta.get(key)!r}, but the model is configured with {key}={want!r}'
+            )
     conf = dict(meta['head_conf'])
     conf['kernel_sizes'] = tuple(conf['kernel_sizes'])
     head = LLNHead(meta['descriptor_dim'], conf)
     try:
         head.load_state_dict(state, strict=True)
     except RuntimeError as e:
-        raise ModelError(f'{path!r}: weights do not fit the head shape in its metadata: '
-                         f'{str(e).splitlines()[0]}') from e
+        raise ModelError(
+            f'{path!r}: weights do not fit the head shape in its metadata: {str(e).splitlines()[0]}'
+        ) from e
     return head.eval(), meta

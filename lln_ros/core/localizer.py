@@ -22,6 +22,7 @@ docs/interfaces.md §3.6) keep these sums for every input:
 *_failed: the map, not the message, was at fault (a keyframe damaged after start, a write that
 failed, or an internal error): the message is not blamed as bad_*.
 """
+
 from __future__ import annotations
 
 import json
@@ -31,25 +32,25 @@ from dataclasses import dataclass, field
 
 from .. import limits as limits_mod
 from ..errors import DescriptorError, LLNError, MapError
-from .landmark_index import check_prefilter
 from ..limits import LimitError, check_landmark_set, validate_model
+from .landmark_index import check_prefilter
 from .retrieval import default_conf as retrieval_conf
 from .sequence import KeyframeSequence
 
 default_conf = {
-    'mode': 'localization',    # localization: answer queries only | mapping: answer, then store each query
-    'prefilter': retrieval_conf['prefilter'],      # first stage: landmarks | holistic | exhaustive
+    'mode': 'localization',  # localization: answer queries only | mapping: answer, then store each query
+    'prefilter': retrieval_conf['prefilter'],  # first stage: landmarks | holistic | exhaustive
     'prefilter_k': retrieval_conf['prefilter_k'],  # first-stage candidates reranked by S; 0 = every keyframe
-    'k': 5,                    # candidates answered per query
-    'min_score': 0.0,          # candidates below this are not answered
-    'exclude_recent': 10,      # mapping mode: the newest N keyframes are never answers
-    'method': 'lln',           # lln: rerank by landmark similarity S | holistic: global descriptor only
-    'offset_scale': 1.0,       # Gaussian width of the offset weights, grid cells
-    'max_query_age': 0.0,      # seconds; older queries are dropped (queries_stale); 0 = off
-    'verify': False,           # re-rank candidates by keypoint inliers
+    'k': 5,  # candidates answered per query
+    'min_score': 0.0,  # candidates below this are not answered
+    'exclude_recent': 10,  # mapping mode: the newest N keyframes are never answers
+    'method': 'lln',  # lln: rerank by landmark similarity S | holistic: global descriptor only
+    'offset_scale': 1.0,  # Gaussian width of the offset weights, grid cells
+    'max_query_age': 0.0,  # seconds; older queries are dropped (queries_stale); 0 = off
+    'verify': False,  # re-rank candidates by keypoint inliers
     'verify_min_inliers': 15,
     'verify_margin': 1.0,
-    'sequence_length': 0,      # 0 = single-frame ranking
+    'sequence_length': 0,  # 0 = single-frame ranking
     'sequence_max_gap': 1.0,
     'limits': limits_mod.default_conf,
 }
@@ -61,6 +62,7 @@ class Answer:
     """One query's answer. rows: candidate rows for msgs.candidates_to_cloud (best first);
     extra_fields: the optional FLOAT32 fields every answer of this node carries; best: the
     MapCandidate whose matched regions go on the matches topic (None: no candidate)."""
+
     rows: list
     extra_fields: tuple
     best: object = None
@@ -80,6 +82,7 @@ def writable_problem(uri) -> str:
     """Why the map at uri cannot be written ('' = it can, or it is not an SQLite file we can judge).
     Asked before the file is opened, so a refused map leaves no -wal/-shm behind."""
     from ..mapstore import backend_for
+
     kind, location = backend_for(uri)
     if kind != 'sqlite':
         return ''
@@ -89,8 +92,10 @@ def writable_problem(uri) -> str:
         if not os.access(path, os.W_OK):
             return f'map {path} is not writable (read-only file or file system)'
         if not os.access(folder, os.W_OK | os.X_OK):
-            return (f'map {path}: its folder {folder} is not writable, and SQLite keeps the -wal and -shm '
-                    f'files of a map being written beside it')
+            return (
+                f'map {path}: its folder {folder} is not writable, and SQLite keeps the -wal and -shm '
+                f'files of a map being written beside it'
+            )
         return ''
     while folder and not os.path.exists(folder):
         folder = os.path.dirname(folder) if os.path.dirname(folder) != folder else ''
@@ -104,12 +109,14 @@ def open_map(uri, mode: str = 'localization', descriptor_space: str = '', conf: 
     validated, a map that mapping mode cannot write refused (MapError naming the file and why),
     and the map's damaged keyframes found by the open's integrity scan."""
     from ..mapstore import MapStore
+
     model = space_model(descriptor_space) if descriptor_space else None
     if mode == 'mapping':
         problem = writable_problem(uri)
         if problem:
-            raise MapError(f'{problem}; mode mapping needs to store keyframes (use mode localization, '
-                           f'or fix the permissions)')
+            raise MapError(
+                f'{problem}; mode mapping needs to store keyframes (use mode localization, or fix the permissions)'
+            )
     store = MapStore.open(uri, model=model, conf=conf)
     return store, store.quarantined
 
@@ -120,13 +127,17 @@ class Localizer:
 
     def __init__(self, store, conf: dict | None = None, counters=None, log=None, decode_keypoints=None):
         from ..counters import Counters
+
         self.conf = conf = self.check_conf(conf)
         self.store, self.limits = store, conf['limits']
         self.log = log or logging.getLogger('lln_ros.core.localizer')
         self.counters = counters if counters is not None else Counters(log=self.log.warning)
         self.mapping = conf['mode'] == 'mapping'
-        self.sequence = KeyframeSequence({'length': conf['sequence_length'], 'max_gap_s': conf['sequence_max_gap']}) \
-            if conf['sequence_length'] > 0 else None
+        self.sequence = (
+            KeyframeSequence({'length': conf['sequence_length'], 'max_gap_s': conf['sequence_max_gap']})
+            if conf['sequence_length'] > 0
+            else None
+        )
         self.refusing = ''  # set when the extractor's model differs from the map's
         self.extractor_model = None  # the last valid model_info: its input_height fixes the grid rows
         self.reloc, self.pending_keypoints, self.unmatched_keyframes = None, {}, {}
@@ -134,9 +145,12 @@ class Localizer:
         self.decode_keypoints = decode_keypoints or (lambda kps, *_: kps)
         if conf['verify']:
             if not hasattr(store, 'add_keypoints'):
-                raise MapError(f'verify needs keypoint storage, which the {type(store).__name__} backend of '
-                               f'map {store.path} does not have (use an SQLite map)')
+                raise MapError(
+                    f'verify needs keypoint storage, which the {type(store).__name__} backend of '
+                    f'map {store.path} does not have (use an SQLite map)'
+                )
             from ..reloc import Relocalizer
+
             self.reloc = Relocalizer({'min_inliers': conf['verify_min_inliers'], 'margin': conf['verify_margin']})
 
     @staticmethod
@@ -149,10 +163,10 @@ class Localizer:
         if conf['method'] not in ('lln', 'holistic'):
             raise ValueError(f"method must be 'lln' or 'holistic', got {conf['method']!r}")
         if conf['prefilter_k'] < 0:
-            raise ValueError(f"prefilter_k must be 0 (every keyframe) or positive, got {conf['prefilter_k']}")
+            raise ValueError(f'prefilter_k must be 0 (every keyframe) or positive, got {conf["prefilter_k"]}')
         check_prefilter(conf['prefilter'], conf['prefilter_k'])
         if conf['sequence_length'] < 0:
-            raise ValueError(f"sequence_length must be 0 (off) or positive, got {conf['sequence_length']}")
+            raise ValueError(f'sequence_length must be 0 (off) or positive, got {conf["sequence_length"]}')
         return conf
 
     def count(self, key: str, n: int = 1) -> None:
@@ -185,8 +199,11 @@ class Localizer:
             self.counters.problem(counter, self.refusing)
             return None
         model = self.store.model
-        return {'expected_dim': model['descriptor_dim'] if model else None,
-                'descriptor_space': model['descriptor_space'] if model else '', 'limits': self.limits}
+        return {
+            'expected_dim': model['descriptor_dim'] if model else None,
+            'descriptor_space': model['descriptor_space'] if model else '',
+            'limits': self.limits,
+        }
 
     def refuse(self, counter: str, error: Exception) -> None:
         """Count and log (by kind) a message the node could not decode."""
@@ -208,9 +225,11 @@ class Localizer:
         try:
             self.check(lset)
             if self.store.model is None and not lset.descriptor_space:
-                raise MapError(f'landmark set has no descriptor_space; refusing to store it in map {self.store.path} '
-                               f'(a persistent map must know which model made its descriptors: set the '
-                               f'descriptor_space parameter or run the extractor, which publishes model_info)')
+                raise MapError(
+                    f'landmark set has no descriptor_space; refusing to store it in map {self.store.path} '
+                    f'(a persistent map must know which model made its descriptors: set the '
+                    f'descriptor_space parameter or run the extractor, which publishes model_info)'
+                )
         except LLNError as e:
             self.counters.problem('bad_keyframe', str(e))
             return None
@@ -218,7 +237,7 @@ class Localizer:
             return self._store_keyframe(lset, stamp_ns, self._take_keypoints(stamp_ns, lset))
         except MapError as e:
             self._failed('keyframes_failed', e)
-        except (LLNError, ValueError) as e:   # the store's own checks (e.g. no model recorded yet)
+        except (LLNError, ValueError) as e:  # the store's own checks (e.g. no model recorded yet)
             self.counters.problem('bad_keyframe', str(e))
         except Exception as e:  # noqa: BLE001  one message never ends the node
             self._failed('keyframes_failed', e)
@@ -250,10 +269,12 @@ class Localizer:
 
     def _decode_keypoints(self, payload, lset):
         from ..reloc import detection_scale
+
         w, h = (float(v) for v in lset.image_size)
         try:
-            return self.decode_keypoints(payload, (w, h), detection_scale(h, self.reloc.conf['min_height']),
-                                         self.limits['max_keypoints'])
+            return self.decode_keypoints(
+                payload, (w, h), detection_scale(h, self.reloc.conf['min_height']), self.limits['max_keypoints']
+            )
         except LLNError as e:
             self.counters.problem('bad_keypoints', str(e))
             return None
@@ -262,7 +283,7 @@ class Localizer:
         kid = self.store.add(lset, divmod(int(stamp_ns), 1_000_000_000))
         if kps is not None:
             self.store.add_keypoints(kid, kps.uv, kps.descriptors)
-        elif self.reloc is not None:   # its keypoints may still come
+        elif self.reloc is not None:  # its keypoints may still come
             self.unmatched_keyframes[stamp_ns] = kid
             _bound(self.unmatched_keyframes)
         self.count('keyframes_stored')
@@ -270,6 +291,7 @@ class Localizer:
 
     def _stored_keypoints(self, keyframe_id: int, image_size):
         from ..reloc import Keypoints, detection_scale
+
         found = self.store.keypoints(keyframe_id)
         if found is None:
             return None
@@ -312,20 +334,33 @@ class Localizer:
         c = self.conf
         kps = self._take_keypoints(stamp_ns, lset)
         sequence = self.sequence is not None  # the sequence search needs every reranked candidate
-        found = self.store.query(lset, prefilter=c['prefilter'], prefilter_k=c['prefilter_k'],
-                                 k=(c['prefilter_k'] or max(len(self.store), 1)) if sequence else c['k'],
-                                 min_score=None if sequence else c['min_score'],
-                                 exclude_recent=c['exclude_recent'] if self.mapping else 0,
-                                 method_rerank=c['method'] == 'lln', scale=c['offset_scale'])
+        found = self.store.query(
+            lset,
+            prefilter=c['prefilter'],
+            prefilter_k=c['prefilter_k'],
+            k=(c['prefilter_k'] or max(len(self.store), 1)) if sequence else c['k'],
+            min_score=None if sequence else c['min_score'],
+            exclude_recent=c['exclude_recent'] if self.mapping else 0,
+            method_rerank=c['method'] == 'lln',
+            scale=c['offset_scale'],
+        )
         inliers = {}
         if self.reloc is not None:
             found, inliers = self.verify(lset, kps, found)
         if self.mapping:  # committed before the answer goes out: an answered keyframe is never lost
             self._store_keyframe(lset, stamp_ns, kps)
             self.count('queries_stored')
-        rows = [{'keyframe_id': m.keyframe_id, 'score': m.score, 'holistic_score': m.holistic_score,
-                 'stamp_sec': m.stamp[0], 'stamp_nanosec': m.stamp[1],
-                 **({'inliers': inliers.get(m.keyframe_id, float('nan'))} if self.reloc else {})} for m in found]
+        rows = [
+            {
+                'keyframe_id': m.keyframe_id,
+                'score': m.score,
+                'holistic_score': m.holistic_score,
+                'stamp_sec': m.stamp[0],
+                'stamp_nanosec': m.stamp[1],
+                **({'inliers': inliers.get(m.keyframe_id, float('nan'))} if self.reloc else {}),
+            }
+            for m in found
+        ]
         if sequence:
             rows, found = self.sequence_rows(found, stamp_ns, inliers if self.reloc else None)
         # a zero-row answer carries the same optional fields as the others
@@ -335,10 +370,12 @@ class Localizer:
     def verify(self, lset, kps, found):
         """Candidates re-ranked by region-constrained inliers, and {keyframe_id: inliers}."""
         from ..reloc import verify_candidates
+
         if kps is None or not found:
             return found, {}
-        ranked = verify_candidates(self.reloc, kps, lset.cell_size, found,
-                                   lambda m: self._stored_keypoints(m.keyframe_id, m.image_size))
+        ranked = verify_candidates(
+            self.reloc, kps, lset.cell_size, found, lambda m: self._stored_keypoints(m.keyframe_id, m.image_size)
+        )
         self.count('queries_verified')
         return [m for m, _ in ranked], {m.keyframe_id: float(r.inliers) for m, r in ranked if r is not None}
 
@@ -361,10 +398,17 @@ class Localizer:
                 continue
             m = by_id.get(kf)
             stamp = m.stamp if m else self.store.get(kf).meta['stamp']
-            rows.append({'keyframe_id': kf, 'score': m.score if m else 0.0,
-                         'holistic_score': m.holistic_score if m else 0.0,
-                         'stamp_sec': stamp[0], 'stamp_nanosec': stamp[1], 'sequence_score': seq_score,
-                         **({'inliers': inliers.get(kf, float('nan'))} if inliers is not None else {})})
+            rows.append(
+                {
+                    'keyframe_id': kf,
+                    'score': m.score if m else 0.0,
+                    'holistic_score': m.holistic_score if m else 0.0,
+                    'stamp_sec': stamp[0],
+                    'stamp_nanosec': stamp[1],
+                    'sequence_score': seq_score,
+                    **({'inliers': inliers.get(kf, float('nan'))} if inliers is not None else {}),
+                }
+            )
         first = by_id.get(rows[0]['keyframe_id']) if rows else None
         return rows, [first] if first else []
 

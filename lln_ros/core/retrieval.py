@@ -10,6 +10,7 @@ First stages (`prefilter`): 'landmarks' (the default: every query landmark's kNN
 landmarks, scored by landmark_index.score_hits), 'holistic' (global-descriptor cosine, the paper's),
 'exhaustive' (every map entry; also what prefilter_k 0 means, whatever `prefilter` says).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -17,16 +18,16 @@ from dataclasses import dataclass, field
 import faiss
 import numpy as np
 
-from . import landmark_index
 from ..errors import DescriptorError
+from . import landmark_index
 from .landmark_index import LandmarkIndex, check_prefilter
 from .landmarks import LandmarkBatch, LandmarkSet, stack_landmarks
 from .similarity import match_batch
 
 default_conf = {
     'prefilter': 'landmarks',  # first stage: landmarks | holistic | exhaustive (the one default of all paths)
-    'prefilter_k': 100,        # first-stage candidates reranked by S (the paper's holistic: 30); 0 = every map entry
-    'scale': 1.0,              # offset-weight Gaussian width, in grid cells
+    'prefilter_k': 100,  # first-stage candidates reranked by S (the paper's holistic: 30); 0 = every map entry
+    'scale': 1.0,  # offset-weight Gaussian width, in grid cells
     **landmark_index.default_conf,
 }
 
@@ -35,6 +36,7 @@ default_conf = {
 class Candidate:
     """One map entry proposed for a query. `pairs`: query_index, map_index, similarity, weight
     (arrays of M matched landmark pairs); `offset`: the mode (dx, dy) in grid cells."""
+
     index: int
     score: float
     holistic_score: float
@@ -42,14 +44,28 @@ class Candidate:
     pairs: dict = field(default_factory=dict)
 
 
-def rerank(query: LandmarkSet, batch: LandmarkBatch, indices: np.ndarray, holistic: np.ndarray,
-           scale: float = 1.0, limit: int | None = None) -> list[Candidate]:
+def rerank(
+    query: LandmarkSet,
+    batch: LandmarkBatch,
+    indices: np.ndarray,
+    holistic: np.ndarray,
+    scale: float = 1.0,
+    limit: int | None = None,
+) -> list[Candidate]:
     """Score `batch` (the prefiltered candidates, in `indices` order) against the query; sort by S.
     limit: only the best `limit` come back (their pair tables are what costs, per candidate)."""
     result = match_batch(query, batch, scale)
     order = np.argsort(-result.scores, kind='stable')[:limit]
-    return [Candidate(int(indices[k]), float(result.scores[k]), float(holistic[k]),
-                      tuple(int(v) for v in result.offsets[k]), result.pairs(k)) for k in order]
+    return [
+        Candidate(
+            int(indices[k]),
+            float(result.scores[k]),
+            float(holistic[k]),
+            tuple(int(v) for v in result.offsets[k]),
+            result.pairs(k),
+        )
+        for k in order
+    ]
 
 
 def batch_index(refs: LandmarkBatch, conf: dict | None = None) -> LandmarkIndex:
@@ -67,9 +83,15 @@ def _prefix(row: np.ndarray) -> int | None:
     return m if row[:m].all() else None
 
 
-def first_stage(queries: list[LandmarkSet], refs: LandmarkBatch, k: int, prefilter: str = 'landmarks',
-                allowed: np.ndarray | None = None, conf: dict | None = None,
-                scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def first_stage(
+    queries: list[LandmarkSet],
+    refs: LandmarkBatch,
+    k: int,
+    prefilter: str = 'landmarks',
+    allowed: np.ndarray | None = None,
+    conf: dict | None = None,
+    scale: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """The K candidates of each query before the rerank: ranked (Q, K) ref indices, best first, and
     their first-stage scores (Q, K) (holistic cosine, or landmark_index.score_hits); rows with
     fewer candidates are padded with -1 / -inf. 'exhaustive' = every allowed ref in holistic order."""
@@ -79,10 +101,10 @@ def first_stage(queries: list[LandmarkSet], refs: LandmarkBatch, k: int, prefilt
     ranked = np.full((n_q, k), -1, np.int64)
     scores = np.full((n_q, k), -np.inf, np.float32)
     if prefilter in ('holistic', 'exhaustive'):
-        hol = np.stack([q.global_descriptor for q in queries]).astype(np.float32) @ refs.globals.T   # (Q, R)
+        hol = np.stack([q.global_descriptor for q in queries]).astype(np.float32) @ refs.globals.T  # (Q, R)
         if allowed is not None:
             hol = np.where(allowed, hol, -np.inf)
-        top = np.argsort(-hol, axis=1, kind='stable')[:, :k]                                         # (Q, K)
+        top = np.argsort(-hol, axis=1, kind='stable')[:, :k]  # (Q, K)
         top_s = np.take_along_axis(hol, top, axis=1)
         ok = np.isfinite(top_s)
         ranked[ok], scores[ok] = top[ok], top_s[ok]
@@ -90,7 +112,7 @@ def first_stage(queries: list[LandmarkSet], refs: LandmarkBatch, k: int, prefilt
     if prefilter != 'landmarks':
         raise ValueError(f'unknown prefilter {prefilter!r}')
     index = batch_index(refs, conf)
-    hol_rank, _ = first_stage(queries, refs, k, 'holistic', allowed)   # tops up short landmark lists
+    hol_rank, _ = first_stage(queries, refs, k, 'holistic', allowed)  # tops up short landmark lists
     for i, q in enumerate(queries):
         below = None
         if allowed is not None:
@@ -98,17 +120,24 @@ def first_stage(queries: list[LandmarkSet], refs: LandmarkBatch, k: int, prefilt
             if below == 0:
                 continue
         ids, s = index.shortlist(q, k if below is not None or allowed is None else r, below, scale)
-        if allowed is not None and below is None:   # not a prefix: filter the hits afterwards
+        if allowed is not None and below is None:  # not a prefix: filter the hits afterwards
             keep = allowed[i, ids]
             ids, s = ids[keep][:k], s[keep][:k]
         ids, s = landmark_index.fill(ids, s, hol_rank[i][hol_rank[i] >= 0], k)
-        ranked[i, :len(ids)], scores[i, :len(ids)] = ids, s
+        ranked[i, : len(ids)], scores[i, : len(ids)] = ids, s
     return ranked, scores
 
 
-def rank_all(queries: list[LandmarkSet], refs: LandmarkBatch, prefilter_k: int = default_conf['prefilter_k'],
-             allowed: np.ndarray | None = None, rerank_local: bool = True, scale: float = 1.0,
-             prefilter: str = default_conf['prefilter'], conf: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+def rank_all(
+    queries: list[LandmarkSet],
+    refs: LandmarkBatch,
+    prefilter_k: int = default_conf['prefilter_k'],
+    allowed: np.ndarray | None = None,
+    rerank_local: bool = True,
+    scale: float = 1.0,
+    prefilter: str = default_conf['prefilter'],
+    conf: dict | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Offline retrieval of many queries against a stacked map (evaluation and validation).
 
     refs: LandmarkBatch of R map sets; allowed (Q, R) bool: which refs each query may be answered
@@ -130,7 +159,7 @@ def rank_all(queries: list[LandmarkSet], refs: LandmarkBatch, prefilter_k: int =
             continue
         s = match_batch(q, refs.take(idx), scale).scores
         order = np.argsort(-s, kind='stable')
-        ranked[i, :len(idx)], scores[i, :len(idx)] = idx[order], s[order]
+        ranked[i, : len(idx)], scores[i, : len(idx)] = idx[order], s[order]
     return ranked, scores
 
 
@@ -142,13 +171,18 @@ def pair_regions(query: LandmarkSet, keyframe: LandmarkSet, pairs: dict) -> dict
     qi = np.asarray(pairs.get('query_index', ()), np.int64)
     mi = np.asarray(pairs.get('map_index', ()), np.int64)
     m = len(qi)
-    return {'query_index': qi, 'map_index': mi,
-            'query_u': query.centers[qi, 0].astype(np.float32), 'query_v': query.centers[qi, 1].astype(np.float32),
-            'map_u': keyframe.centers[mi, 0].astype(np.float32), 'map_v': keyframe.centers[mi, 1].astype(np.float32),
-            'cell_w': np.full(m, keyframe.cell_size[0], np.float32),
-            'cell_h': np.full(m, keyframe.cell_size[1], np.float32),
-            'similarity': np.asarray(pairs.get('similarity', ()), np.float32),
-            'weight': np.asarray(pairs.get('weight', ()), np.float32)}
+    return {
+        'query_index': qi,
+        'map_index': mi,
+        'query_u': query.centers[qi, 0].astype(np.float32),
+        'query_v': query.centers[qi, 1].astype(np.float32),
+        'map_u': keyframe.centers[mi, 0].astype(np.float32),
+        'map_v': keyframe.centers[mi, 1].astype(np.float32),
+        'cell_w': np.full(m, keyframe.cell_size[0], np.float32),
+        'cell_h': np.full(m, keyframe.cell_size[1], np.float32),
+        'similarity': np.asarray(pairs.get('similarity', ()), np.float32),
+        'weight': np.asarray(pairs.get('weight', ()), np.float32),
+    }
 
 
 class LandmarkDatabase:
@@ -174,8 +208,10 @@ class LandmarkDatabase:
                 self.index = faiss.IndexFlatIP(s.dim)
                 self.landmarks = LandmarkIndex(s.dim, self.conf)
             elif s.descriptor_space != self.descriptor_space or s.dim != self.index.d:
-                raise DescriptorError(f'map holds {self.descriptor_space!r} descriptors (D={self.index.d}); '
-                                      f'refusing {s.descriptor_space!r} (D={s.dim})')
+                raise DescriptorError(
+                    f'map holds {self.descriptor_space!r} descriptors (D={self.index.d}); '
+                    f'refusing {s.descriptor_space!r} (D={s.dim})'
+                )
         if sets:
             self.index.add(np.stack([s.global_descriptor for s in sets]).astype(np.float32))
             self.landmarks.add_sets(range(len(self.sets), len(self.sets) + len(sets)), sets)
@@ -186,17 +222,22 @@ class LandmarkDatabase:
         if not self.sets:
             return np.zeros(0, np.int64), np.zeros(0, np.float32)
         self._check_query(query)
-        scores, idx = self.index.search(query.global_descriptor[None].astype(np.float32),
-                                        min(int(k), len(self.sets)))
+        scores, idx = self.index.search(query.global_descriptor[None].astype(np.float32), min(int(k), len(self.sets)))
         keep = idx[0] >= 0
         return idx[0][keep], scores[0][keep]
 
-    def retrieve(self, query: LandmarkSet, prefilter_k: int | None = None,
-                 rerank_local: bool = True, prefilter: str | None = None) -> list[Candidate]:
+    def retrieve(
+        self,
+        query: LandmarkSet,
+        prefilter_k: int | None = None,
+        rerank_local: bool = True,
+        prefilter: str | None = None,
+    ) -> list[Candidate]:
         """The first stage's top K reranked by S (rerank_local=False: the first-stage ranking
         alone, its score as `score`); K = 0: every map entry."""
-        prefilter, k = check_prefilter(prefilter or self.conf['prefilter'],
-                                       self.conf['prefilter_k'] if prefilter_k is None else prefilter_k)
+        prefilter, k = check_prefilter(
+            prefilter or self.conf['prefilter'], self.conf['prefilter_k'] if prefilter_k is None else prefilter_k
+        )
         if not self.sets:
             return []
         self._check_query(query)
@@ -204,8 +245,12 @@ class LandmarkDatabase:
         if prefilter == 'landmarks':
             idx, first = self.landmarks.shortlist(query, k, scale=self.conf['scale'])
             idx, first = landmark_index.fill(idx, first, self.holistic(query, k)[0], k)
-            hol = np.stack([self.sets[i].global_descriptor for i in idx]).astype(np.float32) @ \
-                query.global_descriptor.astype(np.float32) if len(idx) else np.zeros(0, np.float32)
+            hol = (
+                np.stack([self.sets[i].global_descriptor for i in idx]).astype(np.float32)
+                @ query.global_descriptor.astype(np.float32)
+                if len(idx)
+                else np.zeros(0, np.float32)
+            )
         else:
             idx, hol = self.holistic(query, k)
             first = hol
@@ -218,7 +263,8 @@ class LandmarkDatabase:
 
     def _check_query(self, query: LandmarkSet) -> None:
         query.validate()
-        if query.dim != self.index.d or (query.descriptor_space and
-                                         query.descriptor_space != self.descriptor_space):
-            raise DescriptorError(f'query descriptors are {query.descriptor_space!r} (D={query.dim}); '
-                                  f'the map holds {self.descriptor_space!r} (D={self.index.d})')
+        if query.dim != self.index.d or (query.descriptor_space and query.descriptor_space != self.descriptor_space):
+            raise DescriptorError(
+                f'query descriptors are {query.descriptor_space!r} (D={query.dim}); '
+                f'the map holds {self.descriptor_space!r} (D={self.index.d})'
+            )

@@ -19,6 +19,7 @@ keyed by backbone, layer, a fingerprint of the backbone and of the head weights 
 height and width are dynamic axes, so one file serves every input size. `lln-export` writes the same
 file ahead of time (e.g. on a robot whose home is read-only at run time, with LLN_CACHE set).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -86,11 +87,13 @@ class TorchNetwork:
         return feats.numpy(), logits.numpy()
 
 
-def onnx_path(backbone_name: str, layer: str, backbone: nn.Module, head: nn.Module,
-              root: str | os.PathLike | None = None) -> Path:
+def onnx_path(
+    backbone_name: str, layer: str, backbone: nn.Module, head: nn.Module, root: str | os.PathLike | None = None
+) -> Path:
     """Cache file of the exported graph for this backbone/layer/weights (dynamic height and width)."""
-    name = (f'{backbone_name}_{layer}_b{state_fingerprint(backbone)}_h{state_fingerprint(head)}'
-            f'_v{GRAPH_VERSION}_dynhw.onnx')
+    name = (
+        f'{backbone_name}_{layer}_b{state_fingerprint(backbone)}_h{state_fingerprint(head)}_v{GRAPH_VERSION}_dynhw.onnx'
+    )
     return Path(root) / name if root else cache_dir() / 'onnx' / name
 
 
@@ -111,11 +114,19 @@ def export_onnx(backbone: nn.Module, head: nn.Module, path: str | os.PathLike) -
         with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
             warnings.simplefilter('ignore')  # tracer warnings about the size-dependent padding (see above)
             torch.onnx.export(
-                net, (dummy,), str(tmp), dynamo=False, opset_version=OPSET,
-                input_names=['rgb'], output_names=['features', 'logits'],
-                dynamic_axes={'rgb': {0: 'batch', 1: 'height', 2: 'width'},
-                              'features': {0: 'batch', 2: 'rows', 3: 'cols'},
-                              'logits': {0: 'batch', 1: 'rows', 2: 'cols'}})
+                net,
+                (dummy,),
+                str(tmp),
+                dynamo=False,
+                opset_version=OPSET,
+                input_names=['rgb'],
+                output_names=['features', 'logits'],
+                dynamic_axes={
+                    'rgb': {0: 'batch', 1: 'height', 2: 'width'},
+                    'features': {0: 'batch', 2: 'rows', 3: 'cols'},
+                    'logits': {0: 'batch', 1: 'rows', 2: 'cols'},
+                },
+            )
         os.replace(tmp, path)
     finally:
         if tmp.exists():
@@ -123,8 +134,9 @@ def export_onnx(backbone: nn.Module, head: nn.Module, path: str | os.PathLike) -
     return path
 
 
-def ensure_onnx(backbone_name: str, layer: str, backbone: nn.Module, head: nn.Module,
-                root: str | os.PathLike | None = None) -> Path:
+def ensure_onnx(
+    backbone_name: str, layer: str, backbone: nn.Module, head: nn.Module, root: str | os.PathLike | None = None
+) -> Path:
     """The cached graph for this model, exported first when missing. Concurrent processes (nodes
     started together) wait on a lock file instead of exporting the same graph twice."""
     path = onnx_path(backbone_name, layer, backbone, head, root)
@@ -142,6 +154,7 @@ def ensure_onnx(backbone_name: str, layer: str, backbone: nn.Module, head: nn.Mo
 def ort_session(path: str | os.PathLike, num_threads: int = 0):
     """An ONNX Runtime CPU session with the settings above; num_threads 0 = ORT's default."""
     import onnxruntime as ort
+
     so = ort.SessionOptions()
     so.intra_op_num_threads = int(num_threads)
     so.inter_op_num_threads = 1
@@ -176,8 +189,14 @@ def onnxruntime_available() -> bool:
     return True
 
 
-def build_network(backbone_name: str, layer: str, backbone: nn.Module, head: nn.Module,
-                  runtime: str = 'onnxruntime', num_threads: int = 0):
+def build_network(
+    backbone_name: str,
+    layer: str,
+    backbone: nn.Module,
+    head: nn.Module,
+    runtime: str = 'onnxruntime',
+    num_threads: int = 0,
+):
     """TorchNetwork or OnnxRuntimeNetwork. onnxruntime falls back to torch, with one log line,
     when ONNX Runtime is not installed or the graph cannot be exported or loaded."""
     if runtime not in RUNTIMES:
@@ -194,6 +213,11 @@ def build_network(backbone_name: str, layer: str, backbone: nn.Module, head: nn.
                     path.unlink(missing_ok=True)
                     return OnnxRuntimeNetwork(ensure_onnx(backbone_name, layer, backbone, head), num_threads)
             except Exception as e:  # noqa: BLE001  any exporter/runtime failure leaves torch working
-                log.warning('cannot run %s/%s in onnxruntime (%s: %s): extracting with torch',
-                            backbone_name, layer, type(e).__name__, str(e).splitlines()[0] if str(e) else '')
+                log.warning(
+                    'cannot run %s/%s in onnxruntime (%s: %s): extracting with torch',
+                    backbone_name,
+                    layer,
+                    type(e).__name__,
+                    str(e).splitlines()[0] if str(e) else '',
+                )
     return TorchNetwork(backbone, head)

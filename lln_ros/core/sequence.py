@@ -31,6 +31,7 @@ The classic SeqSLAM front end lives here too: `sad_descriptors` (downsampled, pa
 images), `sad_difference` (mean absolute difference, FAISS L1) and `contrast_enhance` (the local
 normalisation of each query's difference vector over a window of map frames).
 """
+
 from __future__ import annotations
 
 from collections import deque
@@ -42,16 +43,16 @@ import numpy as np
 from ..errors import LLNError
 
 default_conf = {
-    'length': 10,        # L: queries in a sequence (SeqSLAM's ds)
-    'v_min': 0.8,        # velocity range, map frames per query frame (OpenSeqSLAM 0.8 .. 1.2)
+    'length': 10,  # L: queries in a sequence (SeqSLAM's ds)
+    'v_min': 0.8,  # velocity range, map frames per query frame (OpenSeqSLAM 0.8 .. 1.2)
     'v_max': 1.2,
     'v_steps': 5,
-    'max_gap_s': 1.0,    # online: a stamp gap longer than this starts a new sequence
+    'max_gap_s': 1.0,  # online: a stamp gap longer than this starts a new sequence
 }
 
 sad_conf = {
-    'width': 32,         # downsampled image width; height keeps the first map image's aspect
-    'patch': 8,          # patch normalisation: zero mean, unit std in P x P pixel patches
+    'width': 32,  # downsampled image width; height keeps the first map image's aspect
+    'patch': 8,  # patch normalisation: zero mean, unit std in P x P pixel patches
     'enhance_window': 10,  # contrast enhancement: map frames either side (SeqSLAM's R_window / 2)
 }
 
@@ -65,8 +66,9 @@ def check_conf(conf: dict) -> dict:
     if int(conf['length']) < 1:
         raise SequenceError(f'sequence length must be at least 1, got {conf["length"]}')
     if not 0 <= float(conf['v_min']) <= float(conf['v_max']) or int(conf['v_steps']) < 1:
-        raise SequenceError(f'need 0 <= v_min <= v_max and v_steps >= 1, got {conf["v_min"]}, '
-                            f'{conf["v_max"]}, {conf["v_steps"]}')
+        raise SequenceError(
+            f'need 0 <= v_min <= v_max and v_steps >= 1, got {conf["v_min"]}, {conf["v_max"]}, {conf["v_steps"]}'
+        )
     if not float(conf['max_gap_s']) > 0:
         raise SequenceError(f'max_gap_s must be positive, got {conf["max_gap_s"]}')
     return conf
@@ -126,11 +128,11 @@ class SequenceMatcher:
         if not scored or map_size < 1:
             return np.zeros(0, np.int64), np.zeros(0, np.float64)
         n = len(rows)
-        back = self.back[:, :n]                                               # (V, n), b = 0 is the newest
+        back = self.back[:, :n]  # (V, n), b = 0 is the newest
         # the window as a dense (n + pad, R) matrix, rows newest first, unscored = the row's minimum
         floor = np.array([r[2].min() if len(r[2]) else np.nan for r in reversed(rows)])
-        floor = np.where(np.isfinite(floor), floor, np.nanmin(floor))        # an empty row: the window's minimum
-        dense = np.empty((n, map_size + 1))                                   # last column = off the map
+        floor = np.where(np.isfinite(floor), floor, np.nanmin(floor))  # an empty row: the window's minimum
+        dense = np.empty((n, map_size + 1))  # last column = off the map
         dense[:] = floor[:, None]
         for b, (_, pos, sc) in enumerate(reversed(rows)):
             inside = pos < map_size
@@ -146,17 +148,23 @@ class SequenceMatcher:
             ends = ends[np.asarray(allowed_ends, bool)[ends]]
         if not len(ends):
             return np.zeros(0, np.int64), np.zeros(0, np.float64)
-        visit = ends[None, None, :] - back[:, :, None]                       # (V, n, E)
-        visit = np.where(visit >= 0, visit, map_size)                         # off the map: the row's floor
-        visit += (np.arange(n) * (map_size + 1))[None, :, None]               # flat index into dense
-        values = dense.ravel().take(visit)                                    # (V, n, E)
-        best = values.sum(axis=1).max(axis=0) / n                             # (E,) mean along the best line
+        visit = ends[None, None, :] - back[:, :, None]  # (V, n, E)
+        visit = np.where(visit >= 0, visit, map_size)  # off the map: the row's floor
+        visit += (np.arange(n) * (map_size + 1))[None, :, None]  # flat index into dense
+        values = dense.ravel().take(visit)  # (V, n, E)
+        best = values.sum(axis=1).max(axis=0) / n  # (E,) mean along the best line
         order = np.argsort(-best, kind='stable')[:k]
         return ends[order], best[order]
 
 
-def rank_sequences(ranked: np.ndarray, scores: np.ndarray, n_refs: int, conf: dict | None = None,
-                   allowed: np.ndarray | None = None, k: int = 30) -> tuple[np.ndarray, np.ndarray]:
+def rank_sequences(
+    ranked: np.ndarray,
+    scores: np.ndarray,
+    n_refs: int,
+    conf: dict | None = None,
+    allowed: np.ndarray | None = None,
+    k: int = 30,
+) -> tuple[np.ndarray, np.ndarray]:
     """Offline: single-frame rankings of a query sequence (in stream order) -> sequence rankings.
 
     ranked (Q, K) ref indices (-1 = none) and scores (Q, K) of any method; allowed (Q, R) bool or
@@ -169,12 +177,13 @@ def rank_sequences(ranked: np.ndarray, scores: np.ndarray, n_refs: int, conf: di
         ok = ranked[q] >= 0
         seq.push(q, ranked[q][ok], scores[q][ok])
         ends, s = seq.search(n_refs, None if allowed is None else allowed[q], k)
-        out[q, :len(ends)], out_scores[q, :len(ends)] = ends, s
+        out[q, : len(ends)], out_scores[q, : len(ends)] = ends, s
     return out, out_scores
 
 
-def dense_to_ranked(similarity: np.ndarray, allowed: np.ndarray | None = None,
-                    k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def dense_to_ranked(
+    similarity: np.ndarray, allowed: np.ndarray | None = None, k: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """(Q, R) similarity (higher = better) -> ranked (Q, k) indices and scores, disallowed = -1/-inf."""
     sim = np.asarray(similarity, np.float64)
     if allowed is not None:
@@ -261,19 +270,23 @@ class KeyframeSequence:
 
     def set_map(self, ids) -> None:
         ids = np.asarray(ids, np.int64)
-        if not len(ids) or (len(self.ids) and not np.array_equal(ids[:len(self.ids)], self.ids)):
+        if not len(ids) or (len(self.ids) and not np.array_equal(ids[: len(self.ids)], self.ids)):
             self.matcher.reset()  # cleared or rewritten: old positions mean nothing now
         self.ids = ids
 
-    def update(self, stamp_ns: int, scores: dict, allowed: int | None = None,
-               k: int = 5) -> tuple[str | None, list[tuple[int, float]]]:
+    def update(
+        self, stamp_ns: int, scores: dict, allowed: int | None = None, k: int = 5
+    ) -> tuple[str | None, list[tuple[int, float]]]:
         """Push one query's single-frame scores {keyframe_id: S} and search. allowed: only the first
         `allowed` keyframes may be answers (mapping mode's exclude_recent); None = all."""
         ids = np.fromiter(scores.keys(), np.int64, len(scores))
         values = np.fromiter(scores.values(), np.float64, len(scores))
         pos = np.searchsorted(self.ids, ids)
-        known = (pos < len(self.ids)) & (self.ids[np.minimum(pos, len(self.ids) - 1)] == ids) \
-            if len(self.ids) else np.zeros(len(ids), bool)
+        known = (
+            (pos < len(self.ids)) & (self.ids[np.minimum(pos, len(self.ids) - 1)] == ids)
+            if len(self.ids)
+            else np.zeros(len(ids), bool)
+        )
         reason = self.matcher.push(stamp_ns, pos[known], values[known])
         mask = None
         if allowed is not None:

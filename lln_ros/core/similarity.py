@@ -7,6 +7,7 @@ For a query set A and K candidate sets B_k:
   4. S = sum_ij w_ij * s_ij.
 All K candidates are done at once with array operations (no Python loop per candidate).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -29,6 +30,7 @@ class MatchResult:
     candidate's landmarks (-1 where query landmark i has no mutual partner); similarity (K, n_a)
     cosine of the pair; weight (K, n_a) offset weight (0 where no pair).
     """
+
     scores: np.ndarray
     offsets: np.ndarray
     match: np.ndarray
@@ -38,12 +40,17 @@ class MatchResult:
     def pairs(self, k: int) -> dict:
         """Matched pairs of candidate k: query_index, map_index, similarity, weight (arrays of M)."""
         i = np.flatnonzero(self.match[k] >= 0)
-        return {'query_index': i, 'map_index': self.match[k, i],
-                'similarity': self.similarity[k, i], 'weight': self.weight[k, i]}
+        return {
+            'query_index': i,
+            'map_index': self.match[k, i],
+            'similarity': self.similarity[k, i],
+            'weight': self.weight[k, i],
+        }
 
 
-def cross_match(query: np.ndarray, cands: np.ndarray, valid_q: np.ndarray,
-                valid_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def cross_match(
+    query: np.ndarray, cands: np.ndarray, valid_q: np.ndarray, valid_c: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Mutual nearest neighbours by cosine.
 
     query (n_a, D), cands (K, n_b, D), both L2-normalised; valid_q (n_a,), valid_c (K, n_b) bool.
@@ -52,11 +59,11 @@ def cross_match(query: np.ndarray, cands: np.ndarray, valid_q: np.ndarray,
     k, n_b, d = cands.shape
     # one GEMM for all candidates: (K*n_b, D) @ (D, n_a)
     sims = (cands.reshape(k * n_b, d) @ query.T).reshape(k, n_b, query.shape[0]).transpose(0, 2, 1)
-    sims = np.where(valid_c[:, None, :] & valid_q[None, :, None], sims, -np.inf)   # (K, n_a, n_b)
-    nn_ab = sims.argmax(axis=2)                                                       # (K, n_a)
-    nn_ba = sims.argmax(axis=1)                                                       # (K, n_b)
+    sims = np.where(valid_c[:, None, :] & valid_q[None, :, None], sims, -np.inf)  # (K, n_a, n_b)
+    nn_ab = sims.argmax(axis=2)  # (K, n_a)
+    nn_ba = sims.argmax(axis=1)  # (K, n_b)
     rows = np.arange(k)[:, None]
-    mutual = (nn_ba[rows, nn_ab] == np.arange(query.shape[0])[None, :])
+    mutual = nn_ba[rows, nn_ab] == np.arange(query.shape[0])[None, :]
     mutual &= valid_q[None, :] & valid_c[rows, nn_ab]
     best = np.take_along_axis(sims, nn_ab[:, :, None], axis=2)[:, :, 0]
     return np.where(mutual, nn_ab, -1), np.where(mutual, best, 0.0).astype(np.float32)
@@ -77,7 +84,7 @@ def offset_mode(offsets: np.ndarray, matched: np.ndarray, sims: np.ndarray) -> n
     k, n_a, _ = offsets.shape
     span = int(np.abs(offsets).max(initial=0))
     side = 2 * span + 1
-    code = (offsets[..., 1] + span) * side + (offsets[..., 0] + span)            # (K, n_a)
+    code = (offsets[..., 1] + span) * side + (offsets[..., 0] + span)  # (K, n_a)
     flat = (np.arange(k, dtype=np.int64)[:, None] * side * side + code)[matched]  # (P,)
     weights = np.maximum(sims[matched], 0.0)
     if k * side * side <= DENSE_BINS:
@@ -91,10 +98,10 @@ def offset_mode(offsets: np.ndarray, matched: np.ndarray, sims: np.ndarray) -> n
     mode = np.zeros((k, 2), np.int64)
     if not len(flat):
         return mode
-    bins, inverse = np.unique(flat, return_inverse=True)                          # occupied bins, sorted
+    bins, inverse = np.unique(flat, return_inverse=True)  # occupied bins, sorted
     value = np.bincount(inverse).astype(np.float64) + np.bincount(inverse, weights=weights) / (n_a + 1)
     cand = bins // (side * side)
-    order = np.lexsort((bins, -value, cand))        # per candidate: best value, then lowest bin
+    order = np.lexsort((bins, -value, cand))  # per candidate: best value, then lowest bin
     first = order[np.r_[True, cand[order][1:] != cand[order][:-1]]]
     best = bins[first] % (side * side)
     mode[cand[first]] = np.stack([best % side - span, best // side - span], axis=1)
@@ -112,8 +119,9 @@ def offset_weights(offsets: np.ndarray, mode: np.ndarray, scale: float = 1.0) ->
 def match_batch(query: LandmarkSet, batch: LandmarkBatch, scale: float = 1.0) -> MatchResult:
     """Similarity S of one query against every set in a LandmarkBatch."""
     if batch.descriptors.shape[2] != query.dim:
-        raise DescriptorError(f'descriptor size mismatch: query has D={query.dim}, '
-                              f'candidates have D={batch.descriptors.shape[2]}')
+        raise DescriptorError(
+            f'descriptor size mismatch: query has D={query.dim}, candidates have D={batch.descriptors.shape[2]}'
+        )
     q = np.asarray(query.descriptors, np.float32)
     valid_q = np.ones(len(q), bool)
     match, sims = cross_match(q, np.asarray(batch.descriptors, np.float32), valid_q, batch.valid)
@@ -136,7 +144,8 @@ def check_comparable(a: LandmarkSet, b: LandmarkSet) -> None:
     if a.dim != b.dim:
         raise DescriptorError(f'descriptor size mismatch: {a.dim} vs {b.dim}')
     if a.descriptor_space and b.descriptor_space and a.descriptor_space != b.descriptor_space:
-        raise DescriptorError(f'landmark sets come from different models: {a.descriptor_space!r} '
-                              f'vs {b.descriptor_space!r}')
+        raise DescriptorError(
+            f'landmark sets come from different models: {a.descriptor_space!r} vs {b.descriptor_space!r}'
+        )
     for s in (a, b):
         s.validate()

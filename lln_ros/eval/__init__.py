@@ -12,12 +12,22 @@
 Names are imported on first use, so the report stack (scripts/results_md.py, lln-demo's bad-input
 checks) does not pay for torch.
 """
+
 from importlib import import_module
 
 _LAZY = {
-    'ALL_METHODS': 'methods', 'METHODS': 'methods', 'METRIC_KEYS': 'methods', 'REPORT_KEYS': 'methods',
-    'Head': 'methods', 'load_heads': 'methods', 'parse_head': 'methods', 'parse_methods': 'methods',
-    'DatasetRun': 'runner', 'EvalRun': 'runner', 'default_conf': 'runner', 'evaluate': 'runner',
+    'ALL_METHODS': 'methods',
+    'METHODS': 'methods',
+    'METRIC_KEYS': 'methods',
+    'REPORT_KEYS': 'methods',
+    'Head': 'methods',
+    'load_heads': 'methods',
+    'parse_head': 'methods',
+    'parse_methods': 'methods',
+    'DatasetRun': 'runner',
+    'EvalRun': 'runner',
+    'default_conf': 'runner',
+    'evaluate': 'runner',
     'evaluate_dataset': 'runner',
 }
 __all__ = list(_LAZY)

@@ -3,6 +3,7 @@ score-map heatmaps (Fig. 3) and match pictures of successes and failures (Fig. 7
 
 Legends print every metric as a percentage (report.pct), as the tables do.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -21,13 +22,20 @@ def _pyplot():
     import matplotlib.pyplot as plt
 
     from .. import plotting  # noqa: F401  (selects the Agg backend first: files only, no display)
+
     return plt
 
 
 def _colours(rows: list[str]) -> dict:
     plt = _pyplot()
-    fixed = {'holistic': 'tab:gray', 'act': 'tab:green', 'rand': 'tab:orange', 'all': 'tab:purple',
-             'sad': 'black', 'seqslam': 'tab:olive'}
+    fixed = {
+        'holistic': 'tab:gray',
+        'act': 'tab:green',
+        'rand': 'tab:orange',
+        'all': 'tab:purple',
+        'sad': 'black',
+        'seqslam': 'tab:olive',
+    }
     lln_cols = iter(['tab:blue', 'tab:red', 'tab:cyan', 'tab:brown', 'tab:pink'])
     out = {}
     for r in rows:
@@ -47,8 +55,14 @@ def plot_pr(curves: list[tuple], gt: np.ndarray, path, title: str) -> None:
     fig, ax = plt.subplots(figsize=(6.4, 5), dpi=110)
     for label, ranked, scores, summary, style, colour in curves:
         prec, rec, _ = metrics.pr_curve(ranked, scores[:, 0], gt)
-        ax.plot(np.r_[0.0, rec], np.r_[prec[:1] if len(prec) else [1.0], prec], style, color=colour, lw=1.6,
-                label=curve_label(label, summary))
+        ax.plot(
+            np.r_[0.0, rec],
+            np.r_[prec[:1] if len(prec) else [1.0], prec],
+            style,
+            color=colour,
+            lw=1.6,
+            label=curve_label(label, summary),
+        )
     ax.set_xlim(0, 1.01)
     ax.set_ylim(0, 1.02)
     ax.set_xlabel('recall')
@@ -64,16 +78,19 @@ def plot_pr(curves: list[tuple], gt: np.ndarray, path, title: str) -> None:
 def rows_curves(run) -> list[tuple]:
     """plot_pr curves of every row of an lln-eval DatasetRun (holistic dashed)."""
     colours = _colours(list(run.rankings))
-    return [(row, ranked, scores, run.entry['methods'][row], '--' if row == 'holistic' else '-', colours[row])
-            for row, (ranked, scores) in run.rankings.items()]
+    return [
+        (row, ranked, scores, run.entry['methods'][row], '--' if row == 'holistic' else '-', colours[row])
+        for row, (ranked, scores) in run.rankings.items()
+    ]
 
 
 def online_curves(online: dict, offline: dict | None) -> list[tuple]:
     """plot_pr curves of lln-demo: the nodes' answers and, when run, the offline evaluator's."""
     curves = [('online (nodes)', online['ranked'], online['scores'], online['summary'], '-', 'tab:blue')]
     if offline:
-        curves.append(('offline (lln-eval)', offline['ranked'], offline['scores'], offline['summary'], '--',
-                       'tab:orange'))
+        curves.append(
+            ('offline (lln-eval)', offline['ranked'], offline['scores'], offline['summary'], '--', 'tab:orange')
+        )
     return curves
 
 
@@ -88,8 +105,14 @@ def plot_recall_at_k(run, gt: np.ndarray, prefilter_k: int, path) -> None:
         if row == 'holistic':
             continue
         kk = np.arange(1, min(ranked.shape[1], len(run.recall_curve)) + 1)
-        ax.plot(kk, [metrics.recall_at_k(ranked, gt, int(k)) for k in kk], '--', lw=1, color=colours[row],
-                label=f'{row} (reranked top-{ranked.shape[1]})')
+        ax.plot(
+            kk,
+            [metrics.recall_at_k(ranked, gt, int(k)) for k in kk],
+            '--',
+            lw=1,
+            color=colours[row],
+            label=f'{row} (reranked top-{ranked.shape[1]})',
+        )
     if prefilter_k:  # 0: exhaustive, no cut-off to mark
         ax.axvline(prefilter_k, color='k', lw=0.8, ls=':')
         ax.text(prefilter_k, 0.02, f' K = {prefilter_k}', fontsize=8)
@@ -110,6 +133,7 @@ def plot_heatmaps(images: list[np.ndarray], rows: list[tuple[str, list, list]], 
     from matplotlib.patches import Rectangle
 
     from ..io.image import heatmap
+
     plt = _pyplot()
     nr, nc = len(rows), len(images)
     fig, axes = plt.subplots(nr, nc, figsize=(3.2 * nc, 2.6 * nr + 0.4), dpi=100, squeeze=False)
@@ -120,7 +144,7 @@ def plot_heatmaps(images: list[np.ndarray], rows: list[tuple[str, list, list]], 
             heat = heatmap(maps[c], (img.shape[1], img.shape[0]))
             ax.imshow(heat, cmap='jet', alpha=0.55 * heat)
             s = sets[c]
-            for (u, v) in s.centers:
+            for u, v in s.centers:
                 w, h = s.cell_size
                 ax.add_patch(Rectangle((u - w / 2, v - h / 2), w, h, fill=False, lw=0.8, ec='white'))
             ax.set_xticks([])
@@ -134,11 +158,13 @@ def plot_heatmaps(images: list[np.ndarray], rows: list[tuple[str, list, list]], 
     plt.close(fig)
 
 
-def write_figures(run, ds, extractor, heads: list, conf: dict, feats: dict,
-                  ref_sizes: list, query_sizes: list, out: Path) -> dict:
+def write_figures(
+    run, ds, extractor, heads: list, conf: dict, feats: dict, ref_sizes: list, query_sizes: list, out: Path
+) -> dict:
     """PNGs of one dataset; returns {'pr', 'recall_at_k', 'heatmaps': file, 'examples': [...]}."""
     from ..io.image import load_image
     from ..plotting import plot_matches
+
     stem = slug(run.name)
     figs: dict = {}
     figs['pr'] = f'{stem}_pr.png'
@@ -167,8 +193,12 @@ def write_figures(run, ds, extractor, heads: list, conf: dict, feats: dict,
             norms = [np.linalg.norm(np.asarray(qfeat(i), np.float32), axis=0) for i in idx]
             rows.append(('ACT (feature norm)', norms, sets))
         figs['heatmaps'] = f'{stem}_heatmaps.png'
-        plot_heatmaps(images, rows, out / figs['heatmaps'],
-                      f'{run.name}: score maps and the top-{top_n} cells (queries {", ".join(map(str, idx))})')
+        plot_heatmaps(
+            images,
+            rows,
+            out / figs['heatmaps'],
+            f'{run.name}: score maps and the top-{top_n} cells (queries {", ".join(map(str, idx))})',
+        )
 
     # match pictures: the first lln row (else the first local row), confident successes and failures
     local = [(r, m, h) for r, m, h in row_names(methods, heads) if m in LOCAL_METHODS]
@@ -185,8 +215,11 @@ def write_figures(run, ds, extractor, heads: list, conf: dict, feats: dict,
     wins = [int(q) for q in order if correct[q]]
     fails = [int(q) for q in order if answered[q] and has[q] and not correct[q]]
     n_ex = int(conf['examples'])
-    pick_wins = [wins[int(i)] for i in np.unique(np.linspace(0, len(wins) - 1, min(n_ex, len(wins))).astype(int))] \
-        if wins else []
+    pick_wins = (
+        [wins[int(i)] for i in np.unique(np.linspace(0, len(wins) - 1, min(n_ex, len(wins))).astype(int))]
+        if wins
+        else []
+    )
     k = ranked.shape[1]
     for kind, queries in (('success', pick_wins), ('failure', fails[:n_ex])):
         for j, q in enumerate(queries, 1):
@@ -197,29 +230,38 @@ def write_figures(run, ds, extractor, heads: list, conf: dict, feats: dict,
             qimg, rimg = load_image(str(ds.query_paths[q])), load_image(str(ds.ref_paths[r]))
             name = f'{stem}_{slug(row)}_{kind}{j}_q{q}.png'
             truth = np.flatnonzero(ds.gt[q])
-            hol_rank = int(np.flatnonzero(np.isin(run.holistic_full[q], truth))[0]) + 1 \
-                if np.isin(run.holistic_full[q], truth).any() else None
+            hol_rank = (
+                int(np.flatnonzero(np.isin(run.holistic_full[q], truth))[0]) + 1
+                if np.isin(run.holistic_full[q], truth).any()
+                else None
+            )
             verdict = 'correct' if kind == 'success' else f'WRONG (true: {", ".join(map(str, truth[:5]))})'
-            line1 = (f'query {q} ({Path(ds.query_paths[q]).name}) -> ref {r} ({Path(ds.ref_paths[r]).name}), '
-                     f'{verdict}')
-            line2 = (f'S = {scores[q, 0]:.2f}, {len(res.pairs(0)["weight"])} mutual pairs; first true match at '
-                     f'holistic rank {hol_rank}'
-                     + (f' (outside the top-{k}: no rerank can recover it)' if hol_rank and hol_rank > k else ''))
+            line1 = f'query {q} ({Path(ds.query_paths[q]).name}) -> ref {r} ({Path(ds.ref_paths[r]).name}), {verdict}'
+            line2 = (
+                f'S = {scores[q, 0]:.2f}, {len(res.pairs(0)["weight"])} mutual pairs; first true match at '
+                f'holistic rank {hol_rank}'
+                + (f' (outside the top-{k}: no rerank can recover it)' if hol_rank and hol_rank > k else '')
+            )
             caption = f'{line1}, {line2}'
-            plot_matches(qimg, rimg, qs, rs, res.pairs(0), str(out / name),
-                         title=f'{run.name} {row}: {line1}\n{line2}')
-            ex = {'kind': kind, 'file': name, 'query': q, 'answer': r, 'score': float(scores[q, 0]),
-                  'caption': caption}
+            plot_matches(qimg, rimg, qs, rs, res.pairs(0), str(out / name), title=f'{run.name} {row}: {line1}\n{line2}')
+            ex = {'kind': kind, 'file': name, 'query': q, 'answer': r, 'score': float(scores[q, 0]), 'caption': caption}
             if kind == 'failure' and len(truth):
                 true_sets = [v.from_features(rfeat(int(t)), ref_sizes[int(t)]) for t in truth]
                 tres = match_batch(qs, stack_landmarks(true_sets), scale)
                 b = int(np.argmax(tres.scores))
                 t = int(truth[b])
                 tname = f'{stem}_{slug(row)}_{kind}{j}_q{q}_truth.png'
-                plot_matches(qimg, load_image(str(ds.ref_paths[t])), qs, true_sets[b], tres.pairs(b),
-                             str(out / tname), title=f'{run.name} {row}: query {q} vs its true match ref {t}\n'
-                                                     f'S = {tres.scores[b]:.2f} (the wrong answer ref {r} scored '
-                                                     f'{scores[q, 0]:.2f})')
+                plot_matches(
+                    qimg,
+                    load_image(str(ds.ref_paths[t])),
+                    qs,
+                    true_sets[b],
+                    tres.pairs(b),
+                    str(out / tname),
+                    title=f'{run.name} {row}: query {q} vs its true match ref {t}\n'
+                    f'S = {tres.scores[b]:.2f} (the wrong answer ref {r} scored '
+                    f'{scores[q, 0]:.2f})',
+                )
                 ex['truth_file'] = tname
                 ex['truth'] = t
             figs['examples'].append(ex)
@@ -242,6 +284,7 @@ def plot_online_examples(ds, run: dict, online: dict, out: Path, count: int) -> 
 
     from ..io.image import load_image
     from ..plotting import plot_matches
+
     if count <= 0:
         return []
     ranked, scores = online['ranked'], online['scores']
@@ -272,19 +315,40 @@ def plot_online_examples(ds, run: dict, online: dict, out: Path, count: int) -> 
                     return np.zeros(0, np.int64)
                 d = ((points[:, None, :] - centers[None, :, :]) ** 2).sum(-1)
                 return d.argmin(1)
-            pairs = {'query_index': index_of(qpts, qc), 'map_index': index_of(rpts, rc),
-                     'similarity': np.asarray(m['similarity'], np.float32),
-                     'weight': np.asarray(m['weight'], np.float32)}
+
+            pairs = {
+                'query_index': index_of(qpts, qc),
+                'map_index': index_of(rpts, rc),
+                'similarity': np.asarray(m['similarity'], np.float32),
+                'weight': np.asarray(m['weight'], np.float32),
+            }
             qset = SimpleNamespace(centers=qc, cell_size=np.array(qcell, np.float32), activation=None)
             rset = SimpleNamespace(centers=rc, cell_size=np.array(rcell, np.float32), activation=None)
             truth = np.flatnonzero(ds.gt[q])
             verdict = 'correct' if kind == 'success' else f'WRONG (true: {", ".join(map(str, truth[:5]))})'
-            title = (f'online: query {q} ({Path(ds.query_paths[q]).name}) -> keyframe of ref {r} '
-                     f'({Path(ds.ref_paths[r]).name}), {verdict}\nS = {scores[q, 0]:.2f}, {len(m)} matched region '
-                     f'pairs from /matches (line opacity = offset weight)')
+            title = (
+                f'online: query {q} ({Path(ds.query_paths[q]).name}) -> keyframe of ref {r} '
+                f'({Path(ds.ref_paths[r]).name}), {verdict}\nS = {scores[q, 0]:.2f}, {len(m)} matched region '
+                f'pairs from /matches (line opacity = offset weight)'
+            )
             name = f'matches_online_{kind}{j}_q{q}.png'
-            plot_matches(load_image(str(ds.query_paths[q])), load_image(str(ds.ref_paths[r])), qset, rset, pairs,
-                         str(out / name), title=title)
-            out_list.append({'kind': kind, 'file': name, 'query': q, 'answer': r, 'score': float(scores[q, 0]),
-                             'pairs': int(len(m))})
+            plot_matches(
+                load_image(str(ds.query_paths[q])),
+                load_image(str(ds.ref_paths[r])),
+                qset,
+                rset,
+                pairs,
+                str(out / name),
+                title=title,
+            )
+            out_list.append(
+                {
+                    'kind': kind,
+                    'file': name,
+                    'query': q,
+                    'answer': r,
+                    'score': float(scores[q, 0]),
+                    'pairs': int(len(m)),
+                }
+            )
     return out_list

@@ -1,4 +1,5 @@
 """The rows lln-eval computes: methods, LLN heads (one `lln[label]` row each) and extractor variants."""
+
 from __future__ import annotations
 
 import copy
@@ -7,13 +8,13 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import ModelError
 from ..core.landmarks import METHODS as LOCAL_METHODS
 from ..core.lln import LLNHead, head_fingerprint, load_checkpoint
+from ..errors import ModelError
 from .peers import PEER_METHODS
 
-METHODS = ('holistic',) + tuple(LOCAL_METHODS)   # the paper's rows, the default
-ALL_METHODS = METHODS + PEER_METHODS             # plus the classic peers (opt-in: --methods ...,sad,seqslam)
+METHODS = ('holistic',) + tuple(LOCAL_METHODS)  # the paper's rows, the default
+ALL_METHODS = METHODS + PEER_METHODS  # plus the classic peers (opt-in: --methods ...,sad,seqslam)
 METRIC_KEYS = ('p_at_100r', 'r_at_1', 'r_at_5', 'r_at_10', 'auc_pr', 'r_at_100p')
 REPORT_KEYS = METRIC_KEYS + ('extract_ms', 'match_ms_per_pair', 'n')
 
@@ -29,6 +30,7 @@ class Head:
     weights: a checkpoint path; None (or '', 'xavier', 'untrained') = a seeded Xavier-init head (the
     untrained baseline); 'shipped' = the head shipped for this backbone/layer; 'extractor' = the
     extractor's own head as configured."""
+
     label: str
     weights: str | None
     module: LLNHead | None = None
@@ -45,8 +47,9 @@ def parse_head(text: str, label: str | None = None) -> Head:
         label, _, text = text.partition('=')
     weights = None if text.strip().lower() in UNTRAINED_WORDS else text
     if label is None:
-        label = 'untrained' if weights is None else (
-            'shipped' if weights.lower() in SHIPPED_WORDS else Path(weights).stem)
+        label = (
+            'untrained' if weights is None else ('shipped' if weights.lower() in SHIPPED_WORDS else Path(weights).stem)
+        )
     return Head(label.strip(), weights)
 
 
@@ -72,15 +75,16 @@ def load_heads(extractor, heads: list[Head] | None) -> list[Head]:
         elif w is None or w.strip().lower() in UNTRAINED_WORDS:
             untrained.append(i)
         elif w == 'extractor':
-            out[i] = Head(h.label, extractor.model_info.get('weights') or None, extractor.head,
-                          dict(extractor.head_meta))
+            out[i] = Head(
+                h.label, extractor.model_info.get('weights') or None, extractor.head, dict(extractor.head_meta)
+            )
         else:
             if w.lower() in SHIPPED_WORDS:
                 from ..core.extractor import shipped_weights
+
                 path = shipped_weights(name, layer)
                 if not path:
-                    raise ModelError(f'no LLN head ships for backbone {name!r} layer {layer!r}; '
-                                     'pass a checkpoint path')
+                    raise ModelError(f'no LLN head ships for backbone {name!r} layer {layer!r}; pass a checkpoint path')
             else:
                 path = os.path.expanduser(w)
             module, meta = load_checkpoint(path, name, layer, dim)
@@ -101,8 +105,12 @@ def variant(extractor, method: str, top_n: int, head: Head | None = None):
     v.conf = {**extractor.conf, 'method': method, 'top_n': int(top_n)}
     if head is not None:
         v.head, v.head_meta = head.module, head.meta
-        v.model_info = {**extractor.model_info, 'head': head_fingerprint(head.module),
-                        'head_trained': head.trained, 'weights': head.weights or ''}
+        v.model_info = {
+            **extractor.model_info,
+            'head': head_fingerprint(head.module),
+            'head_trained': head.trained,
+            'weights': head.weights or '',
+        }
     return v
 
 

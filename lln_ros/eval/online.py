@@ -1,6 +1,7 @@
 """lln-demo's scoring: rankings from the answers the nodes published, transport accounting (what was
 sent, received, dropped, stored, answered), and online against the offline evaluator, metric by
 metric, query by query and candidate by candidate, with the cause of every difference."""
+
 from __future__ import annotations
 
 import math
@@ -17,6 +18,7 @@ from .report import METRICS
 def stored_stamps(path: Path) -> list[int]:
     """Stamps (ns) of every keyframe in the map file, in storage order (read after the matcher stopped)."""
     from ..mapstore import MapStore
+
     with MapStore.open(str(path), create=False) as store:
         out = []
         for kid in store.ids():
@@ -51,47 +53,71 @@ def score_online(ds, run: dict) -> dict:
     summary = metrics.summary(ranked, scores[:, 0], ds.gt)
     answered = int(sum(1 for s in run['query_stamps'] if run['candidates'].get(s) is not None))
     diag = run['diagnostics']
-    ext_map, ext_query, matcher = (diag.get(n, {}) for n in ('/lln_extractor_map', '/lln_extractor_query',
-                                                             '/lln_matcher'))
+    ext_map, ext_query, matcher = (
+        diag.get(n, {}) for n in ('/lln_extractor_map', '/lln_extractor_query', '/lln_matcher')
+    )
     as_int = lambda d, key: int(d.get(key, 0) or 0)  # noqa: E731
     stored = run['stored_stamps']
     stored_set = set(stored)
     lost_refs = [i for i, s in enumerate(run['ref_stamps']) if s not in stored_set]
     lost_queries = [i for i, s in enumerate(run['query_stamps']) if run['candidates'].get(s) is None]
     transport = {
-        'map': {'frames': len(run['ref_stamps']),
-                'extractor_received': as_int(ext_map, 'received'),
-                'extractor_published': as_int(ext_map, 'published'),
-                'extractor_dropped': as_int(ext_map, 'dropped'),
-                'extractor_bad_image': as_int(ext_map, 'bad_image'),
-                'landmarks_seen': len(run['landmarks']['keyframes']),
-                'resent': int(run['play']['map'].get('resent', 0)),
-                'keyframes_stored': int(run['map_info'].get('keyframes', 0)),
-                'keyframes_in_map_file': len(stored), 'duplicate_keyframes': len(stored) - len(stored_set),
-                'bad_keyframe': as_int(matcher, 'bad_keyframe'),
-                'lost': len(lost_refs), 'lost_indices': lost_refs[:50]},
-        'query': {'frames': len(run['query_stamps']), 'resent': int(run['play']['query'].get('resent', 0)),
-                  'extractor_received': as_int(ext_query, 'received'),
-                  'extractor_published': as_int(ext_query, 'published'),
-                  'extractor_dropped': as_int(ext_query, 'dropped'),
-                  'extractor_bad_image': as_int(ext_query, 'bad_image'),
-                  'landmarks_seen': len(run['landmarks']['query']),
-                  'answered': answered, 'queries_answered_counter': as_int(matcher, 'queries_answered'),
-                  'bad_query': as_int(matcher, 'bad_query'),
-                  'lost': len(lost_queries), 'lost_indices': lost_queries[:50]},
+        'map': {
+            'frames': len(run['ref_stamps']),
+            'extractor_received': as_int(ext_map, 'received'),
+            'extractor_published': as_int(ext_map, 'published'),
+            'extractor_dropped': as_int(ext_map, 'dropped'),
+            'extractor_bad_image': as_int(ext_map, 'bad_image'),
+            'landmarks_seen': len(run['landmarks']['keyframes']),
+            'resent': int(run['play']['map'].get('resent', 0)),
+            'keyframes_stored': int(run['map_info'].get('keyframes', 0)),
+            'keyframes_in_map_file': len(stored),
+            'duplicate_keyframes': len(stored) - len(stored_set),
+            'bad_keyframe': as_int(matcher, 'bad_keyframe'),
+            'lost': len(lost_refs),
+            'lost_indices': lost_refs[:50],
+        },
+        'query': {
+            'frames': len(run['query_stamps']),
+            'resent': int(run['play']['query'].get('resent', 0)),
+            'extractor_received': as_int(ext_query, 'received'),
+            'extractor_published': as_int(ext_query, 'published'),
+            'extractor_dropped': as_int(ext_query, 'dropped'),
+            'extractor_bad_image': as_int(ext_query, 'bad_image'),
+            'landmarks_seen': len(run['landmarks']['query']),
+            'answered': answered,
+            'queries_answered_counter': as_int(matcher, 'queries_answered'),
+            'bad_query': as_int(matcher, 'bad_query'),
+            'lost': len(lost_queries),
+            'lost_indices': lost_queries[:50],
+        },
         'keyframes_in_map_at_end': int(run['final_info'].get('keyframes', 0)),
-        'duplicates': run['duplicates'], 'unknown_keyframe_stamps': int(unknown_keyframes),
-        'unknown_query_stamps': int(unknown_queries), 'bad_messages': run['bad_messages'][:20],
+        'duplicates': run['duplicates'],
+        'unknown_keyframe_stamps': int(unknown_keyframes),
+        'unknown_query_stamps': int(unknown_queries),
+        'bad_messages': run['bad_messages'][:20],
     }
-    return {'ranked': ranked, 'scores': scores, 'holistic': holistic, 'summary': summary,
-            'answered': answered, 'transport': transport}
+    return {
+        'ranked': ranked,
+        'scores': scores,
+        'holistic': holistic,
+        'summary': summary,
+        'answered': answered,
+        'transport': transport,
+    }
 
 
 JUMP = 1e-3  # relative S difference above which a query-candidate pair is not "the same up to rounding"
 
 
-def compare(online: dict, off_ranked: np.ndarray, off_scores: np.ndarray, off_summary: dict,
-            transport: dict, models: tuple[dict, dict] = ({}, {})) -> dict:
+def compare(
+    online: dict,
+    off_ranked: np.ndarray,
+    off_scores: np.ndarray,
+    off_summary: dict,
+    transport: dict,
+    models: tuple[dict, dict] = ({}, {}),
+) -> dict:
     """Online vs offline: metric by metric, query by query, and candidate by candidate (online k =
     prefilter_k, so both sides score the same holistic top-K); the cause of every difference.
     models: (the nodes' model_info, the offline extractor's); another descriptor space or head on
@@ -103,16 +129,23 @@ def compare(online: dict, off_ranked: np.ndarray, off_scores: np.ndarray, off_su
     same = on_top == off_top
     differ = np.flatnonzero(answered & ~same)
     lost = int((~answered).sum())
-    metric_diff = {key: (None if online['summary'][key] is None or off_summary.get(key) is None else
-                         float(online['summary'][key]) - float(off_summary[key])) for key, _ in METRICS}
+    metric_diff = {
+        key: (
+            None
+            if online['summary'][key] is None or off_summary.get(key) is None
+            else float(online['summary'][key]) - float(off_summary[key])
+        )
+        for key, _ in METRICS
+    }
     agree = all(d is not None and abs(d) < 1e-9 for d in metric_diff.values())
 
     def scored(ranked, scores, i):
         return {int(r): float(v) for r, v in zip(ranked[i], scores[i]) if r >= 0 and math.isfinite(v)}
+
     rel_all, jumps, prefilter_sets = [], 0, 0
     for i in np.flatnonzero(answered):
         on, off = scored(on_ranked, on_scores, i), scored(off_ranked, off_scores, i)
-        prefilter_sets += set(on) != set(list(off)[:len(on)])  # offline holistic ranks every ref
+        prefilter_sets += set(on) != set(list(off)[: len(on)])  # offline holistic ranks every ref
         for r in set(on) & set(off):
             rel = abs(on[r] - off[r]) / max(abs(off[r]), 1e-6)
             rel_all.append(rel)
@@ -122,16 +155,31 @@ def compare(online: dict, off_ranked: np.ndarray, off_scores: np.ndarray, off_su
         on, off = scored(on_ranked, on_scores, i), scored(off_ranked, off_scores, i)
         a, b = int(on_top[i]), int(off_top[i])
         if a not in off or b not in on:
-            causes.append({'query': int(i), 'online': a, 'offline': b, 'cause': 'prefilter',
-                           'detail': f'{"online" if a not in off else "offline"} answer outside the other '
-                                     "side's holistic top-K"})
+            causes.append(
+                {
+                    'query': int(i),
+                    'online': a,
+                    'offline': b,
+                    'cause': 'prefilter',
+                    'detail': f'{"online" if a not in off else "offline"} answer outside the other '
+                    "side's holistic top-K",
+                }
+            )
             continue
         da, db = on[a] - off[a], on[b] - off[b]
         big = max(abs(da) / max(abs(off[a]), 1e-6), abs(db) / max(abs(off[b]), 1e-6)) > JUMP
-        causes.append({'query': int(i), 'online': a, 'offline': b, 'cause': 'S jump' if big else 'near-tie',
-                       'S_online': [on[a], on[b]], 'S_offline': [off[a], off[b]],
-                       'detail': f'S(online answer) {off[a]:.3f} -> {on[a]:.3f}, S(offline answer) '
-                                 f'{off[b]:.3f} -> {on[b]:.3f} (offline -> online)'})
+        causes.append(
+            {
+                'query': int(i),
+                'online': a,
+                'offline': b,
+                'cause': 'S jump' if big else 'near-tie',
+                'S_online': [on[a], on[b]],
+                'S_offline': [off[a], off[b]],
+                'detail': f'S(online answer) {off[a]:.3f} -> {on[a]:.3f}, S(offline answer) '
+                f'{off[b]:.3f} -> {on[b]:.3f} (offline -> online)',
+            }
+        )
     rel_all = np.asarray(rel_all)
     notes = []
     if lost:
@@ -144,42 +192,63 @@ def compare(online: dict, off_ranked: np.ndarray, off_scores: np.ndarray, off_su
         n_tie = sum(c['cause'] == 'near-tie' for c in causes)
         parts = []
         if n_jump:
-            parts.append(f'{n_jump} because the landmark similarity S of one contender changed by a whole '
-                         'mutual pair (a mutual-nearest-neighbour pair gained or lost)')
+            parts.append(
+                f'{n_jump} because the landmark similarity S of one contender changed by a whole '
+                'mutual pair (a mutual-nearest-neighbour pair gained or lost)'
+            )
         if n_pre:
-            parts.append(f'{n_pre} at the holistic prefilter boundary (one answer is outside the other '
-                         "side's top-K; the global-descriptor cosines there differ in the 5th decimal)")
+            parts.append(
+                f'{n_pre} at the holistic prefilter boundary (one answer is outside the other '
+                "side's top-K; the global-descriptor cosines there differ in the 5th decimal)"
+            )
         if n_tie:
             parts.append(f'{n_tie} near-ties of S decided by rounding')
-        notes.append(f'{len(differ)} of {q} queries have another top-1 online than offline (' + '; '.join(parts) +
-                     '). Not transport: both paths round features and descriptors to float16 at the same '
-                     'places, but the backbone itself runs at another batch size online (1 frame) than in '
-                     'the offline feature cache (a batch), and its kernels then differ in the last bits; a '
-                     'value near a float16 rounding boundary can round the other way, and S is not '
-                     'continuous in the descriptors (mutual nearest neighbours, offset mode), so where '
-                     'neighbouring cells are almost identical (e.g. tiny upsampled frames) that flips a pair')
+        notes.append(
+            f'{len(differ)} of {q} queries have another top-1 online than offline ('
+            + '; '.join(parts)
+            + '). Not transport: both paths round features and descriptors to float16 at the same '
+            'places, but the backbone itself runs at another batch size online (1 frame) than in '
+            'the offline feature cache (a batch), and its kernels then differ in the last bits; a '
+            'value near a float16 rounding boundary can round the other way, and S is not '
+            'continuous in the descriptors (mutual nearest neighbours, offset mode), so where '
+            'neighbouring cells are almost identical (e.g. tiny upsampled frames) that flips a pair'
+        )
     if len(rel_all) and jumps:
-        notes.append(f'Over all {len(rel_all)} query-candidate pairs scored on both sides, {jumps} '
-                     f'({100 * jumps / len(rel_all):.2f}%) differ in S by more than {100 * JUMP:g}%; the '
-                     f'median relative difference is {np.median(rel_all):.1e}')
+        notes.append(
+            f'Over all {len(rel_all)} query-candidate pairs scored on both sides, {jumps} '
+            f'({100 * jumps / len(rel_all):.2f}%) differ in S by more than {100 * JUMP:g}%; the '
+            f'median relative difference is {np.median(rel_all):.1e}'
+        )
     if not agree and not lost and not len(differ):
-        notes.append('same top-1 for every query; the threshold metrics (R@100%P, AUC-PR) differ because '
-                     'the top-1 scores differ slightly and reorder queries of almost equal score')
+        notes.append(
+            'same top-1 for every query; the threshold metrics (R@100%P, AUC-PR) differ because '
+            'the top-1 scores differ slightly and reorder queries of almost equal score'
+        )
     for key in ('descriptor_space', 'head'):
         if models[1].get(key) != models[0].get(key):
             notes.append(f"the offline {key} {models[1].get(key)} is not the nodes' {models[0].get(key)}")
             agree = False
     both = answered & same & np.isfinite(on_scores[:, 0]) & np.isfinite(off_scores[:, 0])
-    rel = (np.abs(on_scores[both, 0] - off_scores[both, 0])
-           / np.maximum(np.abs(off_scores[both, 0]), 1e-6)) if both.any() else np.zeros(0)
-    return {'agree': bool(agree), 'metric_diff': metric_diff, 'same_top1': int((answered & same).sum()),
-            'queries': q, 'lost_queries': lost, 'differing_queries': causes[:100],
-            'candidate_pairs_compared': int(len(rel_all)), 'candidate_pairs_jumped': int(jumps),
-            'candidate_sets_differing': int(prefilter_sets),
-            'candidate_rel_diff_median': float(np.median(rel_all)) if len(rel_all) else None,
-            'score_rel_diff_median': float(np.median(rel)) if len(rel) else None,
-            'score_rel_diff_max': float(rel.max()) if len(rel) else None,
-            'notes': notes}
+    rel = (
+        (np.abs(on_scores[both, 0] - off_scores[both, 0]) / np.maximum(np.abs(off_scores[both, 0]), 1e-6))
+        if both.any()
+        else np.zeros(0)
+    )
+    return {
+        'agree': bool(agree),
+        'metric_diff': metric_diff,
+        'same_top1': int((answered & same).sum()),
+        'queries': q,
+        'lost_queries': lost,
+        'differing_queries': causes[:100],
+        'candidate_pairs_compared': int(len(rel_all)),
+        'candidate_pairs_jumped': int(jumps),
+        'candidate_sets_differing': int(prefilter_sets),
+        'candidate_rel_diff_median': float(np.median(rel_all)) if len(rel_all) else None,
+        'score_rel_diff_median': float(np.median(rel)) if len(rel) else None,
+        'score_rel_diff_max': float(rel.max()) if len(rel) else None,
+        'notes': notes,
+    }
 
 
 def run_offline(ds, spec: str, args, out: Path, log) -> dict:
@@ -188,22 +257,48 @@ def run_offline(ds, spec: str, args, out: Path, log) -> dict:
     from ..cli.common import runtime_conf
     from ..core.extractor import Extractor
     from .runner import evaluate
+
     ext_method = 'lln' if args.method == 'holistic' else args.method
-    extractor = Extractor({'top_n': args.top_n, 'method': ext_method, 'num_threads': args.threads,
-                           **runtime_conf(args), 'weights': str(Path(args.weights).expanduser().resolve()) if args.weights else ''})
-    conf = {'methods': [args.method], 'top_n': args.top_n, 'prefilter': args.prefilter,
-            'prefilter_k': args.prefilter_k,
-            'timing_images': 3, 'timing_queries': 5, 'timing_repeats': 1, 'examples': args.examples,
-            'heatmap_images': 4, 'cache_dir': args.cache or str(out / 'cache' / 'features'),
-            'plots': True, 'progress': not args.quiet}
+    extractor = Extractor(
+        {
+            'top_n': args.top_n,
+            'method': ext_method,
+            'num_threads': args.threads,
+            **runtime_conf(args),
+            'weights': str(Path(args.weights).expanduser().resolve()) if args.weights else '',
+        }
+    )
+    conf = {
+        'methods': [args.method],
+        'top_n': args.top_n,
+        'prefilter': args.prefilter,
+        'prefilter_k': args.prefilter_k,
+        'timing_images': 3,
+        'timing_queries': 5,
+        'timing_repeats': 1,
+        'examples': args.examples,
+        'heatmap_images': 4,
+        'cache_dir': args.cache or str(out / 'cache' / 'features'),
+        'plots': True,
+        'progress': not args.quiet,
+    }
     t = time.monotonic()
-    command = (f'lln-eval --dataset {shlex.quote(spec)} --methods {args.method} --top-n {args.top_n} '
-               f'--prefilter {args.prefilter} --prefilter-k {args.prefilter_k} --out {shlex.quote(str(out / "offline"))}')
+    command = (
+        f'lln-eval --dataset {shlex.quote(spec)} --methods {args.method} --top-n {args.top_n} '
+        f'--prefilter {args.prefilter} --prefilter-k {args.prefilter_k} --out {shlex.quote(str(out / "offline"))}'
+    )
     run = evaluate([ds], extractor, conf, None, out / 'offline', specs=[spec], command=command, log=log)
     name = next(iter(run.datasets))
     row = next(iter(run.datasets[name].rankings))
     ranked, scores = run.datasets[name].rankings[row]
     entry = run.results['datasets'][name]['methods'][row]
-    return {'ranked': ranked, 'scores': scores, 'row': row, 'summary': {key: entry[key] for key, _ in METRICS},
-            'entry': entry, 'seconds': time.monotonic() - t, 'model': extractor.model_info,
-            'results': str(out / 'offline' / 'results.json')}
+    return {
+        'ranked': ranked,
+        'scores': scores,
+        'row': row,
+        'summary': {key: entry[key] for key, _ in METRICS},
+        'entry': entry,
+        'seconds': time.monotonic() - t,
+        'model': extractor.model_info,
+        'results': str(out / 'offline' / 'results.json'),
+    }

@@ -7,6 +7,7 @@
 
 and `sequence_row`: any method's single-frame ranking turned into a sequence ranking (`X+seq`).
 """
+
 from __future__ import annotations
 
 import time
@@ -14,8 +15,15 @@ import time
 import cv2
 import numpy as np
 
-from ..core.sequence import (contrast_enhance, dense_to_ranked, rank_sequences, sad_conf, sad_descriptors,
-                             sad_difference, sad_size)
+from ..core.sequence import (
+    contrast_enhance,
+    dense_to_ranked,
+    rank_sequences,
+    sad_conf,
+    sad_descriptors,
+    sad_difference,
+    sad_size,
+)
 
 PEER_METHODS = ('sad', 'seqslam')
 
@@ -24,6 +32,7 @@ def _grey(path) -> np.ndarray:
     im = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if im is None:
         from ..errors import ImageError
+
         raise ImageError(f'cannot read image {path}')
     return im
 
@@ -35,11 +44,12 @@ class SadFrontEnd:
         self.conf = {**sad_conf, **(conf or {})}
         ref_grey = [_grey(p) for p in ds.ref_paths]
         self.size = sad_size((ref_grey[0].shape[1], ref_grey[0].shape[0]), self.conf)
-        self.refs = sad_descriptors(ref_grey, self.size, self.conf)                 # (R, w*h)
+        self.refs = sad_descriptors(ref_grey, self.size, self.conf)  # (R, w*h)
         same = [str(p) for p in ds.ref_paths] == [str(p) for p in ds.query_paths]
-        self.queries = self.refs if same else sad_descriptors([_grey(p) for p in ds.query_paths],
-                                                              self.size, self.conf)  # (Q, w*h)
-        self.difference = sad_difference(self.queries, self.refs)                    # (Q, R)
+        self.queries = (
+            self.refs if same else sad_descriptors([_grey(p) for p in ds.query_paths], self.size, self.conf)
+        )  # (Q, w*h)
+        self.difference = sad_difference(self.queries, self.refs)  # (Q, R)
 
     def extraction_job(self, path):
         """Read, downsample and normalise one image (what a new frame costs)."""
@@ -47,7 +57,7 @@ class SadFrontEnd:
 
     def match_job(self, q: int):
         """One query against the whole map (divide by R for a per-pair figure)."""
-        return lambda: sad_difference(self.queries[q:q + 1], self.refs)
+        return lambda: sad_difference(self.queries[q : q + 1], self.refs)
 
 
 def peer_row(method: str, front: SadFrontEnd, allowed, k: int, seq_conf: dict):

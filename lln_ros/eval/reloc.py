@@ -1,5 +1,6 @@
 """Relocalization rows of lln-eval (`--reloc`): both keypoint pipelines of lln_ros.reloc on a
 dataset's top pLLN candidates, region-constrained (mLLN) against all keypoints."""
+
 from __future__ import annotations
 
 import time
@@ -9,17 +10,18 @@ import numpy as np
 from ..reloc import Keypoints, Relocalizer, pair_boxes
 
 eval_conf = {
-    'reloc_top': 5,            # pLLN candidates per query (the paper's top 5)
-    'reloc_min_inliers': 30,   # a query succeeds when its best true candidate reaches this
-    'reloc_queries': 0,        # evenly spaced queries evaluated (0 = every query)
+    'reloc_top': 5,  # pLLN candidates per query (the paper's top 5)
+    'reloc_min_inliers': 30,  # a query succeeds when its best true candidate reaches this
+    'reloc_queries': 0,  # evenly spaced queries evaluated (0 = every query)
     'reloc_detector': 'orb',
     'reloc_margin': 1.0,
     'reloc_fast_threshold': 20,
 }
 
 
-def evaluate_reloc(ds, queries: list, refs: list, ranked: np.ndarray, conf: dict | None = None,
-                   progress: str | None = None) -> dict:
+def evaluate_reloc(
+    ds, queries: list, refs: list, ranked: np.ndarray, conf: dict | None = None, progress: str | None = None
+) -> dict:
     """Relocalization on a dataset: for each query its top candidates by the place ranking
     (`ranked` (Q, K) ref indices from retrieval.rank_all with the LLN sets `queries` / `refs`), both
     keypoint pipelines against each. A pipeline succeeds on a query when the best candidate that is a
@@ -29,12 +31,18 @@ def evaluate_reloc(ds, queries: list, refs: list, ranked: np.ndarray, conf: dict
     have a true match, mean inliers of the best true candidate and of false candidates, mean
     matching + verification ms per query (all its candidates; detection excluded, it is shared
     and reported as detect_ms per image)."""
-    from ..io.image import load_image
     from ..core.landmarks import stack_landmarks
     from ..core.similarity import match_batch
+    from ..io.image import load_image
+
     conf = {**eval_conf, **(conf or {})}
-    reloc = Relocalizer({'detector': conf['reloc_detector'], 'margin': conf['reloc_margin'],
-                         'fast_threshold': conf['reloc_fast_threshold']})
+    reloc = Relocalizer(
+        {
+            'detector': conf['reloc_detector'],
+            'margin': conf['reloc_margin'],
+            'fast_threshold': conf['reloc_fast_threshold'],
+        }
+    )
     top, need = int(conf['reloc_top']), int(conf['reloc_min_inliers'])
     with_match = np.flatnonzero(ds.gt.any(axis=1))
     n = int(conf['reloc_queries'])
@@ -56,6 +64,7 @@ def evaluate_reloc(ds, queries: list, refs: list, ranked: np.ndarray, conf: dict
     items = with_match
     if progress:
         from tqdm import tqdm
+
         items = tqdm(with_match, desc=progress, leave=False)
     for q in items:
         cands = ranked[q, :top]
@@ -84,16 +93,24 @@ def evaluate_reloc(ds, queries: list, refs: list, ranked: np.ndarray, conf: dict
                 s['best_true'].append(best[name])
                 s['success'] += best[name] >= need
     total = len(with_match)
-    out = {'queries': int(total), 'top': top, 'min_inliers': need, 'detector': reloc.name,
-           'fast_threshold': int(reloc.conf['fast_threshold']) if reloc.name == 'orb' else None,
-           'margin': float(reloc.conf['margin']), 'true_match_in_top': in_top / total if total else None,
-           'detect_ms': float(np.median(detect_ms)) if detect_ms else None,
-           'keypoints_median': float(np.median([len(k) for k in kps.values()])) if kps else None,
-           'keypoints_zero': int(sum(len(k) == 0 for k in kps.values()))}
+    out = {
+        'queries': int(total),
+        'top': top,
+        'min_inliers': need,
+        'detector': reloc.name,
+        'fast_threshold': int(reloc.conf['fast_threshold']) if reloc.name == 'orb' else None,
+        'margin': float(reloc.conf['margin']),
+        'true_match_in_top': in_top / total if total else None,
+        'detect_ms': float(np.median(detect_ms)) if detect_ms else None,
+        'keypoints_median': float(np.median([len(k) for k in kps.values()])) if kps else None,
+        'keypoints_zero': int(sum(len(k) == 0 for k in kps.values())),
+    }
     for name, s in stats.items():
-        out[name] = {'success_rate': s['success'] / total if total else None,
-                     'mean_inliers_true': float(np.mean(s['best_true'])) if s['best_true'] else None,
-                     'mean_inliers_false': float(np.mean(s['false'])) if s['false'] else None,
-                     'ms_per_query': float(np.mean(s['ms'])) if s['ms'] else None,
-                     'matches_per_pair': float(np.mean(s['matches'])) if s['matches'] else None}
+        out[name] = {
+            'success_rate': s['success'] / total if total else None,
+            'mean_inliers_true': float(np.mean(s['best_true'])) if s['best_true'] else None,
+            'mean_inliers_false': float(np.mean(s['false'])) if s['false'] else None,
+            'ms_per_query': float(np.mean(s['ms'])) if s['ms'] else None,
+            'matches_per_pair': float(np.mean(s['matches'])) if s['matches'] else None,
+        }
     return out

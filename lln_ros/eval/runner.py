@@ -36,6 +36,7 @@ Outputs in out_dir: results.json, results.md, and PNGs per dataset: PR curves of
 (paper Fig. 5), holistic recall@K (Fig. 4), LLN activation heatmaps with the selected cells
 (Fig. 3), and match pictures of successes and failures (Fig. 7).
 """
+
 from __future__ import annotations
 
 import functools
@@ -48,18 +49,18 @@ import numpy as np
 import torch
 
 from .. import metrics
-from ..errors import DatasetError
 from ..core.extractor import default_conf as extractor_defaults
-from ..io.features import FeatureCache
+from ..core.landmark_index import check_prefilter
 from ..core.landmarks import LandmarkSet, l2_normalize, stack_landmarks
 from ..core.lln import head_fingerprint
-from ..core.landmark_index import check_prefilter
 from ..core.retrieval import batch_index, first_stage, rank_all
 from ..core.retrieval import default_conf as retrieval_defaults
 from ..core.sequence import check_conf as sequence_conf
 from ..core.sequence import default_conf as sequence_defaults
 from ..core.sequence import sad_conf
 from ..core.similarity import match_batch
+from ..errors import DatasetError
+from ..io.features import FeatureCache
 from .figures import figure_files, write_figures
 from .methods import (
     METHODS,
@@ -84,29 +85,29 @@ default_conf = {
     # holistic candidates every local method reranks (the paper's 30; 0 = all)
     'prefilter': retrieval_defaults['prefilter'],  # first stage: landmarks | holistic | exhaustive
     'prefilter_k': retrieval_defaults['prefilter_k'],
-    'scale': retrieval_defaults['scale'],   # offset-weight width in grid cells (similarity)
-    'sequence': 0,          # L > 0: an `X+seq` row per holistic/local row (sequence length L)
+    'scale': retrieval_defaults['scale'],  # offset-weight width in grid cells (similarity)
+    'sequence': 0,  # L > 0: an `X+seq` row per holistic/local row (sequence length L)
     'seqslam_length': sequence_defaults['length'],  # seqslam's L when 'sequence' is 0
-    'timing_images': 5,     # images per dataset the extraction is timed on
-    'timing_queries': 10,   # queries per dataset the rerank is timed on
-    'timing_repeats': 3,    # best of this many runs per image / query (a shared CPU is noisy)
-    'examples': 2,          # success and failure match pictures per dataset (0 = none)
-    'heatmap_images': 4,    # images in the activation heatmap figure (0 = no figure)
+    'timing_images': 5,  # images per dataset the extraction is timed on
+    'timing_queries': 10,  # queries per dataset the rerank is timed on
+    'timing_repeats': 3,  # best of this many runs per image / query (a shared CPU is noisy)
+    'examples': 2,  # success and failure match pictures per dataset (0 = none)
+    'heatmap_images': 4,  # images in the activation heatmap figure (0 = no figure)
     'cache_dir': 'cache/features',
     'plots': True,
-    'progress': True,       # tqdm bar while backbone features are computed
-    'reloc': False,         # also keypoint relocalization on the first lln row's ranking (reloc.py)
+    'progress': True,  # tqdm bar while backbone features are computed
+    'reloc': False,  # also keypoint relocalization on the first lln row's ranking (reloc.py)
     **reloc_eval_conf,
 }
-
 
 
 @dataclass
 class DatasetRun:
     """Everything computed for one dataset: the JSON entry and the arrays the pictures need."""
+
     name: str
     entry: dict
-    rankings: dict            # row -> (ranked (Q, K), scores (Q, K))
+    rankings: dict  # row -> (ranked (Q, K), scores (Q, K))
     holistic_full: np.ndarray  # (Q, R) full holistic ranking
     recall_curve: list
 
@@ -114,7 +115,7 @@ class DatasetRun:
 @dataclass
 class EvalRun:
     results: dict
-    datasets: dict            # name -> DatasetRun
+    datasets: dict  # name -> DatasetRun
     figures: list
 
 
@@ -123,6 +124,7 @@ def _sizes(ds, which: str, paths: list) -> list[tuple]:
     if sizes is not None and len(sizes) == len(paths):
         return [tuple(int(v) for v in s) for s in sizes]
     import cv2
+
     out = []
     for p in paths:
         im = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
@@ -136,18 +138,36 @@ def _holistic_sets(feats: list[np.ndarray], sizes: list[tuple], space: str) -> l
     for f, s in zip(feats, sizes):
         d, rows, cols = f.shape
         g = l2_normalize(np.asarray(f, np.float32).reshape(d, -1).max(axis=1)).astype(np.float32)
-        out.append(LandmarkSet(g, np.zeros((0, d), np.float32), np.zeros((0, 2), np.int32),
-                               np.zeros((0, 2), np.float32), np.zeros(0, np.float32),
-                               np.array([s[0] / cols, s[1] / rows], np.float32), np.array(s, np.float32),
-                               (rows, cols), None, space))
+        out.append(
+            LandmarkSet(
+                g,
+                np.zeros((0, d), np.float32),
+                np.zeros((0, 2), np.int32),
+                np.zeros((0, 2), np.float32),
+                np.zeros(0, np.float32),
+                np.array([s[0] / cols, s[1] / rows], np.float32),
+                np.array(s, np.float32),
+                (rows, cols),
+                None,
+                space,
+            )
+        )
     return out
 
 
-def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] | None = None,
-                     spec: str = '', log=None, out_dir: str | os.PathLike | None = None) -> DatasetRun:
+def evaluate_dataset(
+    ds,
+    extractor,
+    conf: dict | None = None,
+    heads: list[Head] | None = None,
+    spec: str = '',
+    log=None,
+    out_dir: str | os.PathLike | None = None,
+) -> DatasetRun:
     """Every requested method on one dataset (see the module doc). `heads` must be loaded. With
     out_dir (and conf['plots']) the dataset's PNGs are written there and named in entry['figures']."""
     from ..io.image import load_image
+
     conf = {**default_conf, **(conf or {})}
     heads = heads or load_heads(extractor, None)
     log = log or (lambda msg: None)
@@ -160,14 +180,16 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
     seq_len = int(conf['sequence'])
     seq_conf = sequence_conf({**sequence_defaults, 'length': seq_len or int(conf['seqslam_length'])})
     if (seq_len or 'seqslam' in methods) and seq_conf['length'] > len(ds.ref_paths):
-        raise DatasetError(f'{ds.name}: sequence length {seq_conf["length"]} is longer than its map '
-                           f'({len(ds.ref_paths)} references)')
+        raise DatasetError(
+            f'{ds.name}: sequence length {seq_conf["length"]} is longer than its map ({len(ds.ref_paths)} references)'
+        )
 
     # one backbone pass per distinct image (a loop sequence is its own map)
     paths = list(dict.fromkeys([str(p) for p in ds.ref_paths] + [str(p) for p in ds.query_paths]))
     cache = FeatureCache(conf['cache_dir'], extractor)
-    feats = dict(zip(paths, cache.load(paths, size=height,
-                                         progress=f'features {ds.name}' if conf['progress'] else None)))
+    feats = dict(
+        zip(paths, cache.load(paths, size=height, progress=f'features {ds.name}' if conf['progress'] else None))
+    )
     ref_sizes = _sizes(ds, 'ref', ds.ref_paths)
     query_sizes = _sizes(ds, 'query', ds.query_paths)
     ref_feats = [feats[str(p)] for p in ds.ref_paths]
@@ -178,20 +200,23 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
     hq = _holistic_sets(query_feats, query_sizes, space)
     hr = hq if same_images else _holistic_sets(ref_feats, ref_sizes, space)
     hr_batch = stack_landmarks(hr)
-    full, full_scores = rank_all(hq, hr_batch, len(hr), allowed=ds.candidates, rerank_local=False,
-                                 prefilter='holistic')
-    prefilter_rows = full[:, :min(k, len(hr))]
+    full, full_scores = rank_all(hq, hr_batch, len(hr), allowed=ds.candidates, rerank_local=False, prefilter='holistic')
+    prefilter_rows = full[:, : min(k, len(hr))]
     kmax = min(len(hr), max(2 * k, 50) if int(conf['prefilter_k']) else 100)
     curve = [metrics.recall_at_k(full, ds.gt, kk) for kk in range(1, kmax + 1)]
 
-    timing_idx = np.unique(np.linspace(0, len(ds.query_paths) - 1,
-                                       min(int(conf['timing_images']), len(ds.query_paths))).astype(int))
+    timing_idx = np.unique(
+        np.linspace(0, len(ds.query_paths) - 1, min(int(conf['timing_images']), len(ds.query_paths))).astype(int)
+    )
     timing_images = [load_image(str(ds.query_paths[i])) for i in timing_idx]
     # timed reranks: queries with the full K candidates (early loop frames have only a few)
     counts = (prefilter_rows >= 0).sum(axis=1)
     answerable = [int(i) for i in np.flatnonzero(counts == counts.max())] if counts.max(initial=0) else []
-    pick = np.unique(np.linspace(0, len(answerable) - 1, min(int(conf['timing_queries']), len(answerable)))
-                     .astype(int)) if answerable else np.zeros(0, int)
+    pick = (
+        np.unique(np.linspace(0, len(answerable) - 1, min(int(conf['timing_queries']), len(answerable))).astype(int))
+        if answerable
+        else np.zeros(0, int)
+    )
     timed = [(answerable[i], prefilter_rows[answerable[i]]) for i in pick]
     reps = int(conf['timing_repeats'])
     front = SadFrontEnd(ds) if any(m in PEER_METHODS for m in methods) else None
@@ -203,8 +228,10 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
         if method == 'holistic':
             ranked, scores = full, full_scores
             extract_jobs[row] = [(extraction_job(extractor, im, True), 1) for im in timing_images]
-            match_jobs[row] = [(functools.partial(np.matmul, hr_batch.globals, hq[q].global_descriptor),
-                                len(hr_batch)) for q, _ in timed]
+            match_jobs[row] = [
+                (functools.partial(np.matmul, hr_batch.globals, hq[q].global_descriptor), len(hr_batch))
+                for q, _ in timed
+            ]
             n = 1
         elif method in PEER_METHODS:
             ranked, scores = peer_row(method, front, ds.candidates, k, seq_conf)
@@ -218,47 +245,66 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
             batch = stack_landmarks(rs)
             ranked, scores = rank_all(qs, batch, k, allowed=ds.candidates, scale=scale, prefilter=prefilter)
             # the paper's protocol: the same holistic top-K for every local method, only reordered
-            same = prefilter != 'holistic' or \
-                all(set(a[a >= 0]) == set(b[b >= 0]) for a, b in zip(ranked, prefilter_rows))
+            same = prefilter != 'holistic' or all(
+                set(a[a >= 0]) == set(b[b >= 0]) for a, b in zip(ranked, prefilter_rows)
+            )
             if not same:
                 raise AssertionError(f'{row}: reranked candidates differ from the holistic top-{k}')
             if method == 'lln' and stages is None:
-                stages = first_stage_report(qs, batch, ds, full, ranked if prefilter == 'exhaustive' else None,
-                                            scale, reps)
+                stages = first_stage_report(
+                    qs, batch, ds, full, ranked if prefilter == 'exhaustive' else None, scale, reps
+                )
             extract_jobs[row] = [(extraction_job(v, im), 1) for im in timing_images]
             # keep only what the timed reranks need (the candidates of a few queries), not the map
-            match_jobs[row] = [(functools.partial(match_batch, qs[q], batch.take(c[c >= 0]), scale),
-                                int((c >= 0).sum())) for q, c in timed]
+            match_jobs[row] = [
+                (functools.partial(match_batch, qs[q], batch.take(c[c >= 0]), scale), int((c >= 0).sum()))
+                for q, c in timed
+            ]
             n = int(np.median([len(s) for s in qs]))
             if conf['reloc'] and method == 'lln' and reloc is None:
                 t1 = time.perf_counter()
                 reloc = evaluate_reloc(ds, qs, rs, ranked, conf, f'reloc {ds.name}' if conf['progress'] else None)
                 reloc['row'] = row
-                log(f'{ds.name}: reloc success {reloc["regions"]["success_rate"]} (regions) vs '
-                    f'{reloc["all"]["success_rate"]} (all) ({time.perf_counter() - t1:.1f} s)')
+                log(
+                    f'{ds.name}: reloc success {reloc["regions"]["success_rate"]} (regions) vs '
+                    f'{reloc["all"]["success_rate"]} (all) ({time.perf_counter() - t1:.1f} s)'
+                )
             del qs, rs, batch
         summary = metrics.summary(ranked, scores[:, 0], ds.gt)
         rows_out[row] = {**{key: finite(float(summary[key])) for key in METRIC_KEYS}, 'n': n}
         if method == 'lln':
-            rows_out[row].update({'head': head.label, 'head_trained': head.trained,
-                                  'weights': head.weights or '', 'head_fingerprint': head_fingerprint(head.module)})
+            rows_out[row].update(
+                {
+                    'head': head.label,
+                    'head_trained': head.trained,
+                    'weights': head.weights or '',
+                    'head_fingerprint': head_fingerprint(head.module),
+                }
+            )
         rankings[row] = (ranked, scores)
-        log(f'{ds.name}: {row:<16} P@100%R {summary["p_at_100r"]:.3f}  R@100%P {summary["r_at_100p"]:.3f}  '
-            f'AUC {summary["auc_pr"]:.3f}  ({time.perf_counter() - t0:.1f} s)')
+        log(
+            f'{ds.name}: {row:<16} P@100%R {summary["p_at_100r"]:.3f}  R@100%P {summary["r_at_100p"]:.3f}  '
+            f'AUC {summary["auc_pr"]:.3f}  ({time.perf_counter() - t0:.1f} s)'
+        )
 
     # X+seq: the same single-frame rankings fed in stream order through the online sequence search
-    for row, method, _ in (row_names(methods, heads) if seq_len else []):
+    for row, method, _ in row_names(methods, heads) if seq_len else []:
         if method in PEER_METHODS:
             continue
         base = (full, full_scores) if method == 'holistic' else rankings[row]
         ranked, scores, seq_ms = sequence_row(*base, len(ds.ref_paths), seq_conf, ds.candidates, k)
         summary = metrics.summary(ranked, scores[:, 0], ds.gt)
-        rows_out[f'{row}+seq'] = {**{key: finite(float(summary[key])) for key in METRIC_KEYS},
-                                  'n': rows_out[row]['n'], 'sequence_of': row,
-                                  'sequence_ms_per_query': finite(seq_ms)}
+        rows_out[f'{row}+seq'] = {
+            **{key: finite(float(summary[key])) for key in METRIC_KEYS},
+            'n': rows_out[row]['n'],
+            'sequence_of': row,
+            'sequence_ms_per_query': finite(seq_ms),
+        }
         rankings[f'{row}+seq'] = (ranked, scores)
-        log(f'{ds.name}: {row + "+seq":<16} P@100%R {summary["p_at_100r"]:.3f}  R@100%P '
-            f'{summary["r_at_100p"]:.3f}  AUC {summary["auc_pr"]:.3f}  ({seq_ms:.2f} ms/query)')
+        log(
+            f'{ds.name}: {row + "+seq":<16} P@100%R {summary["p_at_100r"]:.3f}  R@100%P '
+            f'{summary["r_at_100p"]:.3f}  AUC {summary["auc_pr"]:.3f}  ({seq_ms:.2f} ms/query)'
+        )
 
     # timing: every method round-robin on the same images / queries, best of `timing_repeats` each
     t0 = time.perf_counter()
@@ -278,13 +324,17 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
         'queries_with_match': ds.queries_with_match,
         'refs': len(ds.ref_paths),
         'spec': spec,
-        'protocol': 'loop (each query only against allowed older frames)' if ds.candidates is not None
-                    else 'two traverses',
+        'protocol': 'loop (each query only against allowed older frames)'
+        if ds.candidates is not None
+        else 'two traverses',
         'info': info,
         'grid': list(hq[0].grid) if hq else None,
-        'timing': {'images': len(timing_images), 'queries': len(timed),
-                   'torch_threads': torch.get_num_threads(),
-                   'runtime': extractor.model_info.get('runtime', 'torch')},
+        'timing': {
+            'images': len(timing_images),
+            'queries': len(timed),
+            'torch_threads': torch.get_num_threads(),
+            'runtime': extractor.model_info.get('runtime', 'torch'),
+        },
         'recall_at_k_holistic': [finite(float(r)) for r in curve],
         'first_stage': stages,
         'methods': rows_out,
@@ -293,16 +343,16 @@ def evaluate_dataset(ds, extractor, conf: dict | None = None, heads: list[Head] 
         entry['reloc'] = reloc
     run = DatasetRun(ds.name, entry, rankings, full, curve)
     if out_dir is not None and conf['plots']:
-        entry['figures'] = write_figures(run, ds, extractor, heads, conf, feats, ref_sizes, query_sizes,
-                                         Path(out_dir))
+        entry['figures'] = write_figures(run, ds, extractor, heads, conf, feats, ref_sizes, query_sizes, Path(out_dir))
     return run
 
 
 FIRST_STAGE_KS = (1, 5, 10, 30, 100)
 
 
-def first_stage_report(qs: list, batch, ds, holistic_full: np.ndarray, exhaustive: np.ndarray | None,
-                       scale: float, repeats: int) -> dict:
+def first_stage_report(
+    qs: list, batch, ds, holistic_full: np.ndarray, exhaustive: np.ndarray | None, scale: float, repeats: int
+) -> dict:
     """Recall@K (FIRST_STAGE_KS) of each first stage's own ranking, i.e. the ceiling of a rerank of
     its top K, and its cost per query (ms, best of `repeats` over the timed queries): holistic
     (global cosine over every ref), landmarks (landmark_index search + score_hits) and, when the
@@ -312,24 +362,39 @@ def first_stage_report(qs: list, batch, ds, holistic_full: np.ndarray, exhaustiv
     out = {'holistic': holistic_full, 'landmarks': lm}
     if exhaustive is not None:
         out['exhaustive'] = exhaustive
-    report = {name: {'recall_at': {str(kk): finite(metrics.recall_at_k(r, ds.gt, kk))
-                                   for kk in FIRST_STAGE_KS if kk <= r.shape[1]}}
-              for name, r in out.items()}
+    report = {
+        name: {
+            'recall_at': {
+                str(kk): finite(metrics.recall_at_k(r, ds.gt, kk)) for kk in FIRST_STAGE_KS if kk <= r.shape[1]
+            }
+        }
+        for name, r in out.items()
+    }
     pick = np.unique(np.linspace(0, len(qs) - 1, min(10, len(qs))).astype(int))
     index = batch_index(batch)
 
     def holistic_top(q):
         return np.argsort(-(batch.globals @ q.global_descriptor))[:kmax]
-    jobs = {'holistic': [(functools.partial(holistic_top, qs[i]), 1) for i in pick],
-            'landmarks': [(functools.partial(index.shortlist, qs[i], kmax, None, scale), 1) for i in pick]}
+
+    jobs = {
+        'holistic': [(functools.partial(holistic_top, qs[i]), 1) for i in pick],
+        'landmarks': [(functools.partial(index.shortlist, qs[i], kmax, None, scale), 1) for i in pick],
+    }
     for name, ms in interleaved_times(jobs, repeats).items():
         report[name]['ms_per_query'] = finite(ms)
     return report
 
 
-def evaluate(datasets: list, extractor, conf: dict | None = None, heads: list[Head] | None = None,
-             out_dir: str | os.PathLike | None = None, specs: list[str] | None = None,
-             command: str = '', log=None) -> EvalRun:
+def evaluate(
+    datasets: list,
+    extractor,
+    conf: dict | None = None,
+    heads: list[Head] | None = None,
+    out_dir: str | os.PathLike | None = None,
+    specs: list[str] | None = None,
+    command: str = '',
+    log=None,
+) -> EvalRun:
     """Evaluate every dataset; with out_dir, write results.json, results.md and the PNGs there."""
     conf = {**default_conf, **(conf or {})}
     heads = load_heads(extractor, heads)
@@ -348,14 +413,25 @@ def evaluate(datasets: list, extractor, conf: dict | None = None, heads: list[He
             'sequence': int(conf['sequence']),
             'sequence_search': {key: sequence_defaults[key] for key in ('v_min', 'v_max', 'v_steps')},
             'seqslam': {'length': int(conf['sequence']) or int(conf['seqslam_length']), **sad_conf},
-            'top_n': int(conf['top_n']), 'prefilter_k': int(conf['prefilter_k']), 'scale': float(conf['scale']),
+            'top_n': int(conf['top_n']),
+            'prefilter_k': int(conf['prefilter_k']),
+            'scale': float(conf['scale']),
             'prefilter': check_prefilter(conf['prefilter'], conf['prefilter_k'])[0],
             'input_height': int(extractor.conf['input_height']),
-            'backbone': extractor.conf['backbone']['name'], 'layer': extractor.backbone.layer,
-            'descriptor_space': extractor.descriptor_space, 'rand_seed': int(extractor.conf['rand_seed']),
-            'heads': {h.label or 'lln': {'weights': h.weights or '', 'trained': h.trained,
-                                         'fingerprint': head_fingerprint(h.module)} for h in heads},
-            'timing_images': int(conf['timing_images']), 'timing_queries': int(conf['timing_queries']),
+            'backbone': extractor.conf['backbone']['name'],
+            'layer': extractor.backbone.layer,
+            'descriptor_space': extractor.descriptor_space,
+            'rand_seed': int(extractor.conf['rand_seed']),
+            'heads': {
+                h.label or 'lln': {
+                    'weights': h.weights or '',
+                    'trained': h.trained,
+                    'fingerprint': head_fingerprint(h.module),
+                }
+                for h in heads
+            },
+            'timing_images': int(conf['timing_images']),
+            'timing_queries': int(conf['timing_queries']),
             'timing_repeats': int(conf['timing_repeats']),
             'torch_threads': torch.get_num_threads(),
             'blas_threads': os.environ.get('OPENBLAS_NUM_THREADS') or os.environ.get('OMP_NUM_THREADS') or 'default',

@@ -1,4 +1,5 @@
 """Timing for lln-eval: every method's jobs measured round-robin on the same inputs."""
+
 from __future__ import annotations
 
 import math
@@ -34,6 +35,7 @@ def extraction_job(extractor, image: np.ndarray, holistic: bool = False):
     """One full extraction of an original-size RGB image: resize, backbone, head, selection
     (holistic: resize, backbone, global max pool, no head)."""
     from ..io.image import resize_for_network
+
     if not holistic:
         return lambda: extractor(image)
 
@@ -41,10 +43,9 @@ def extraction_job(extractor, image: np.ndarray, holistic: bool = False):
         net = resize_for_network(image, int(extractor.conf['input_height']))
         f = extractor.backbone_features(net[None])[0]
         l2_normalize(f.flatten(1).amax(dim=1).numpy())
+
     return run
 
 
 def median_ms(times) -> float:
     return float(statistics.median(times) * 1e3) if times else float('nan')
-
-

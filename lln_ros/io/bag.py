@@ -11,6 +11,7 @@ Bags are rosbag2 directories (metadata.yaml + one .mcap file, storage version 9)
 `rosbags`; messages are serialised by rclpy itself (CDR), with the message definitions of the ROS 2
 Jazzy typestore in the MCAP schemas, so `ros2 bag` and the `mcap` tools read them as usual.
 """
+
 from __future__ import annotations
 
 import importlib
@@ -22,9 +23,9 @@ from pathlib import Path
 
 import cv2
 
-from .datasets import list_images
 from ..errors import DatasetError, ImageError, LLNError
 from ..msgs import array_to_compressed, array_to_image, make_header
+from .datasets import list_images
 
 DEFAULT_START_NS = 1_700_000_000 * 1_000_000_000  # 2023-11-14T22:13:20Z: bags are reproducible
 DEFAULT_TOPIC = '/camera/image_raw'
@@ -37,6 +38,7 @@ class BagError(DatasetError):
 # --------------------------------------------------------------------------------------------
 # image folders
 
+
 def read_image_bgr(path: str | os.PathLike):
     """BGR uint8 (H, W, 3) of an image file; ImageError when it cannot be decoded."""
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
@@ -47,6 +49,7 @@ def read_image_bgr(path: str | os.PathLike):
 
 # --------------------------------------------------------------------------------------------
 # writing
+
 
 def msgtype_of(msg) -> str:
     """'sensor_msgs/msg/Image' for a sensor_msgs.msg.Image instance (or class)."""
@@ -65,12 +68,12 @@ def message_class(msgtype: str):
     try:
         return getattr(importlib.import_module(f'{parts[0]}.{parts[1]}'), parts[2])
     except (ImportError, AttributeError) as exc:
-        raise BagError(f'message type {msgtype} is not available in this Python environment '
-                       f'({exc})') from exc
+        raise BagError(f'message type {msgtype} is not available in this Python environment ({exc})') from exc
 
 
 def _typestore():
     from rosbags.typesys import Stores, get_typestore
+
     return get_typestore(Stores.ROS2_JAZZY)
 
 
@@ -120,10 +123,16 @@ def frame_stamps(count: int, rate: float, start_ns: int = DEFAULT_START_NS) -> l
     return [int(start_ns) + int(round(i * 1e9 / rate)) for i in range(count)]
 
 
-def write_image_bag(paths: Sequence[str | os.PathLike], out: str | os.PathLike,
-                    topic: str = DEFAULT_TOPIC, rate: float = 10.0, compressed: bool = False,
-                    frame_id: str = 'camera', start_ns: int = DEFAULT_START_NS,
-                    jpeg_quality: int = 95) -> list[int]:
+def write_image_bag(
+    paths: Sequence[str | os.PathLike],
+    out: str | os.PathLike,
+    topic: str = DEFAULT_TOPIC,
+    rate: float = 10.0,
+    compressed: bool = False,
+    frame_id: str = 'camera',
+    start_ns: int = DEFAULT_START_NS,
+    jpeg_quality: int = 95,
+) -> list[int]:
     """Write image files, in the given order, as one topic of a new MCAP bag at `rate` Hz.
 
     Messages are sensor_msgs/Image rgb8 or, with compressed=True, sensor_msgs/CompressedImage
@@ -157,9 +166,11 @@ def folder_to_bag(folder: str | os.PathLike, out: str | os.PathLike, **kwargs) -
 # --------------------------------------------------------------------------------------------
 # reading
 
+
 def open_reader(path: str | os.PathLike):
     """An opened rosbags Reader (bag directory or a single .mcap file). Raises BagError."""
     from rosbags.rosbag2 import Reader
+
     path = Path(path)
     if not path.exists():
         raise BagError(f'bag {path} does not exist')
@@ -195,6 +206,7 @@ def read_raw(path: str | os.PathLike, topics: Iterable[str] | None = None) -> It
 def read_messages(path: str | os.PathLike, topics: Iterable[str] | None = None) -> Iterator[tuple]:
     """(topic, rclpy message, timestamp_ns) of a bag's messages in time order."""
     from rclpy.serialization import deserialize_message
+
     classes = {}
     for topic, msgtype, stamp, raw in read_raw(path, topics):
         cls = classes.get(msgtype) or classes.setdefault(msgtype, message_class(msgtype))
@@ -206,8 +218,9 @@ def bag_info(path: str | os.PathLike) -> dict:
     {topic: {'type', 'count'}}} from the bag's index (no message is read)."""
     reader = open_reader(path)
     try:
-        topics = {name: {'type': info.msgtype, 'count': int(info.msgcount)}
-                  for name, info in sorted(reader.topics.items())}
+        topics = {
+            name: {'type': info.msgtype, 'count': int(info.msgcount)} for name, info in sorted(reader.topics.items())
+        }
         count = int(reader.message_count)
         start = int(reader.start_time) if count else 0
         end = int(reader.end_time) if count else 0
@@ -217,8 +230,15 @@ def bag_info(path: str | os.PathLike) -> dict:
         raise BagError(f'cannot read bag {path}: {exc}') from exc
     finally:
         reader.close()
-    return {'path': str(path), 'storage': _storage_of(Path(path)), 'message_count': count,
-            'start_ns': start, 'end_ns': start + duration, 'duration_s': duration / 1e9, 'topics': topics}
+    return {
+        'path': str(path),
+        'storage': _storage_of(Path(path)),
+        'message_count': count,
+        'start_ns': start,
+        'end_ns': start + duration,
+        'duration_s': duration / 1e9,
+        'topics': topics,
+    }
 
 
 def _storage_of(path: Path) -> str:
@@ -233,13 +253,15 @@ def _seconds(ns: int) -> str:
 
 def format_info(info: dict) -> str:
     """The text `lln-bag info` prints."""
-    lines = [f'bag:       {info["path"]}',
-             f'storage:   {info["storage"]}',
-             f'messages:  {info["message_count"]}',
-             f'duration:  {info["duration_s"]:.3f} s',
-             f'start:     {_seconds(info["start_ns"])}',
-             f'end:       {_seconds(info["end_ns"])}',
-             f'topics:    {len(info["topics"])}']
+    lines = [
+        f'bag:       {info["path"]}',
+        f'storage:   {info["storage"]}',
+        f'messages:  {info["message_count"]}',
+        f'duration:  {info["duration_s"]:.3f} s',
+        f'start:     {_seconds(info["start_ns"])}',
+        f'end:       {_seconds(info["end_ns"])}',
+        f'topics:    {len(info["topics"])}',
+    ]
     width = max((len(t) for t in info['topics']), default=0)
     for topic, t in info['topics'].items():
         lines.append(f'  {topic:<{width}}  {t["type"]:<30}  {t["count"]} msgs')
@@ -248,6 +270,7 @@ def format_info(info: dict) -> str:
 
 # --------------------------------------------------------------------------------------------
 # playing
+
 
 def parse_remaps(items: Iterable[str]) -> dict[str, str]:
     """['A:=B', ...] -> {'A': 'B'}."""
@@ -262,13 +285,18 @@ def parse_remaps(items: Iterable[str]) -> dict[str, str]:
 
 def make_qos(reliability: str = 'reliable', depth: int = 100):
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
     policies = {'reliable': ReliabilityPolicy.RELIABLE, 'best_effort': ReliabilityPolicy.BEST_EFFORT}
     if reliability not in policies:
         raise BagError(f"qos must be 'reliable' or 'best_effort', got {reliability!r}")
     if depth < 1:
         raise BagError(f'qos depth must be at least 1, got {depth}')
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(depth),
-                      reliability=policies[reliability], durability=DurabilityPolicy.VOLATILE)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=int(depth),
+        reliability=policies[reliability],
+        durability=DurabilityPolicy.VOLATILE,
+    )
 
 
 class SubscriberTimeout(BagError):
@@ -286,11 +314,15 @@ class BagClock:
     def __init__(self, node, rate: float, hz: float):
         from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
         from rosgraph_msgs.msg import Clock
+
         if not hz > 0:
             raise BagError(f'clock rate must be positive, got {hz}')
         self._msg = Clock()
-        self.pub = node.create_publisher(Clock, CLOCK_TOPIC, QoSProfile(
-            depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT))
+        self.pub = node.create_publisher(
+            Clock,
+            CLOCK_TOPIC,
+            QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT),
+        )
         self.rate, self.period = rate, 1.0 / hz
         self.t0_wall = self.t0_bag = None
         self.last_ns = None
@@ -327,6 +359,7 @@ class _Pace:
         if not timeout > 0:
             raise BagError(f'pace timeout must be positive, got {timeout}')
         from rclpy.executors import SingleThreadedExecutor
+
         self.node, self.topic, self.timeout, self.log = node, node.resolve_topic_name(topic), timeout, log
         self.seen, self.expected_offset, self.timeouts, self.sub = 0, 0, 0, None
         self.executor = SingleThreadedExecutor(context=node.context)
@@ -336,8 +369,9 @@ class _Pace:
         while self.sub is None:
             types = dict(self.node.get_topic_names_and_types()).get(self.topic)
             if types:
-                self.sub = self.node.create_subscription(message_class(types[0]), self.topic, self._on_msg,
-                                                         make_qos('reliable', 1000))
+                self.sub = self.node.create_subscription(
+                    message_class(types[0]), self.topic, self._on_msg, make_qos('reliable', 1000)
+                )
                 return True
             if time.monotonic() > deadline:
                 return False
@@ -366,15 +400,29 @@ class _Pace:
             self.timeouts += 1
             self.expected_offset = published - self.seen  # go on from here, do not wait for it again
             if self.timeouts == 1 or self.timeouts % 100 == 0:
-                self.log(f'pace: no message on {self.topic} within {self.timeout:g} s of message {published} '
-                         f'({self.timeouts} time(s)); going on')
+                self.log(
+                    f'pace: no message on {self.topic} within {self.timeout:g} s of message {published} '
+                    f'({self.timeouts} time(s)); going on'
+                )
 
 
-def play_bag(path: str | os.PathLike, rate: float = 1.0, remaps: dict[str, str] | None = None,
-             qos: str = 'reliable', qos_depth: int = 100, wait_subscribers: int = 0,
-             wait_timeout: float = 10.0, topics: Iterable[str] | None = None,
-             start_delay: float = 0.0, linger: float = 0.5, log: Callable[[str], None] | None = None,
-             context=None, clock_hz: float = 0.0, pace_topic: str = '', pace_timeout: float = 10.0) -> int:
+def play_bag(
+    path: str | os.PathLike,
+    rate: float = 1.0,
+    remaps: dict[str, str] | None = None,
+    qos: str = 'reliable',
+    qos_depth: int = 100,
+    wait_subscribers: int = 0,
+    wait_timeout: float = 10.0,
+    topics: Iterable[str] | None = None,
+    start_delay: float = 0.0,
+    linger: float = 0.5,
+    log: Callable[[str], None] | None = None,
+    context=None,
+    clock_hz: float = 0.0,
+    pace_topic: str = '',
+    pace_timeout: float = 10.0,
+) -> int:
     """Publish a bag's messages into the ROS graph at the recorded timing divided by `rate`.
 
     The recorded CDR bytes are published as they are (rclpy's publish of `bytes`), on publishers
@@ -413,6 +461,7 @@ def play_bag(path: str | os.PathLike, rate: float = 1.0, remaps: dict[str, str] 
     own_context = context is None
     if own_context:
         from rclpy.signals import SignalHandlerOptions
+
         context = rclpy.Context()
         # no rclpy signal handlers: with them, Ctrl-C shuts the context down and the loop below
         # would race through the rest of the bag instead of stopping with KeyboardInterrupt
@@ -431,16 +480,20 @@ def play_bag(path: str | os.PathLike, rate: float = 1.0, remaps: dict[str, str] 
                 if min(counts.values()) >= wait_subscribers:
                     break
                 if time.monotonic() > deadline:
-                    raise SubscriberTimeout(f'timed out after {wait_timeout:g} s waiting for {wait_subscribers} '
-                                            f'subscriber(s) per topic; have {counts}')
+                    raise SubscriberTimeout(
+                        f'timed out after {wait_timeout:g} s waiting for {wait_subscribers} '
+                        f'subscriber(s) per topic; have {counts}'
+                    )
                 time.sleep(0.02)
             log(f'subscribers ready: {counts}')
         if pace is not None:
             pace.start()
         if start_delay > 0:
             time.sleep(start_delay)
-        log(f'playing {info["message_count"]} messages on {len(publishers)} topic(s) at rate {rate:g}'
-            + (f', bag time on {CLOCK_TOPIC} at {clock_hz:g} Hz' if clock is not None else ''))
+        log(
+            f'playing {info["message_count"]} messages on {len(publishers)} topic(s) at rate {rate:g}'
+            + (f', bag time on {CLOCK_TOPIC} at {clock_hz:g} Hz' if clock is not None else '')
+        )
         t0_wall, t0_bag = None, None
         for topic, _msgtype, stamp, raw in read_raw(path, wanted):
             if t0_wall is None:

@@ -13,6 +13,7 @@ matrix), a sequence with camera poses (TUM RGB-D: same place from relative pose)
 Point Walking archive layout. Everything is checked (folders, lengths,
 ground-truth shape, every image decodes) before any long computation starts.
 """
+
 from __future__ import annotations
 
 import os
@@ -100,15 +101,15 @@ def _select(n: int, frac) -> slice:
     return slice(int(round(start * n)), int(round(end * n)))
 
 
-def aligned(dir_ref, dir_query, tol: int = 2, frac=None, name: str | None = None,
-            drop_blank: bool = True) -> Dataset:
+def aligned(dir_ref, dir_query, tol: int = 2, frac=None, name: str | None = None, drop_blank: bool = True) -> Dataset:
     """Two traverses, same index = same place; a ref within +-tol frames is correct. `frac`
     (start, end) in [0, 1] keeps that contiguous part of the route. Blank query frames (grey std
     below BLANK_STD: tunnels, stops) have no recognisable place and are dropped; the count is in info."""
     refs, queries = list_images(dir_ref), list_images(dir_query)
     if len(refs) != len(queries):
-        raise DatasetError(f'aligned traverses differ in length: {dir_ref} has {len(refs)} images, '
-                           f'{dir_query} has {len(queries)}')
+        raise DatasetError(
+            f'aligned traverses differ in length: {dir_ref} has {len(refs)} images, {dir_query} has {len(queries)}'
+        )
     part = _select(len(refs), frac)
     refs, queries = refs[part], queries[part]
     if not refs:
@@ -117,13 +118,23 @@ def aligned(dir_ref, dir_query, tol: int = 2, frac=None, name: str | None = None
     idx = np.arange(len(refs))
     keep = np.array([s[2] >= BLANK_STD for s in query_stats]) if drop_blank else np.ones(len(refs), bool)
     gt = np.abs(idx[keep][:, None] - idx[None, :]) <= int(tol)
-    info = {'tol': int(tol), 'range': list(frac) if frac else [0.0, 1.0], 'first_index': part.start,
-            'blank_queries_dropped': int((~keep).sum()),
-            'blank_refs': int(sum(s[2] < BLANK_STD for s in ref_stats)),
-            'ref_sizes': [s[:2] for s in ref_stats],
-            'query_sizes': [s[:2] for s, k in zip(query_stats, keep) if k]}
-    return Dataset(name or f'{Path(dir_ref).name}-vs-{Path(dir_query).name}', refs,
-                   [q for q, k in zip(queries, keep) if k], gt, None, info)
+    info = {
+        'tol': int(tol),
+        'range': list(frac) if frac else [0.0, 1.0],
+        'first_index': part.start,
+        'blank_queries_dropped': int((~keep).sum()),
+        'blank_refs': int(sum(s[2] < BLANK_STD for s in ref_stats)),
+        'ref_sizes': [s[:2] for s in ref_stats],
+        'query_sizes': [s[:2] for s, k in zip(query_stats, keep) if k],
+    }
+    return Dataset(
+        name or f'{Path(dir_ref).name}-vs-{Path(dir_query).name}',
+        refs,
+        [q for q, k in zip(queries, keep) if k],
+        gt,
+        None,
+        info,
+    )
 
 
 def vprbench(root, name: str | None = None) -> Dataset:
@@ -133,9 +144,14 @@ def vprbench(root, name: str | None = None) -> Dataset:
     refs, queries = list_images(root / 'ref'), list_images(root / 'query')
     gt = vprbench_gt(root / 'ground_truth_new.npy', len(queries), len(refs))
     ref_stats, query_stats = read_checked(refs), read_checked(queries)
-    return Dataset(name or root.name, refs, queries, gt[0], None,
-                   {'clipped_refs': gt[1], 'ref_sizes': [s[:2] for s in ref_stats],
-                    'query_sizes': [s[:2] for s in query_stats]})
+    return Dataset(
+        name or root.name,
+        refs,
+        queries,
+        gt[0],
+        None,
+        {'clipped_refs': gt[1], 'ref_sizes': [s[:2] for s in ref_stats], 'query_sizes': [s[:2] for s in query_stats]},
+    )
 
 
 def vprbench_gt(path, n_queries: int, n_refs: int) -> tuple[np.ndarray, int]:
@@ -147,8 +163,7 @@ def vprbench_gt(path, n_queries: int, n_refs: int) -> tuple[np.ndarray, int]:
     except Exception as e:  # OSError, ValueError, UnpicklingError, EOFError ... for a bad file
         raise DatasetError(f'cannot read ground truth {path}: {e}') from e
     if rows.ndim != 2 or rows.shape[1] != 2:
-        raise DatasetError(f'{path}: expected rows [query_index, [ref indices]] (shape (Q, 2)), '
-                           f'got shape {rows.shape}')
+        raise DatasetError(f'{path}: expected rows [query_index, [ref indices]] (shape (Q, 2)), got shape {rows.shape}')
     gt = np.zeros((n_queries, n_refs), bool)
     clipped = 0
     try:
@@ -185,14 +200,21 @@ def loop(folder, gt_file, min_gap: int = 10, name: str | None = None) -> Dataset
             raise DatasetError(f'cannot read ground-truth image {gt_file}')
     n = len(frames)
     if matrix.shape != (n, n):
-        raise DatasetError(f'ground truth {gt_file} is {matrix.shape[0]}x{matrix.shape[1]}; the sequence in '
-                           f'{folder} has {n} frames, so it must be {n}x{n}')
+        raise DatasetError(
+            f'ground truth {gt_file} is {matrix.shape[0]}x{matrix.shape[1]}; the sequence in '
+            f'{folder} has {n} frames, so it must be {n}x{n}'
+        )
     stats = read_checked(frames)
     idx = np.arange(n)
     candidates = idx[None, :] <= idx[:, None] - int(min_gap)
-    return Dataset(name or Path(folder).name, frames, frames, (matrix > 0) & candidates, candidates,
-                   {'min_gap': int(min_gap), 'ref_sizes': [s[:2] for s in stats],
-                    'query_sizes': [s[:2] for s in stats]})
+    return Dataset(
+        name or Path(folder).name,
+        frames,
+        frames,
+        (matrix > 0) & candidates,
+        candidates,
+        {'min_gap': int(min_gap), 'ref_sizes': [s[:2] for s in stats], 'query_sizes': [s[:2] for s in stats]},
+    )
 
 
 POSE_MAX_DT = 0.05  # s: a frame whose nearest motion-capture pose is farther in time has no pose
@@ -215,8 +237,9 @@ def _read_rows(path: Path, width: int, what: str) -> list[list[str]]:
     return rows
 
 
-def poses(root, max_deg: float = 15.0, max_m: float = 0.3, min_gap_s: float = 2.0, step: int = 1,
-          name: str | None = None) -> Dataset:
+def poses(
+    root, max_deg: float = 15.0, max_m: float = 0.3, min_gap_s: float = 2.0, step: int = 1, name: str | None = None
+) -> Dataset:
     """A sequence with camera poses (the TUM RGB-D layout): DIR/rgb.txt (`timestamp file`),
     DIR/groundtruth.txt (`timestamp tx ty tz qx qy qz qw`, metres, any rate). Each frame takes the
     pose nearest in time (frames with none within POSE_MAX_DT are dropped, counted in info). Frame
@@ -227,12 +250,15 @@ def poses(root, max_deg: float = 15.0, max_m: float = 0.3, min_gap_s: float = 2.
     step > 1 keeps every step-th frame (a 30 Hz camera repeats itself; 3 gives 10 Hz)."""
     root = Path(root)
     if not (max_deg > 0 and max_m > 0 and min_gap_s >= 0 and step >= 1 and float(step).is_integer()):
-        raise DatasetError(f'poses: need MAX_DEG > 0, MAX_M > 0, MIN_GAP_S >= 0 and a whole STEP >= 1, got '
-                           f'{max_deg}, {max_m}, {min_gap_s}, {step}')
+        raise DatasetError(
+            f'poses: need MAX_DEG > 0, MAX_M > 0, MIN_GAP_S >= 0 and a whole STEP >= 1, got '
+            f'{max_deg}, {max_m}, {min_gap_s}, {step}'
+        )
     try:
         frames = [(float(t), root / f) for t, f in _read_rows(root / 'rgb.txt', 2, 'timestamp file')]
-        gt = np.array([[float(v) for v in r] for r in
-                       _read_rows(root / 'groundtruth.txt', 8, 'timestamp tx ty tz qx qy qz qw')])
+        gt = np.array(
+            [[float(v) for v in r] for r in _read_rows(root / 'groundtruth.txt', 8, 'timestamp tx ty tz qx qy qz qw')]
+        )
     except ValueError as e:
         raise DatasetError(f'{root}: non-numeric timestamp or pose: {e}') from e
     frames.sort(key=lambda f: f[0])
@@ -244,8 +270,9 @@ def poses(root, max_deg: float = 15.0, max_m: float = 0.3, min_gap_s: float = 2.
     has_pose = np.abs(gt[j, 0] - t) <= POSE_MAX_DT
     keep = has_pose & (np.arange(len(t)) % int(step) == 0)
     if not has_pose.any():
-        raise DatasetError(f'{root}: no frame has a pose within {POSE_MAX_DT} s (do rgb.txt and '
-                           f'groundtruth.txt use the same clock?)')
+        raise DatasetError(
+            f'{root}: no frame has a pose within {POSE_MAX_DT} s (do rgb.txt and groundtruth.txt use the same clock?)'
+        )
     paths = [f[1] for f, k in zip(frames, keep) if k]
     missing = [p for p in paths if not p.is_file()]
     if missing:
@@ -257,11 +284,22 @@ def poses(root, max_deg: float = 15.0, max_m: float = 0.3, min_gap_s: float = 2.
     dist = np.linalg.norm(pose[:, None, :3] - pose[None, :, :3], axis=2)
     candidates = (t[:, None] - t[None, :] >= float(min_gap_s)) & ~np.eye(len(t), dtype=bool)
     stats = read_checked(paths)
-    return Dataset(name or root.name, paths, paths, (angle <= max_deg) & (dist <= max_m) & candidates,
-                   candidates, {'max_deg': float(max_deg), 'max_m': float(max_m), 'min_gap_s': float(min_gap_s),
-                                'frames_without_pose': int((~has_pose).sum()), 'step': int(step),
-                                'ref_sizes': [s[:2] for s in stats],
-                                'query_sizes': [s[:2] for s in stats]})
+    return Dataset(
+        name or root.name,
+        paths,
+        paths,
+        (angle <= max_deg) & (dist <= max_m) & candidates,
+        candidates,
+        {
+            'max_deg': float(max_deg),
+            'max_m': float(max_m),
+            'min_gap_s': float(min_gap_s),
+            'frames_without_pose': int((~has_pose).sum()),
+            'step': int(step),
+            'ref_sizes': [s[:2] for s in stats],
+            'query_sizes': [s[:2] for s in stats],
+        },
+    )
 
 
 def gardenspoint(root, ref: str = 'day_right', query: str = 'night_right', tol: int = 2) -> Dataset:
@@ -297,6 +335,7 @@ def parse_spec(spec: str, frac=None) -> Dataset:
         except ValueError:
             raise DatasetError(f'{spec!r}: MAX_DEG, MAX_M, MIN_GAP_S and STEP must be numbers') from None
         return poses(args[0], *tolerances)
-    raise DatasetError(f'cannot parse dataset {spec!r}; use vprbench:DIR, aligned:DIR_REF,DIR_QUERY[,TOL], '
-                       'loop:DIR,GT_FILE, gardenspoint:DIR[,REF,QUERY] or poses:DIR[,MAX_DEG,MAX_M,MIN_GAP_S[,STEP]]')
-
+    raise DatasetError(
+        f'cannot parse dataset {spec!r}; use vprbench:DIR, aligned:DIR_REF,DIR_QUERY[,TOL], '
+        'loop:DIR,GT_FILE, gardenspoint:DIR[,REF,QUERY] or poses:DIR[,MAX_DEG,MAX_M,MIN_GAP_S[,STEP]]'
+    )

@@ -9,6 +9,7 @@ changing any of them never returns stale features.
     feats = cache.load(paths, size=(352, 352))   # list of float16 (D, h, w), squashed to 352x352
     feats = cache.load(paths, size=288)          # height 288, aspect kept (what extraction uses)
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -63,10 +64,9 @@ class FeatureCache:
                 except (OSError, ValueError):
                     pass  # a torn write from an interrupted run: recompute it
             missing.append(i)
-        bar = tqdm(total=len(missing), desc=progress or 'features', disable=progress is None or not missing,
-                   unit='img')
+        bar = tqdm(total=len(missing), desc=progress or 'features', disable=progress is None or not missing, unit='img')
         for start in range(0, len(missing), self.batch_size):
-            chunk = missing[start:start + self.batch_size]
+            chunk = missing[start : start + self.batch_size]
             images = [resize_to(load_image(str(paths[i])), size) for i in chunk]
             by_shape: dict = {}
             for j, im in enumerate(images):
@@ -86,4 +86,3 @@ class FeatureCache:
             bar.update(len(chunk))
         bar.close()
         return out
-

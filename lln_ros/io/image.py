@@ -3,6 +3,7 @@
 Images are numpy uint8 arrays, (H, W) grey or (H, W, C) with C in {1, 3, 4}; the channel order of
 colour images is named by the caller ('rgb' or 'bgr'; a fourth channel is alpha and dropped).
 """
+
 from __future__ import annotations
 
 import os
@@ -12,9 +13,9 @@ import numpy as np
 
 from ..errors import ImageError
 
-MIN_SIDE = 8       # below this there is no structure left to upsample into a 32-pixel grid cell
-MAX_WIDTH = 4096   # after resizing to the input height: guards against absurd aspect ratios
-GRID_STRIDE = 32   # every backbone here has a stride-32 feature grid
+MIN_SIDE = 8  # below this there is no structure left to upsample into a 32-pixel grid cell
+MAX_WIDTH = 4096  # after resizing to the input height: guards against absurd aspect ratios
+GRID_STRIDE = 32  # every backbone here has a stride-32 feature grid
 
 
 def check_image(image, channel_order: str = 'rgb') -> np.ndarray:
@@ -47,8 +48,10 @@ def network_size(width: int, height: int, input_height: int) -> tuple[int, int]:
         raise ImageError(f'input_height must be a positive multiple of {GRID_STRIDE}, got {input_height}')
     net_w = max(GRID_STRIDE, int(round(width * input_height / height / GRID_STRIDE)) * GRID_STRIDE)
     if net_w > MAX_WIDTH:
-        raise ImageError(f'image aspect {width}x{height} gives a network width of {net_w} px at height '
-                         f'{input_height}; at most {MAX_WIDTH} is supported')
+        raise ImageError(
+            f'image aspect {width}x{height} gives a network width of {net_w} px at height '
+            f'{input_height}; at most {MAX_WIDTH} is supported'
+        )
     return net_w, input_height
 
 
@@ -73,6 +76,7 @@ def load_image(path: str) -> np.ndarray:
 
 # ---------------------------------------------------------------------------------------- heatmaps
 # OpenCV only (no matplotlib): the extractor node draws its `activation` image with these
+
 
 def heatmap(activation: np.ndarray, size: tuple) -> np.ndarray:
     """Activation (rows, cols) -> float (H, W) in [0, 1], bilinearly upsampled to size=(W, H)."""

@@ -14,6 +14,7 @@ Modules: base (MapStore, MapCandidate), uri (backend_for), index (GlobalIndex), 
 sqlite_landmarks), milvus. A backend module is imported when a URI first names it (BACKENDS), so
 the SQLite backend never imports pymilvus.
 """
+
 from __future__ import annotations
 
 import importlib
@@ -24,8 +25,10 @@ from .index import GlobalIndex
 from .uri import backend_for
 
 # backend name (backend_for) -> (module, class), imported on first use
-BACKENDS = {'sqlite': ('lln_ros.mapstore.sqlite', 'SQLiteMapStore'),
-            'milvus': ('lln_ros.mapstore.milvus', 'MilvusMapStore')}
+BACKENDS = {
+    'sqlite': ('lln_ros.mapstore.sqlite', 'SQLiteMapStore'),
+    'milvus': ('lln_ros.mapstore.milvus', 'MilvusMapStore'),
+}
 _LAZY = {'SQLiteMapStore': 'sqlite', 'MilvusMapStore': 'milvus'}
 
 
@@ -35,8 +38,9 @@ def backend_class(kind: str) -> type:
     return getattr(importlib.import_module(module), name)
 
 
-def open_map(uri, model: dict | None = None, create: bool = True, verify: bool = True,
-             conf: dict | None = None) -> MapStore:
+def open_map(
+    uri, model: dict | None = None, create: bool = True, verify: bool = True, conf: dict | None = None
+) -> MapStore:
     """The map at uri, in the backend the URI names (backend_for); same as MapStore.open."""
     return backend_class(backend_for(uri)[0])(uri, model=model, create=create, verify=verify, conf=conf)
 
@@ -46,9 +50,22 @@ def __getattr__(name):
         return backend_class(_LAZY[name])
     if name in ('SCHEMA_VERSION', 'SCHEMA', 'MIGRATIONS', 'SQLITE_MAGIC'):
         from . import sqlite_file
+
         return getattr(sqlite_file, name)
     raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
 
 
-__all__ = ['BACKENDS', 'FORMAT', 'GlobalIndex', 'MapCandidate', 'MapError', 'MapStore', 'MilvusMapStore',
-           'SQLiteMapStore', 'SCHEMA_VERSION', 'backend_class', 'backend_for', 'open_map']
+__all__ = [
+    'BACKENDS',
+    'FORMAT',
+    'GlobalIndex',
+    'MapCandidate',
+    'MapError',
+    'MapStore',
+    'MilvusMapStore',
+    'SQLiteMapStore',
+    'SCHEMA_VERSION',
+    'backend_class',
+    'backend_for',
+    'open_map',
+]

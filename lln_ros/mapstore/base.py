@@ -1,5 +1,6 @@
 """The map interface every backend implements: MapStore (an abstract base with the one query
 template, first stage -> fetch -> rerank -> answer) and MapCandidate, what a query answers."""
+
 from __future__ import annotations
 
 import abc
@@ -9,14 +10,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..core import landmark_index
-from ..errors import DescriptorError, MapError, ModelError
 from ..core.landmark_index import LandmarkIndex, check_prefilter
 from ..core.landmarks import LandmarkSet, stack_landmarks
+from ..core.retrieval import Candidate, pair_regions, rerank
+from ..core.retrieval import default_conf as retrieval_conf
+from ..errors import DescriptorError, MapError, ModelError
 from ..limits import validate_model
-from ..core.retrieval import Candidate, default_conf as retrieval_conf, pair_regions, rerank
 from .uri import backend_for
 
 FORMAT = 'lln_ros-map'
+
 
 @dataclass
 class MapCandidate:
@@ -34,6 +37,7 @@ class MapCandidate:
         similarity               cosine of the pair
         weight                   spatial-consistency weight of the pair
     """
+
     keyframe_id: int
     score: float
     holistic_score: float
@@ -51,9 +55,9 @@ class MapCandidate:
 def _describe(model: dict | None) -> str:
     if not model:
         return '<none>'
-    text = f"{model.get('descriptor_space')!r} (D={model.get('descriptor_dim')}"
+    text = f'{model.get("descriptor_space")!r} (D={model.get("descriptor_dim")}'
     if model.get('weights'):
-        text += f", weights {model['weights']}"
+        text += f', weights {model["weights"]}'
     return text + ')'
 
 
@@ -88,12 +92,14 @@ class MapStore(abc.ABC):
     def __new__(cls, path=None, *args, **kwargs):
         if cls is MapStore:
             from . import backend_class
+
             cls = backend_class(backend_for(path)[0])
         return super().__new__(cls)
 
     @classmethod
-    def open(cls, path, model: dict | None = None, create: bool = True, verify: bool = True,
-             conf: dict | None = None) -> 'MapStore':
+    def open(
+        cls, path, model: dict | None = None, create: bool = True, verify: bool = True, conf: dict | None = None
+    ) -> 'MapStore':
         return cls(path, model=model, create=create, verify=verify, conf=conf)
 
     # ------------------------------------------------------------------ what a backend provides
@@ -145,9 +151,17 @@ class MapStore(abc.ABC):
 
     # ------------------------------------------------------------------ shared by the backends
 
-    def query(self, lset: LandmarkSet, prefilter_k: int = retrieval_conf['prefilter_k'], k: int = 5,
-              min_score: float | None = None, exclude_recent: int = 0, method_rerank: bool = True,
-              scale: float = 1.0, prefilter: str | None = None) -> list[MapCandidate]:
+    def query(
+        self,
+        lset: LandmarkSet,
+        prefilter_k: int = retrieval_conf['prefilter_k'],
+        k: int = 5,
+        min_score: float | None = None,
+        exclude_recent: int = 0,
+        method_rerank: bool = True,
+        scale: float = 1.0,
+        prefilter: str | None = None,
+    ) -> list[MapCandidate]:
         """The best k keyframes for a query landmark set, best first: first stage -> fetch -> rerank.
 
         prefilter (default retrieval.default_conf['prefilter']): 'landmarks' = the top prefilter_k
@@ -163,8 +177,10 @@ class MapStore(abc.ABC):
             self._ready()
             if self._model is None or not self._ids:
                 return []
-            given = {'descriptor_space': lset.descriptor_space or self._model['descriptor_space'],
-                     'descriptor_dim': lset.dim}
+            given = {
+                'descriptor_space': lset.descriptor_space or self._model['descriptor_space'],
+                'descriptor_dim': lset.dim,
+            }
             if not self._same_space(given):
                 raise self._mismatch(given, 'a query')
             if exclude_recent >= len(self._ids):
@@ -193,8 +209,9 @@ class MapStore(abc.ABC):
     def _cosines(lset: LandmarkSet, ids, sets: dict) -> np.ndarray:
         if not len(ids):
             return np.zeros(0, np.float32)
-        return np.stack([sets[int(i)].global_descriptor for i in ids]).astype(np.float32) @ \
-            np.asarray(lset.global_descriptor, np.float32)
+        return np.stack([sets[int(i)].global_descriptor for i in ids]).astype(np.float32) @ np.asarray(
+            lset.global_descriptor, np.float32
+        )
 
     # the landmark index (lln_ros/core/landmark_index.py) kept in step with the stored keyframes
 
@@ -209,8 +226,11 @@ class MapStore(abc.ABC):
         wrong = sorted(i for i in set(held) | set(stored) if held.get(i) != stored.get(i))
         if not wrong:
             return []
-        return [f'landmark index disagrees with the stored keyframes on {len(wrong)} keyframes (e.g. '
-                + ', '.join(f'{i}: {held.get(i, 0)} indexed, {stored.get(i, 0)} stored' for i in wrong[:5]) + ')']
+        return [
+            f'landmark index disagrees with the stored keyframes on {len(wrong)} keyframes (e.g. '
+            + ', '.join(f'{i}: {held.get(i, 0)} indexed, {stored.get(i, 0)} stored' for i in wrong[:5])
+            + ')'
+        ]
 
     path: str = ''
     _model: dict | None = None
@@ -222,16 +242,19 @@ class MapStore(abc.ABC):
         try:
             return validate_model(model)
         except ModelError as e:
-            raise MapError(f'model for map must be Extractor.model_info (descriptor_space, descriptor_dim): '
-                           f'{e}') from None
+            raise MapError(
+                f'model for map must be Extractor.model_info (descriptor_space, descriptor_dim): {e}'
+            ) from None
 
     def _read_model_record(self, text: str) -> dict:
         """The model record of the map file, validated; MapError explains a bad one."""
         try:
             return validate_model(json.loads(text))
         except (ValueError, RecursionError) as e:  # ModelError and JSONDecodeError are ValueErrors
-            raise MapError(f'map {self.path} has a bad model record ({e}): {text[:200]!r}; '
-                           f'the map cannot be used until the record is repaired') from None
+            raise MapError(
+                f'map {self.path} has a bad model record ({e}): {text[:200]!r}; '
+                f'the map cannot be used until the record is repaired'
+            ) from None
 
     @property
     def quarantined(self) -> dict:
@@ -240,13 +263,16 @@ class MapStore(abc.ABC):
         return dict(getattr(self, '_quarantined', {}))
 
     def _mismatch(self, other: dict, what: str) -> MapError:
-        return MapError(f'map {self.path} was built with model {_describe(self._model)}; refusing {what} '
-                        f'from model {_describe(other)}: descriptors from different models cannot be '
-                        f'compared (use a map file made with this model, or delete this one)')
+        return MapError(
+            f'map {self.path} was built with model {_describe(self._model)}; refusing {what} '
+            f'from model {_describe(other)}: descriptors from different models cannot be '
+            f'compared (use a map file made with this model, or delete this one)'
+        )
 
     def _same_space(self, model: dict) -> bool:
-        return (model['descriptor_space'] == self._model['descriptor_space']
-                and int(model['descriptor_dim']) == int(self._model['descriptor_dim']))
+        return model['descriptor_space'] == self._model['descriptor_space'] and int(model['descriptor_dim']) == int(
+            self._model['descriptor_dim']
+        )
 
     def _check_storable(self, lset: LandmarkSet) -> dict:
         """Validate a keyframe before storing it; returns its {descriptor_space, descriptor_dim}."""
@@ -254,8 +280,10 @@ class MapStore(abc.ABC):
         if len(lset) == 0:
             raise DescriptorError('landmark set has no landmarks; nothing to store')
         if not lset.descriptor_space:
-            raise MapError(f'landmark set has no descriptor_space; refusing to store it in map {self.path} '
-                           f'(a persistent map must know which model made its descriptors)')
+            raise MapError(
+                f'landmark set has no descriptor_space; refusing to store it in map {self.path} '
+                f'(a persistent map must know which model made its descriptors)'
+            )
         rows, cols = (int(v) for v in lset.grid)
         if not (0 < rows < 32768 and 0 < cols < 32768):
             raise DescriptorError(f'grid {rows}x{cols} cannot be stored (int16 cells)')
@@ -273,13 +301,14 @@ class MapStore(abc.ABC):
     def _every_keyframe(self, lset: LandmarkSet, exclude_recent: int) -> tuple[np.ndarray, np.ndarray, dict]:
         """The exhaustive prefilter (prefilter_k = 0): every allowed keyframe in holistic order, as
         the index search would give them: (cosines (K,), ids (K,), their sets by id)."""
-        ids = np.asarray(self._ids[:len(self._ids) - exclude_recent], np.int64)
+        ids = np.asarray(self._ids[: len(self._ids) - exclude_recent], np.int64)
         sets = self._fetch(ids)
         self._check_fetched(ids, sets)
         if not len(ids):
             return np.zeros(0, np.float32), ids, sets
-        hol = np.stack([sets[int(i)].global_descriptor for i in ids]).astype(np.float32) @ \
-            np.asarray(lset.global_descriptor, np.float32)
+        hol = np.stack([sets[int(i)].global_descriptor for i in ids]).astype(np.float32) @ np.asarray(
+            lset.global_descriptor, np.float32
+        )
         order = np.argsort(-hol, kind='stable')
         return hol[order], ids[order], sets
 
@@ -288,9 +317,18 @@ class MapStore(abc.ABC):
         if missing:
             raise MapError(f'map {self.path}: keyframes {missing[:10]} are in the index but not in the store')
 
-    def _answer(self, lset: LandmarkSet, ids: np.ndarray, hol: np.ndarray, sets: dict, k: int,
-                min_score: float | None, method_rerank: bool, scale: float,
-                first: np.ndarray | None = None) -> list[MapCandidate]:
+    def _answer(
+        self,
+        lset: LandmarkSet,
+        ids: np.ndarray,
+        hol: np.ndarray,
+        sets: dict,
+        k: int,
+        min_score: float | None,
+        method_rerank: bool,
+        scale: float,
+        first: np.ndarray | None = None,
+    ) -> list[MapCandidate]:
         """Rerank the first stage's keyframes (ids (K,), holistic cosines (K,), their sets by id;
         first (K,): the landmark first-stage scores, None = holistic order)."""
         self._check_fetched(ids, sets)
@@ -308,10 +346,18 @@ class MapStore(abc.ABC):
                 continue
             s = sets[c.index]
             pairs = pair_regions(lset, s, c.pairs)
-            out.append(MapCandidate(c.index, float(c.score), float(c.holistic_score), s.meta['stamp'],
-                                    tuple(int(v) for v in c.offset),
-                                    (float(s.cell_size[0]), float(s.cell_size[1])),
-                                    (float(s.image_size[0]), float(s.image_size[1])), pairs))
+            out.append(
+                MapCandidate(
+                    c.index,
+                    float(c.score),
+                    float(c.holistic_score),
+                    s.meta['stamp'],
+                    tuple(int(v) for v in c.offset),
+                    (float(s.cell_size[0]), float(s.cell_size[1])),
+                    (float(s.image_size[0]), float(s.image_size[1])),
+                    pairs,
+                )
+            )
             if len(out) == k:
                 break
         return out
@@ -324,13 +370,17 @@ class MapStore(abc.ABC):
         """Validate an add_many call; returns the (sec, nanosec) stamps and the sets' descriptor space."""
         stamps = [_stamp(st) for st in stamps]
         if len(stamps) != len(sets) or (ids is not None and len(ids) != len(sets)):
-            raise ValueError(f'{len(sets)} landmark sets need as many stamps (and ids); got {len(stamps)}'
-                             f'{"" if ids is None else f" and {len(ids)}"}')
+            raise ValueError(
+                f'{len(sets)} landmark sets need as many stamps (and ids); got {len(stamps)}'
+                f'{"" if ids is None else f" and {len(ids)}"}'
+            )
         spaces = [self._check_storable(lset) for lset in sets]
         given = spaces[0]
         if any(sp != given for sp in spaces):
-            raise MapError(f'landmark sets from different models in one add_many: {given}, '
-                           f'{next(sp for sp in spaces if sp != given)}')
+            raise MapError(
+                f'landmark sets from different models in one add_many: {given}, '
+                f'{next(sp for sp in spaces if sp != given)}'
+            )
         # validated as any model is: a new map's model record may be written from it
         return stamps, self._check_model_dict(given)
 
@@ -359,7 +409,7 @@ class MapStore(abc.ABC):
         """Every keyframe as (id, (sec, nanosec), LandmarkSet), in id order, `batch` per read."""
         ids = self.ids()
         for start in range(0, len(ids), batch):
-            chunk = ids[start:start + batch]
+            chunk = ids[start : start + batch]
             with self._lock:
                 self._ready()
                 sets = self._fetch(chunk)

@@ -1,5 +1,6 @@
 """The in-memory FAISS index of the keyframes' global descriptors (the holistic first stage);
 the landmark index is lln_ros/core/landmark_index.py."""
+
 from __future__ import annotations
 
 import logging
@@ -50,12 +51,13 @@ class GlobalIndex:
     def add(self, x: np.ndarray, ids: np.ndarray) -> None:
         if self.kind == 'exact' and self.ntotal + len(ids) > self.conf['index_threshold']:
             old_x = self.index.index.reconstruct_n(0, self.ntotal) if self.ntotal else np.zeros((0, self.dim))
-            self.build(np.concatenate([old_x, np.asarray(x, np.float32).reshape(-1, self.dim)]),
-                       np.concatenate([faiss.vector_to_array(self.index.id_map), np.asarray(ids, np.int64)]))
+            self.build(
+                np.concatenate([old_x, np.asarray(x, np.float32).reshape(-1, self.dim)]),
+                np.concatenate([faiss.vector_to_array(self.index.id_map), np.asarray(ids, np.int64)]),
+            )
             log.info('global index passed %d keyframes: now IVF', self.conf['index_threshold'])
             return
-        self.index.add_with_ids(np.ascontiguousarray(x, np.float32).reshape(-1, self.dim),
-                                np.asarray(ids, np.int64))
+        self.index.add_with_ids(np.ascontiguousarray(x, np.float32).reshape(-1, self.dim), np.asarray(ids, np.int64))
 
     def remove(self, ids) -> None:
         self.index.remove_ids(np.asarray(list(ids), np.int64))
@@ -68,10 +70,12 @@ class GlobalIndex:
         params = None
         if below is not None:
             selector = faiss.IDSelectorRange(0, int(below))
-            params = (faiss.SearchParametersIVF(sel=selector, nprobe=self.index.nprobe)
-                      if self.kind == 'ivf' else faiss.SearchParameters(sel=selector))
-        scores, ids = self.index.search(np.ascontiguousarray(q, np.float32).reshape(1, self.dim), int(k),
-                                        params=params)
+            params = (
+                faiss.SearchParametersIVF(sel=selector, nprobe=self.index.nprobe)
+                if self.kind == 'ivf'
+                else faiss.SearchParameters(sel=selector)
+            )
+        scores, ids = self.index.search(np.ascontiguousarray(q, np.float32).reshape(1, self.dim), int(k), params=params)
         keep = ids[0] >= 0
         return scores[0][keep], ids[0][keep]
 

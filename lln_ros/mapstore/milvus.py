@@ -38,6 +38,7 @@ refuses gRPC messages over 64 MB). Every pymilvus / gRPC error becomes a MapErro
 Ids are reserved in blocks of ID_BLOCK in the meta record, so an add costs one insert; a process
 that stops skips the rest of its block (ids are never reused, not always consecutive).
 """
+
 from __future__ import annotations
 
 import base64
@@ -52,18 +53,18 @@ from urllib.parse import parse_qs, urlparse
 import numpy as np
 
 from ..core import landmark_index
-from ..errors import DescriptorError, LLNError, MapError
 from ..core.landmarks import LandmarkSet
+from ..errors import DescriptorError, LLNError, MapError
 from .base import FORMAT, MapStore
 
 log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 2
-ID_BLOCK = 1024        # ids reserved per meta write
-_PIECE = 65532         # base64 characters per VARCHAR piece: a multiple of 4, <= 65535
-_PIECES = 64           # pieces per row (the ARRAY's max_capacity)
-_FETCH_IDS = 256       # keyframes per fetch-by-id query: a reply of ~9 MB at n=50, D=320
-_QUERY_ROWS = 16384    # Milvus caps offset + limit of one query at 16384 rows
+ID_BLOCK = 1024  # ids reserved per meta write
+_PIECE = 65532  # base64 characters per VARCHAR piece: a multiple of 4, <= 65535
+_PIECES = 64  # pieces per row (the ARRAY's max_capacity)
+_FETCH_IDS = 256  # keyframes per fetch-by-id query: a reply of ~9 MB at n=50, D=320
+_QUERY_ROWS = 16384  # Milvus caps offset + limit of one query at 16384 rows
 _SCALARS = ('stamp_sec', 'stamp_nanosec', 'image_w', 'image_h', 'cell_w', 'cell_h', 'grid_rows', 'grid_cols', 'n')
 
 
@@ -71,7 +72,7 @@ def parse_uri(uri: str) -> dict:
     """{'uri', 'db_name', 'map', 'label'} for pymilvus from a milvus:// or milvus-lite:// URI."""
     text = os.fspath(uri)
     if text.startswith('milvus-lite:'):
-        path = text[len('milvus-lite:'):]
+        path = text[len('milvus-lite:') :]
         path = path[2:] if path.startswith('//') else path
         path, _, query = path.partition('?')
         path = os.path.abspath(os.path.expanduser(path))
@@ -92,9 +93,11 @@ def pack(*arrays: np.ndarray) -> list[str]:
     """Arrays' bytes, concatenated, as base64 pieces for an ARRAY<VARCHAR> field."""
     text = base64.b64encode(b''.join(a.tobytes() for a in arrays)).decode('ascii')
     if len(text) > _PIECE * _PIECES:
-        raise DescriptorError(f'{len(text) * 3 // 4} bytes do not fit one Milvus row '
-                              f'(at most {_PIECE * _PIECES * 3 // 4}); store fewer landmarks or keypoints')
-    return [text[i:i + _PIECE] for i in range(0, len(text), _PIECE)] or ['']
+        raise DescriptorError(
+            f'{len(text) * 3 // 4} bytes do not fit one Milvus row '
+            f'(at most {_PIECE * _PIECES * 3 // 4}); store fewer landmarks or keypoints'
+        )
+    return [text[i : i + _PIECE] for i in range(0, len(text), _PIECE)] or ['']
 
 
 def unpack(pieces) -> bytes:
@@ -107,8 +110,10 @@ def explain(e: BaseException) -> str:
     code = code() if callable(code) else code
     text = f'{type(e).__name__}: {getattr(e, "details", lambda: None)() or e}'.replace('\n', ' ')
     if 'RESOURCE_EXHAUSTED' in f'{code} {text}' or 'larger than max' in text:
-        text += (' (a gRPC message over the server limit, 64 MB on Milvus 2.3 (grpc.serverMaxRecvSize): '
-                 "lower conf['insert_bytes'])")
+        text += (
+            ' (a gRPC message over the server limit, 64 MB on Milvus 2.3 (grpc.serverMaxRecvSize): '
+            "lower conf['insert_bytes'])"
+        )
     elif 'UNAVAILABLE' in f'{code} {text}' or 'connect' in text.lower():
         text += ' (is the Milvus server running and reachable?)'
     return text[:800]
@@ -116,8 +121,11 @@ def explain(e: BaseException) -> str:
 
 def _is_milvus_error(e: BaseException) -> bool:
     mod = type(e).__module__ or ''
-    return (mod.startswith(('pymilvus', 'grpc', 'milvus_lite')) or isinstance(e, (ConnectionError, TimeoutError))
-            or any(c.__module__.startswith(('grpc', 'pymilvus')) for c in type(e).__mro__))
+    return (
+        mod.startswith(('pymilvus', 'grpc', 'milvus_lite'))
+        or isinstance(e, (ConnectionError, TimeoutError))
+        or any(c.__module__.startswith(('grpc', 'pymilvus')) for c in type(e).__mro__)
+    )
 
 
 class MilvusMapStore(MapStore):
@@ -125,29 +133,31 @@ class MilvusMapStore(MapStore):
 
     default_conf = {
         **landmark_index.default_conf,
-        'index_type': 'FLAT',      # global-descriptor index; on a cluster e.g. 'HNSW' or 'AUTOINDEX'
-        'timeout': 30.0,           # seconds per Milvus call
+        'index_type': 'FLAT',  # global-descriptor index; on a cluster e.g. 'HNSW' or 'AUTOINDEX'
+        'timeout': 30.0,  # seconds per Milvus call
         'insert_bytes': 16 << 20,  # largest insert message; the 2.3 server refuses gRPC messages > 64 MB
-        'refresh_s': 1.0,          # a reader re-reads the id list (other processes' writes) at most this often
+        'refresh_s': 1.0,  # a reader re-reads the id list (other processes' writes) at most this often
         'consistency': 'Session',  # collections' consistency level; Strong waits ~0.4 s per read
-        'seal_rows': 1000,         # flush (seal) after this many inserted rows: searching unsealed rows is
-                                   # brute force and slow (Milvus Lite: 30 -> 500 ms at 4,000 unsealed)
+        'seal_rows': 1000,  # flush (seal) after this many inserted rows: searching unsealed rows is
+        # brute force and slow (Milvus Lite: 30 -> 500 ms at 4,000 unsealed)
     }
 
-    def __init__(self, path, model: dict | None = None, create: bool = True, verify: bool = True,
-                 conf: dict | None = None):
+    def __init__(
+        self, path, model: dict | None = None, create: bool = True, verify: bool = True, conf: dict | None = None
+    ):
         try:
             from pymilvus import MilvusClient  # needed by this backend only
         except ImportError as e:
-            raise MapError(f'map {path} needs the Milvus backend: pip install pymilvus==3.0.2 '
-                           f'milvus-lite==3.2.2 ({e})') from e
+            raise MapError(
+                f'map {path} needs the Milvus backend: pip install pymilvus==3.0.2 milvus-lite==3.2.2 ({e})'
+            ) from e
         self.conf = {**self.default_conf, **(conf or {})}
         where = parse_uri(path)
         self.path = where['label']
         self._lock = threading.RLock()
         self._model = None
         self._ids: list[int] = []
-        self._landmarks = None   # the landmark first stage: a local FAISS index, built at open
+        self._landmarks = None  # the landmark first stage: a local FAISS index, built at open
         self._next_id = self._reserved = 1
         self._refreshed = time.monotonic()
         self._has_keypoints = False
@@ -156,8 +166,10 @@ class MilvusMapStore(MapStore):
         self._v1 = (f'{m}_keyframes', f'{m}_landmarks')
         is_lite = not where['uri'].startswith('http')
         if is_lite and os.path.exists(where['uri']) and not os.path.isdir(where['uri']):
-            raise MapError(f'{where["uri"]} is a file, not a Milvus Lite map (a directory); '
-                           f'an SQLite map is opened by its plain path')
+            raise MapError(
+                f'{where["uri"]} is a file, not a Milvus Lite map (a directory); '
+                f'an SQLite map is opened by its plain path'
+            )
         if is_lite and not create and not os.path.isdir(where['uri']):
             raise MapError(f'no map at {self.path} (create=False)')
         if is_lite:
@@ -175,7 +187,7 @@ class MilvusMapStore(MapStore):
                 self._client = MilvusClient(**kwargs)
                 if where['db_name']:
                     self._use_database(where['db_name'], create)
-                    self._client.close()   # use_database asks DescribeDatabase, which a 2.3 server lacks
+                    self._client.close()  # use_database asks DescribeDatabase, which a 2.3 server lacks
                     kwargs['db_name'] = where['db_name']
                     self._client = MilvusClient(**kwargs)
                 self._connect_kwargs = kwargs
@@ -210,10 +222,11 @@ class MilvusMapStore(MapStore):
 
     def _reconnect(self) -> None:
         from pymilvus import MilvusClient
+
         with self._errors('reconnecting'):
             try:
                 self._client.close()
-            except Exception:   # the old channel is broken anyway
+            except Exception:  # the old channel is broken anyway
                 pass
             self._client = MilvusClient(**self._connect_kwargs)
             for name in (self._meta_c, self._fr_c, self._kp_c):
@@ -235,52 +248,84 @@ class MilvusMapStore(MapStore):
         names = self._client.list_databases()
         if db not in names:
             if not create:
-                raise MapError(f'no map at {self.path}: the server has no database {db!r} '
-                               f'(it has {sorted(names)}; create=False)')
+                raise MapError(
+                    f'no map at {self.path}: the server has no database {db!r} (it has {sorted(names)}; create=False)'
+                )
             self._client.create_database(db)
             log.info('created database %s for map %s', db, self.path)
 
     def _create(self, name: str, fields: list, vector: str, dim: int) -> None:
         from pymilvus import DataType, MilvusClient
+
         schema = MilvusClient.create_schema(auto_id=False)
         for field, kind, extra in fields:
             schema.add_field(field, getattr(DataType, kind), **extra)
         schema.add_field(vector, DataType.FLOAT_VECTOR, dim=dim)
         index = self._client.prepare_index_params()
-        index.add_index(vector, index_type=self.conf['index_type'] if dim > 2 else 'FLAT',
-                        metric_type='IP' if dim > 2 else 'L2')
-        self._client.create_collection(name, schema=schema, index_params=index,
-                                       consistency_level=self.conf['consistency'])
+        index.add_index(
+            vector, index_type=self.conf['index_type'] if dim > 2 else 'FLAT', metric_type='IP' if dim > 2 else 'L2'
+        )
+        self._client.create_collection(
+            name, schema=schema, index_params=index, consistency_level=self.conf['consistency']
+        )
 
     def _create_meta(self) -> None:
-        self._create(self._meta_c, [('key', 'VARCHAR', {'is_primary': True, 'max_length': 64}),
-                                    ('value', 'VARCHAR', {'max_length': 65535})], 'unused', 2)
+        self._create(
+            self._meta_c,
+            [('key', 'VARCHAR', {'is_primary': True, 'max_length': 64}), ('value', 'VARCHAR', {'max_length': 65535})],
+            'unused',
+            2,
+        )
         from .. import __version__
-        self._put_meta({'format': FORMAT, 'schema_version': str(SCHEMA_VERSION),
-                        'created': str(int(time.time())), 'created_by': f'lln_ros {__version__}',
-                        'next_id': '1'})
+
+        self._put_meta(
+            {
+                'format': FORMAT,
+                'schema_version': str(SCHEMA_VERSION),
+                'created': str(int(time.time())),
+                'created_by': f'lln_ros {__version__}',
+                'next_id': '1',
+            }
+        )
 
     def _create_frames(self, dim: int) -> None:
         pieces = {'element_type': None, 'max_capacity': _PIECES, 'max_length': 65535}
         from pymilvus import DataType
+
         pieces['element_type'] = DataType.VARCHAR
-        self._create(self._fr_c, [('id', 'INT64', {'is_primary': True})]
-                     + [(f, 'INT64', {}) for f in _SCALARS[:2]] + [(f, 'FLOAT', {}) for f in _SCALARS[2:6]]
-                     + [(f, 'INT32', {}) for f in _SCALARS[6:]] + [('landmarks', 'ARRAY', pieces)],
-                     'global_descriptor', dim)
+        self._create(
+            self._fr_c,
+            [('id', 'INT64', {'is_primary': True})]
+            + [(f, 'INT64', {}) for f in _SCALARS[:2]]
+            + [(f, 'FLOAT', {}) for f in _SCALARS[2:6]]
+            + [(f, 'INT32', {}) for f in _SCALARS[6:]]
+            + [('landmarks', 'ARRAY', pieces)],
+            'global_descriptor',
+            dim,
+        )
 
     def _put_meta(self, values: dict) -> None:
-        self._client.upsert(self._meta_c, [{'key': k, 'value': str(v), 'unused': [0.0, 0.0]}
-                                           for k, v in values.items()])
+        self._client.upsert(
+            self._meta_c, [{'key': k, 'value': str(v), 'unused': [0.0, 0.0]} for k, v in values.items()]
+        )
 
     def _meta(self, strong: bool = False) -> dict:
-        rows = self._client.query(self._meta_c, filter='key != ""', output_fields=['key', 'value'],
-                                  **({'consistency_level': 'Strong'} if strong else {}))
+        rows = self._client.query(
+            self._meta_c,
+            filter='key != ""',
+            output_fields=['key', 'value'],
+            **({'consistency_level': 'Strong'} if strong else {}),
+        )
         return {r['key']: r['value'] for r in rows}
 
     def _scan_ids(self, strong: bool = False) -> list[int]:
-        it = self._client.query_iterator(self._fr_c, batch_size=4096, filter='id >= 0', output_fields=['id'],
-                                         **({'consistency_level': 'Strong'} if strong else {}))
+        it = self._client.query_iterator(
+            self._fr_c,
+            batch_size=4096,
+            filter='id >= 0',
+            output_fields=['id'],
+            **({'consistency_level': 'Strong'} if strong else {}),
+        )
         ids = []
         try:
             while rows := it.next():
@@ -296,22 +341,27 @@ class MilvusMapStore(MapStore):
                 self._client.load_collection(name)
         meta = self._meta(strong=True)
         if meta.get('format') != FORMAT:
-            raise MapError(f'{self.path} is a Milvus database but not an lln_ros map '
-                           f'(meta format is {meta.get("format")!r}, expected {FORMAT!r})')
+            raise MapError(
+                f'{self.path} is a Milvus database but not an lln_ros map '
+                f'(meta format is {meta.get("format")!r}, expected {FORMAT!r})'
+            )
         version = int(meta.get('schema_version', '0') or 0)
         if version > SCHEMA_VERSION:
-            raise MapError(f'map {self.path} has schema version {version}; this lln_ros reads up to '
-                           f'{SCHEMA_VERSION}: upgrade lln_ros')
+            raise MapError(
+                f'map {self.path} has schema version {version}; this lln_ros reads up to '
+                f'{SCHEMA_VERSION}: upgrade lln_ros'
+            )
         while version < SCHEMA_VERSION:
             if version not in MIGRATIONS:
-                raise MapError(f'map {self.path} has schema version {version} and there is no migration to '
-                               f'{version + 1}')
+                raise MapError(
+                    f'map {self.path} has schema version {version} and there is no migration to {version + 1}'
+                )
             MIGRATIONS[version](self, meta)
-            self._put_meta({'schema_version': str(version + 1)})   # the commit point of the migration
+            self._put_meta({'schema_version': str(version + 1)})  # the commit point of the migration
             log.info('migrated map %s from schema %d to %d', self.path, version, version + 1)
             version += 1
             meta = self._meta(strong=True)
-        for old in self._v1:   # left by a migration that stopped after its commit point
+        for old in self._v1:  # left by a migration that stopped after its commit point
             if self._client.has_collection(old):
                 self._client.drop_collection(old)
         self._model = self._read_model_record(meta['model']) if 'model' in meta else None
@@ -335,7 +385,7 @@ class MilvusMapStore(MapStore):
 
     def _index_landmarks(self, ids) -> None:
         for start in range(0, len(ids), 512):
-            sets = self._fetch(ids[start:start + 512])
+            sets = self._fetch(ids[start : start + 512])
             self._landmarks.add_sets(list(sets), list(sets.values()))
 
     def _refresh(self) -> None:
@@ -365,11 +415,11 @@ class MilvusMapStore(MapStore):
                 elif now != before:
                     self._landmarks.remove_keyframes(sorted(before - now))
                     self._index_landmarks(sorted(now - before))
-                if self._ids and self._ids[-1] >= self._next_id:   # another process wrote
+                if self._ids and self._ids[-1] >= self._next_id:  # another process wrote
                     self._next_id = self._reserved = self._ids[-1] + 1
                 if not self._has_keypoints:
                     self._has_keypoints = self._client.has_collection(self._kp_c)
-        except MapError as e:   # a reader keeps answering from the ids it has
+        except MapError as e:  # a reader keeps answering from the ids it has
             log.warning('%s', e)
 
     # ------------------------------------------------------------------ model
@@ -382,9 +432,13 @@ class MilvusMapStore(MapStore):
             if self._model is None:
                 if not self._client.has_collection(self._fr_c):
                     self._create_frames(model['descriptor_dim'])
-                self._put_meta({'model': json.dumps(model, sort_keys=True, default=str),
-                                'descriptor_space': model['descriptor_space'],
-                                'descriptor_dim': str(model['descriptor_dim'])})
+                self._put_meta(
+                    {
+                        'model': json.dumps(model, sort_keys=True, default=str),
+                        'descriptor_space': model['descriptor_space'],
+                        'descriptor_dim': str(model['descriptor_dim']),
+                    }
+                )
                 self._model = model
                 self._landmarks = self._new_landmark_index()
             elif not self._same_space(model):
@@ -394,14 +448,25 @@ class MilvusMapStore(MapStore):
 
     @staticmethod
     def _frame_row(kid: int, lset: LandmarkSet, sec: int, nsec: int) -> dict:
-        return {'id': kid, 'stamp_sec': sec, 'stamp_nanosec': nsec,
-                'image_w': float(lset.image_size[0]), 'image_h': float(lset.image_size[1]),
-                'cell_w': float(lset.cell_size[0]), 'cell_h': float(lset.cell_size[1]),
-                'grid_rows': int(lset.grid[0]), 'grid_cols': int(lset.grid[1]), 'n': len(lset),
-                'global_descriptor': np.asarray(lset.global_descriptor, np.float32).tolist(),
-                'landmarks': pack(np.ascontiguousarray(lset.cells, '<i2'), np.ascontiguousarray(lset.centers, '<f4'),
-                                  np.ascontiguousarray(lset.scores, '<f4'),
-                                  np.ascontiguousarray(lset.descriptors, '<f2'))}
+        return {
+            'id': kid,
+            'stamp_sec': sec,
+            'stamp_nanosec': nsec,
+            'image_w': float(lset.image_size[0]),
+            'image_h': float(lset.image_size[1]),
+            'cell_w': float(lset.cell_size[0]),
+            'cell_h': float(lset.cell_size[1]),
+            'grid_rows': int(lset.grid[0]),
+            'grid_cols': int(lset.grid[1]),
+            'n': len(lset),
+            'global_descriptor': np.asarray(lset.global_descriptor, np.float32).tolist(),
+            'landmarks': pack(
+                np.ascontiguousarray(lset.cells, '<i2'),
+                np.ascontiguousarray(lset.centers, '<f4'),
+                np.ascontiguousarray(lset.scores, '<f4'),
+                np.ascontiguousarray(lset.descriptors, '<f2'),
+            ),
+        }
 
     def _row_to_set(self, k: dict) -> LandmarkSet:
         kid, n, dim = int(k['id']), int(k['n']), int(self._model['descriptor_dim'])
@@ -410,20 +475,27 @@ class MilvusMapStore(MapStore):
         except (ValueError, TypeError) as e:
             raise MapError(f'map {self.path} is corrupt: keyframe {kid} landmarks are not base64 ({e})') from None
         if n < 1 or len(blob) != n * (16 + 2 * dim):
-            raise MapError(f'map {self.path} is corrupt: keyframe {kid} landmarks are {len(blob)} bytes, '
-                           f'expected {n * (16 + 2 * dim)} (n={n}, D={dim})')
+            raise MapError(
+                f'map {self.path} is corrupt: keyframe {kid} landmarks are {len(blob)} bytes, '
+                f'expected {n * (16 + 2 * dim)} (n={n}, D={dim})'
+            )
         cells = np.frombuffer(blob, '<i2', 2 * n, 0).reshape(n, 2)
         centers = np.frombuffer(blob, '<f4', 2 * n, 4 * n).reshape(n, 2)
         scores = np.frombuffer(blob, '<f4', n, 12 * n)
         desc = np.frombuffer(blob, '<f2', n * dim, 16 * n).reshape(n, dim)
         return LandmarkSet(
             global_descriptor=np.asarray(k['global_descriptor'], np.float32),
-            descriptors=desc.astype(np.float32), cells=cells.astype(np.int32), centers=centers.astype(np.float32),
-            scores=scores.astype(np.float32), cell_size=np.array([k['cell_w'], k['cell_h']], np.float32),
+            descriptors=desc.astype(np.float32),
+            cells=cells.astype(np.int32),
+            centers=centers.astype(np.float32),
+            scores=scores.astype(np.float32),
+            cell_size=np.array([k['cell_w'], k['cell_h']], np.float32),
             image_size=np.array([k['image_w'], k['image_h']], np.float32),
-            grid=(int(k['grid_rows']), int(k['grid_cols'])), activation=None,
+            grid=(int(k['grid_rows']), int(k['grid_cols'])),
+            activation=None,
             descriptor_space=self._model['descriptor_space'],
-            meta={'keyframe_id': kid, 'stamp': (int(k['stamp_sec']), int(k['stamp_nanosec']))})
+            meta={'keyframe_id': kid, 'stamp': (int(k['stamp_sec']), int(k['stamp_nanosec']))},
+        )
 
     def _fetch(self, ids, kf_rows: list | None = None) -> dict[int, LandmarkSet]:
         ids = [int(i) for i in ids]
@@ -433,9 +505,10 @@ class MilvusMapStore(MapStore):
             if kf_rows is None:
                 kf_rows = []
                 for start in range(0, len(ids), _FETCH_IDS):
-                    chunk = ids[start:start + _FETCH_IDS]
-                    kf_rows += self._client.query(self._fr_c, filter=f'id in {chunk}', output_fields=['*'],
-                                                  limit=len(chunk))
+                    chunk = ids[start : start + _FETCH_IDS]
+                    kf_rows += self._client.query(
+                        self._fr_c, filter=f'id in {chunk}', output_fields=['*'], limit=len(chunk)
+                    )
             return {int(k['id']): self._row_to_set(k) for k in kf_rows}
 
     # ------------------------------------------------------------------ public API
@@ -468,7 +541,9 @@ class MilvusMapStore(MapStore):
                 self._reserved = next_id + ID_BLOCK
             batch, size = [], 0
             for row in rows + [None]:
-                nbytes = 0 if row is None else sum(map(len, row['landmarks'])) + 12 * len(row['global_descriptor']) + 256
+                nbytes = (
+                    0 if row is None else sum(map(len, row['landmarks'])) + 12 * len(row['global_descriptor']) + 256
+                )
                 if batch and (row is None or size + nbytes > self.conf['insert_bytes']):
                     self._client.insert(self._fr_c, batch)
                     self._ids.extend(r['id'] for r in batch)
@@ -490,9 +565,15 @@ class MilvusMapStore(MapStore):
         """The holistic first stage: one Milvus search that also returns the hits' landmarks."""
         with self._errors('query'):
             where = f'id < {int(below)}' if below is not None else ''
-            hits = self._client.search(self._fr_c, data=[np.asarray(lset.global_descriptor, np.float32).tolist()],
-                                       anns_field='global_descriptor', limit=min(k, _QUERY_ROWS), filter=where,
-                                       search_params={'metric_type': 'IP'}, output_fields=['*'])[0]
+            hits = self._client.search(
+                self._fr_c,
+                data=[np.asarray(lset.global_descriptor, np.float32).tolist()],
+                anns_field='global_descriptor',
+                limit=min(k, _QUERY_ROWS),
+                filter=where,
+                search_params={'metric_type': 'IP'},
+                output_fields=['*'],
+            )[0]
             ids = np.array([int(h['id']) for h in hits], np.int64)
             hol = np.array([float(h['distance']) for h in hits], np.float32)
             return hol, ids, self._fetch(ids, [{**h['entity'], 'id': h['id']} for h in hits])
@@ -511,21 +592,38 @@ class MilvusMapStore(MapStore):
         uv = np.ascontiguousarray(uv, '<f4').reshape(-1, 2)
         desc = np.ascontiguousarray(descriptors)
         if desc.dtype != np.uint8 or desc.ndim != 2 or len(desc) != len(uv):
-            raise DescriptorError(f'keypoints need (N, B) uint8 descriptors for N={len(uv)} points, '
-                                  f'got {desc.dtype} {desc.shape}')
-        row = {'keyframe_id': int(keyframe_id), 'n': len(uv), 'width': int(desc.shape[1]),
-               'data': pack(uv, desc), 'unused': [0.0, 0.0]}
+            raise DescriptorError(
+                f'keypoints need (N, B) uint8 descriptors for N={len(uv)} points, got {desc.dtype} {desc.shape}'
+            )
+        row = {
+            'keyframe_id': int(keyframe_id),
+            'n': len(uv),
+            'width': int(desc.shape[1]),
+            'data': pack(uv, desc),
+            'unused': [0.0, 0.0],
+        }
         with self._lock, self._errors('storing keypoints'):
             self._ready()
             if int(keyframe_id) not in set(self._ids):
                 raise KeyError(f'no keyframe {keyframe_id} in map {self.path}')
             if not self._has_keypoints and not self._client.has_collection(self._kp_c):
                 from pymilvus import DataType
-                self._create(self._kp_c, [('keyframe_id', 'INT64', {'is_primary': True}), ('n', 'INT32', {}),
-                                          ('width', 'INT32', {}),
-                                          ('data', 'ARRAY', {'element_type': DataType.VARCHAR,
-                                                             'max_capacity': _PIECES, 'max_length': 65535})],
-                             'unused', 2)
+
+                self._create(
+                    self._kp_c,
+                    [
+                        ('keyframe_id', 'INT64', {'is_primary': True}),
+                        ('n', 'INT32', {}),
+                        ('width', 'INT32', {}),
+                        (
+                            'data',
+                            'ARRAY',
+                            {'element_type': DataType.VARCHAR, 'max_capacity': _PIECES, 'max_length': 65535},
+                        ),
+                    ],
+                    'unused',
+                    2,
+                )
             self._has_keypoints = True
             self._client.upsert(self._kp_c, [row])
 
@@ -535,20 +633,25 @@ class MilvusMapStore(MapStore):
             self._ready()
             if not self._has_keypoints:
                 return None
-            rows = self._client.query(self._kp_c, filter=f'keyframe_id == {int(keyframe_id)}',
-                                      output_fields=['n', 'width', 'data'])
+            rows = self._client.query(
+                self._kp_c, filter=f'keyframe_id == {int(keyframe_id)}', output_fields=['n', 'width', 'data']
+            )
         if not rows:
             return None
         n, width, blob = int(rows[0]['n']), int(rows[0]['width']), unpack(rows[0]['data'])
         if len(blob) != n * (8 + width):
-            raise MapError(f'map {self.path} is corrupt: keyframe {keyframe_id} keypoints are {len(blob)} bytes '
-                           f'for n={n}, width {width}')
-        return (np.frombuffer(blob, '<f4', 2 * n).reshape(n, 2).copy(),
-                np.frombuffer(blob, np.uint8, n * width, 8 * n).reshape(n, width).copy())
+            raise MapError(
+                f'map {self.path} is corrupt: keyframe {keyframe_id} keypoints are {len(blob)} bytes '
+                f'for n={n}, width {width}'
+            )
+        return (
+            np.frombuffer(blob, '<f4', 2 * n).reshape(n, 2).copy(),
+            np.frombuffer(blob, np.uint8, n * width, 8 * n).reshape(n, width).copy(),
+        )
 
     def _delete_ids(self, present: list[int]) -> None:
         for start in range(0, len(present), 4096):
-            chunk = present[start:start + 4096]
+            chunk = present[start : start + 4096]
             # keyframes first: the index never finds a keyframe whose keypoints are gone
             self._client.delete(self._fr_c, filter=f'id in {chunk}')
             if self._has_keypoints:
@@ -578,15 +681,22 @@ class MilvusMapStore(MapStore):
         with self._lock, self._errors('info'):
             self._ready()
             meta = self._meta()
-            return {'path': self.path, 'backend': 'milvus', 'keyframes': len(self._ids), 'model': self.model,
-                    'descriptor_space': self._model and self._model['descriptor_space'],
-                    'descriptor_dim': self._model and int(self._model['descriptor_dim']),
-                    'schema_version': int(meta['schema_version']), 'index': self.conf['index_type'],
-                    'landmark_index': self._landmarks.kind if self._landmarks is not None else None,
-                    'landmarks': self._landmarks.ntotal if self._landmarks is not None else 0,
-                    'first_id': self._ids[0] if self._ids else None,
-                    'last_id': self._ids[-1] if self._ids else None,
-                    'created': int(meta.get('created', 0)), 'created_by': meta.get('created_by', '')}
+            return {
+                'path': self.path,
+                'backend': 'milvus',
+                'keyframes': len(self._ids),
+                'model': self.model,
+                'descriptor_space': self._model and self._model['descriptor_space'],
+                'descriptor_dim': self._model and int(self._model['descriptor_dim']),
+                'schema_version': int(meta['schema_version']),
+                'index': self.conf['index_type'],
+                'landmark_index': self._landmarks.kind if self._landmarks is not None else None,
+                'landmarks': self._landmarks.ntotal if self._landmarks is not None else 0,
+                'first_id': self._ids[0] if self._ids else None,
+                'last_id': self._ids[-1] if self._ids else None,
+                'created': int(meta.get('created', 0)),
+                'created_by': meta.get('created_by', ''),
+            }
 
     def save(self) -> None:
         """Flush (seal) the collections' growing segments."""
@@ -633,10 +743,13 @@ class MilvusMapStore(MapStore):
                 if sorted(found) != self._ids:
                     problems.append(f'frames collection holds {len(found)} ids, this process knows {len(self._ids)}')
                 if self._has_keypoints:
-                    kp = self._client.query(self._kp_c, filter='keyframe_id >= 0', output_fields=['keyframe_id'],
-                                            limit=_QUERY_ROWS)
-                    bad += [f'keypoints of keyframe {k} but no such keyframe'
-                            for k in sorted({int(r['keyframe_id']) for r in kp} - set(found))]
+                    kp = self._client.query(
+                        self._kp_c, filter='keyframe_id >= 0', output_fields=['keyframe_id'], limit=_QUERY_ROWS
+                    )
+                    bad += [
+                        f'keypoints of keyframe {k} but no such keyframe'
+                        for k in sorted({int(r['keyframe_id']) for r in kp} - set(found))
+                    ]
                 problems.extend(bad[:limit])
                 if len(bad) > limit:
                     problems.append(f'... and {len(bad) - limit} more like that')
@@ -664,6 +777,7 @@ class MilvusMapStore(MapStore):
 
 # ---------------------------------------------------------------------- migrations
 
+
 def _v1_rows_to_sets(store: MilvusMapStore, kf_rows: list, lm_rows: list) -> list[tuple]:
     """Schema 1 rows (a keyframe row + one row per landmark) -> [(id, LandmarkSet, (sec, nsec))]."""
     by_kf: dict[int, list] = {}
@@ -674,18 +788,28 @@ def _v1_rows_to_sets(store: MilvusMapStore, kf_rows: list, lm_rows: list) -> lis
         kid, n = int(k['id']), int(k['n'])
         lms = sorted(by_kf.get(kid, []), key=lambda r: r['rank'])
         if len(lms) != n:
-            raise MapError(f'map {store.path} (schema 1) is damaged: keyframe {kid} has {len(lms)} landmarks, '
-                           f'expected {n}; not migrated')
-        out.append((kid, LandmarkSet(
-            global_descriptor=np.asarray(k['global_descriptor'], np.float32),
-            descriptors=np.array([r['descriptor'] for r in lms], np.int16).view(np.float16).astype(np.float32),
-            cells=np.array([[r['col'], r['row']] for r in lms], np.int32),
-            centers=np.array([r['center'] for r in lms], np.float32),
-            scores=np.array([r['score'] for r in lms], np.float32),
-            cell_size=np.array([k['cell_w'], k['cell_h']], np.float32),
-            image_size=np.array([k['image_w'], k['image_h']], np.float32),
-            grid=(int(k['grid_rows']), int(k['grid_cols'])), activation=None,
-            descriptor_space=store._model['descriptor_space']), (int(k['stamp_sec']), int(k['stamp_nanosec']))))
+            raise MapError(
+                f'map {store.path} (schema 1) is damaged: keyframe {kid} has {len(lms)} landmarks, '
+                f'expected {n}; not migrated'
+            )
+        out.append(
+            (
+                kid,
+                LandmarkSet(
+                    global_descriptor=np.asarray(k['global_descriptor'], np.float32),
+                    descriptors=np.array([r['descriptor'] for r in lms], np.int16).view(np.float16).astype(np.float32),
+                    cells=np.array([[r['col'], r['row']] for r in lms], np.int32),
+                    centers=np.array([r['center'] for r in lms], np.float32),
+                    scores=np.array([r['score'] for r in lms], np.float32),
+                    cell_size=np.array([k['cell_w'], k['cell_h']], np.float32),
+                    image_size=np.array([k['image_w'], k['image_h']], np.float32),
+                    grid=(int(k['grid_rows']), int(k['grid_cols'])),
+                    activation=None,
+                    descriptor_space=store._model['descriptor_space'],
+                ),
+                (int(k['stamp_sec']), int(k['stamp_nanosec'])),
+            )
+        )
     return out
 
 
@@ -698,7 +822,7 @@ def _migrate_1_to_2(store: MilvusMapStore, meta: dict) -> None:
         return
     store._model = store._read_model_record(meta['model'])
     if c.has_collection(store._fr_c):
-        c.drop_collection(store._fr_c)   # from a migration that stopped half-way
+        c.drop_collection(store._fr_c)  # from a migration that stopped half-way
     store._create_frames(int(store._model['descriptor_dim']))
     for name in (kf_c, lm_c):
         c.load_collection(name)
@@ -711,20 +835,28 @@ def _migrate_1_to_2(store: MilvusMapStore, meta: dict) -> None:
         it.close()
     ids.sort()
     for start in range(0, len(ids), _FETCH_IDS):
-        chunk = ids[start:start + _FETCH_IDS]
+        chunk = ids[start : start + _FETCH_IDS]
         kf_rows = c.query(kf_c, filter=f'id in {chunk}', output_fields=['*'], limit=len(chunk))
         lm_rows = []
-        for i in range(0, len(kf_rows), 64):   # <= 64 keyframes of <= 256 landmarks: under 16,384 rows
-            part = [int(k['id']) for k in kf_rows[i:i + 64]]
-            lm_rows += c.query(lm_c, filter=f'keyframe_id in {part}', limit=sum(int(k['n']) for k in kf_rows[i:i + 64]),
-                               output_fields=['keyframe_id', 'rank', 'col', 'row', 'score', 'center', 'descriptor'])
-        rows = [store._frame_row(kid, lset, sec, nsec) for kid, lset, (sec, nsec) in
-                _v1_rows_to_sets(store, kf_rows, lm_rows)]
+        for i in range(0, len(kf_rows), 64):  # <= 64 keyframes of <= 256 landmarks: under 16,384 rows
+            part = [int(k['id']) for k in kf_rows[i : i + 64]]
+            lm_rows += c.query(
+                lm_c,
+                filter=f'keyframe_id in {part}',
+                limit=sum(int(k['n']) for k in kf_rows[i : i + 64]),
+                output_fields=['keyframe_id', 'rank', 'col', 'row', 'score', 'center', 'descriptor'],
+            )
+        rows = [
+            store._frame_row(kid, lset, sec, nsec)
+            for kid, lset, (sec, nsec) in _v1_rows_to_sets(store, kf_rows, lm_rows)
+        ]
         c.insert(store._fr_c, rows)
     copied = int(c.query(store._fr_c, filter='', output_fields=['count(*)'], consistency_level='Strong')[0]['count(*)'])
     if copied != len(ids):
-        raise MapError(f'migrating map {store.path} to schema 2: copied {copied} of {len(ids)} keyframes; '
-                       f'the schema 1 collections are kept, opening again retries')
+        raise MapError(
+            f'migrating map {store.path} to schema 2: copied {copied} of {len(ids)} keyframes; '
+            f'the schema 1 collections are kept, opening again retries'
+        )
 
 
 # schema version v -> function(store, meta) that upgrades a v map to v + 1

@@ -56,6 +56,7 @@ and rebuilds the index.
 Thread safety: every call takes one lock (the connection is shared, ``check_same_thread=False``);
 the landmark reranking of ``query`` runs outside the lock.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -68,9 +69,10 @@ import time
 
 import numpy as np
 
-from ..errors import DescriptorError, MapError
-from ..core.landmark_index import LandmarkIndex, default_conf as landmark_index_defaults
+from ..core.landmark_index import LandmarkIndex
+from ..core.landmark_index import default_conf as landmark_index_defaults
 from ..core.landmarks import LandmarkSet
+from ..errors import DescriptorError, MapError
 from .base import MapStore
 from .index import GlobalIndex
 from .sqlite_file import _KF_COLS, _KF_INSERT, _LM_COLS, _SQL_CHUNK, FORMAT, SCHEMA_VERSION, SQLiteFile
@@ -91,12 +93,13 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
     default_conf = {
         **landmark_index_defaults,
         'index_threshold': 50_000,  # keyframes; above this the global index is IVF, below exact
-        'ivf_lists': 0,             # IVF cells; 0 = sqrt(keyframes) (at most keyframes / 39) at (re)build
-        'ivf_nprobe': 16,           # IVF cells visited per query (recall vs speed: bench/bench_map.py)
+        'ivf_lists': 0,  # IVF cells; 0 = sqrt(keyframes) (at most keyframes / 39) at (re)build
+        'ivf_nprobe': 16,  # IVF cells visited per query (recall vs speed: bench/bench_map.py)
     }
 
-    def __init__(self, path, model: dict | None = None, create: bool = True, verify: bool = True,
-                 conf: dict | None = None):
+    def __init__(
+        self, path, model: dict | None = None, create: bool = True, verify: bool = True, conf: dict | None = None
+    ):
         self.conf = {**self.default_conf, **(conf or {})}
         kind, location = backend_for(path)
         if kind != 'sqlite':
@@ -125,12 +128,11 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
         else:
             self._check_file()
         try:
-            self._conn = sqlite3.connect(self.path, timeout=10.0, isolation_level=None,
-                                         check_same_thread=False)
+            self._conn = sqlite3.connect(self.path, timeout=10.0, isolation_level=None, check_same_thread=False)
         except sqlite3.Error as e:
             raise MapError(f'cannot open map {self.path}: {e}') from e
         try:
-            self._identify()          # read-only: never modify a file that is not ours
+            self._identify()  # read-only: never modify a file that is not ours
             self._configure()
             self._migrate()
             if verify:
@@ -140,11 +142,11 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
             self._load()
             if model is not None:
                 self._adopt_model(model)
-        except sqlite3.OperationalError as e:     # locked, read-only, I/O error
+        except sqlite3.OperationalError as e:  # locked, read-only, I/O error
             self._conn.close()
             self._conn = None
             raise MapError(f'cannot open map {self.path}: {e}') from e
-        except sqlite3.DatabaseError as e:        # malformed, not a database
+        except sqlite3.DatabaseError as e:  # malformed, not a database
             self._conn.close()
             self._conn = None
             raise MapError(f'map {self.path} is corrupt or truncated: {e}') from e
@@ -173,15 +175,20 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
         elif not self._same_space(model):
             raise self._mismatch(model, 'the extractor')
         elif model != self._model:
-            log.info('map %s was built with %s; now used with %s (same descriptor space)',
-                     self.path, self._model, model)
+            log.info(
+                'map %s was built with %s; now used with %s (same descriptor space)', self.path, self._model, model
+            )
 
     @staticmethod
     def _record_model(c: sqlite3.Connection, model: dict) -> None:
-        c.executemany('INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)', [
-            ('model', json.dumps(model, sort_keys=True, default=str)),
-            ('descriptor_space', model['descriptor_space']),
-            ('descriptor_dim', str(model['descriptor_dim']))])
+        c.executemany(
+            'INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)',
+            [
+                ('model', json.dumps(model, sort_keys=True, default=str)),
+                ('descriptor_space', model['descriptor_space']),
+                ('descriptor_dim', str(model['descriptor_dim'])),
+            ],
+        )
 
     # ------------------------------------------------------------------ plumbing
 
@@ -222,12 +229,19 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
     def _row_to_set(self, row) -> LandmarkSet:
         (kid, sec, nsec, iw, ih, rows, cols, cw, ch, n, glob, cells, centers, scores, desc) = row
         dim = int(self._model['descriptor_dim'])
-        sizes = {'global_descriptor': (glob, 4 * dim), 'cells': (cells, 4 * n), 'centers': (centers, 8 * n),
-                 'scores': (scores, 4 * n), 'descriptors': (desc, 2 * n * dim)}
+        sizes = {
+            'global_descriptor': (glob, 4 * dim),
+            'cells': (cells, 4 * n),
+            'centers': (centers, 8 * n),
+            'scores': (scores, 4 * n),
+            'descriptors': (desc, 2 * n * dim),
+        }
         for name, (blob, nbytes) in sizes.items():
             if blob is None or len(blob) != nbytes:
-                raise MapError(f'map {self.path} is corrupt: keyframe {kid} {name} is '
-                               f'{None if blob is None else len(blob)} bytes, expected {nbytes} (n={n}, D={dim})')
+                raise MapError(
+                    f'map {self.path} is corrupt: keyframe {kid} {name} is '
+                    f'{None if blob is None else len(blob)} bytes, expected {nbytes} (n={n}, D={dim})'
+                )
         return LandmarkSet(
             global_descriptor=np.frombuffer(glob, '<f4').astype(np.float32),
             descriptors=np.frombuffer(desc, '<f2').reshape(n, dim).astype(np.float32),
@@ -246,9 +260,11 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
         out = {}
         ids = [int(i) for i in ids]
         for start in range(0, len(ids), _SQL_CHUNK):
-            chunk = ids[start:start + _SQL_CHUNK]
-            sql = (f'SELECT {_KF_COLS}, {_LM_COLS} FROM keyframes k LEFT JOIN landmarks l '
-                   f'ON l.keyframe_id = k.id WHERE k.id IN ({",".join("?" * len(chunk))})')
+            chunk = ids[start : start + _SQL_CHUNK]
+            sql = (
+                f'SELECT {_KF_COLS}, {_LM_COLS} FROM keyframes k LEFT JOIN landmarks l '
+                f'ON l.keyframe_id = k.id WHERE k.id IN ({",".join("?" * len(chunk))})'
+            )
             with self._read_errors():
                 rows = self._conn.execute(sql, chunk).fetchall()
             for row in rows:
@@ -266,13 +282,28 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
         records = []
         for lset, (sec, nsec) in zip(sets, stamps):
             rows, cols = (int(v) for v in lset.grid)
-            records.append(((sec, nsec, float(lset.image_size[0]), float(lset.image_size[1]), rows, cols,
-                             float(lset.cell_size[0]), float(lset.cell_size[1]), len(lset),
-                             np.ascontiguousarray(lset.global_descriptor, '<f4').tobytes()),
-                            (np.ascontiguousarray(lset.cells, '<i2').tobytes(),
-                             np.ascontiguousarray(lset.centers, '<f4').tobytes(),
-                             np.ascontiguousarray(lset.scores, '<f4').tobytes(),
-                             np.ascontiguousarray(lset.descriptors, '<f2').tobytes())))
+            records.append(
+                (
+                    (
+                        sec,
+                        nsec,
+                        float(lset.image_size[0]),
+                        float(lset.image_size[1]),
+                        rows,
+                        cols,
+                        float(lset.cell_size[0]),
+                        float(lset.cell_size[1]),
+                        len(lset),
+                        np.ascontiguousarray(lset.global_descriptor, '<f4').tobytes(),
+                    ),
+                    (
+                        np.ascontiguousarray(lset.cells, '<i2').tobytes(),
+                        np.ascontiguousarray(lset.centers, '<f4').tobytes(),
+                        np.ascontiguousarray(lset.scores, '<f4').tobytes(),
+                        np.ascontiguousarray(lset.descriptors, '<f2').tobytes(),
+                    ),
+                )
+            )
         with self._lock:
             self._ready()
             new_model = self._model is None
@@ -286,15 +317,21 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
                 for i, (values, blobs) in enumerate(records):
                     try:
                         if ids is None:
-                            cur = c.execute(f'INSERT INTO keyframes ({_KF_INSERT}) VALUES ({", ".join("?" * 10)})',
-                                            values)
+                            cur = c.execute(
+                                f'INSERT INTO keyframes ({_KF_INSERT}) VALUES ({", ".join("?" * 10)})', values
+                            )
                         else:
-                            cur = c.execute(f'INSERT INTO keyframes (id, {_KF_INSERT}) '
-                                            f'VALUES ({", ".join("?" * 11)})', (int(ids[i]),) + values)
+                            cur = c.execute(
+                                f'INSERT INTO keyframes (id, {_KF_INSERT}) VALUES ({", ".join("?" * 11)})',
+                                (int(ids[i]),) + values,
+                            )
                     except sqlite3.IntegrityError:
                         raise MapError(f'map {self.path} already has a keyframe {ids[i]}') from None
-                    c.execute('INSERT INTO landmarks (keyframe_id, cells, centers, scores, descriptors) '
-                              'VALUES (?, ?, ?, ?, ?)', (cur.lastrowid,) + blobs)
+                    c.execute(
+                        'INSERT INTO landmarks (keyframe_id, cells, centers, scores, descriptors) '
+                        'VALUES (?, ?, ?, ?, ?)',
+                        (cur.lastrowid,) + blobs,
+                    )
                     out.append(int(cur.lastrowid))
                 return out
 
@@ -303,16 +340,21 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
                 self._model = given
                 self._index = GlobalIndex(given['descriptor_dim'], self.conf)
                 self._landmarks = self._new_landmark_index()
-            self._index.add(np.stack([s.global_descriptor for s in sets]).astype(np.float32),
-                            np.asarray(new_ids, np.int64))
+            self._index.add(
+                np.stack([s.global_descriptor for s in sets]).astype(np.float32), np.asarray(new_ids, np.int64)
+            )
             self._landmarks.add_sets(new_ids, sets)
             self._landmarks_dirty = True
             if self._landmarks.needs_rebuild():
                 t = time.perf_counter()
                 stored = self._stored_counts()
                 self._landmarks = self._build_landmarks(sum(stored.values()), len(stored))
-                log.info('map %s: landmark index retrained for %d landmarks (%.1f s)', self.path,
-                         self._landmarks.ntotal, time.perf_counter() - t)
+                log.info(
+                    'map %s: landmark index retrained for %d landmarks (%.1f s)',
+                    self.path,
+                    self._landmarks.ntotal,
+                    time.perf_counter() - t,
+                )
             self._ids.extend(new_ids)
             if ids is not None:
                 self._ids.sort()
@@ -324,9 +366,11 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
 
     # keypoints for verification (reloc.py): an optional table, created on first use, so maps
     # without it stay valid and readable; rows go with their keyframe (ON DELETE CASCADE)
-    _KEYPOINTS_TABLE = ('CREATE TABLE IF NOT EXISTS keypoints (keyframe_id INTEGER PRIMARY KEY '
-                        'REFERENCES keyframes(id) ON DELETE CASCADE, n INTEGER NOT NULL, uv BLOB NOT NULL, '
-                        'descriptors BLOB NOT NULL)')
+    _KEYPOINTS_TABLE = (
+        'CREATE TABLE IF NOT EXISTS keypoints (keyframe_id INTEGER PRIMARY KEY '
+        'REFERENCES keyframes(id) ON DELETE CASCADE, n INTEGER NOT NULL, uv BLOB NOT NULL, '
+        'descriptors BLOB NOT NULL)'
+    )
 
     def add_keypoints(self, keyframe_id: int, uv: np.ndarray, descriptors: np.ndarray) -> None:
         """Store a keyframe's keypoints: uv (N, 2) float32 original pixels, binary descriptors
@@ -334,15 +378,22 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
         uv = np.ascontiguousarray(uv, '<f4').reshape(-1, 2)
         desc = np.ascontiguousarray(descriptors)
         if desc.dtype != np.uint8 or desc.ndim != 2 or len(desc) != len(uv):
-            raise DescriptorError(f'keypoints need (N, B) uint8 descriptors for N={len(uv)} points, '
-                                  f'got {desc.dtype} {desc.shape}')
+            raise DescriptorError(
+                f'keypoints need (N, B) uint8 descriptors for N={len(uv)} points, got {desc.dtype} {desc.shape}'
+            )
         with self._lock:
             self._ready()
             if int(keyframe_id) not in set(self._ids):
                 raise KeyError(f'no keyframe {keyframe_id} in map {self.path}')
-            self._write(lambda c: (c.execute(self._KEYPOINTS_TABLE), c.execute(
-                'INSERT OR REPLACE INTO keypoints (keyframe_id, n, uv, descriptors) VALUES (?, ?, ?, ?)',
-                (int(keyframe_id), len(uv), uv.tobytes(), desc.tobytes()))))
+            self._write(
+                lambda c: (
+                    c.execute(self._KEYPOINTS_TABLE),
+                    c.execute(
+                        'INSERT OR REPLACE INTO keypoints (keyframe_id, n, uv, descriptors) VALUES (?, ?, ?, ?)',
+                        (int(keyframe_id), len(uv), uv.tobytes(), desc.tobytes()),
+                    ),
+                )
+            )
 
     def keypoints(self, keyframe_id: int) -> tuple[np.ndarray, np.ndarray] | None:
         """(uv (N, 2) float32, descriptors (N, B) uint8) of a keyframe, or None when none were stored."""
@@ -351,16 +402,21 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
             with self._read_errors():
                 if not self._conn.execute("SELECT 1 FROM sqlite_master WHERE name = 'keypoints'").fetchone():
                     return None
-                row = self._conn.execute('SELECT n, uv, descriptors FROM keypoints WHERE keyframe_id = ?',
-                                         (int(keyframe_id),)).fetchone()
+                row = self._conn.execute(
+                    'SELECT n, uv, descriptors FROM keypoints WHERE keyframe_id = ?', (int(keyframe_id),)
+                ).fetchone()
         if row is None:
             return None
         n, uv, desc = row
         if len(uv) != 8 * n or (n and len(desc) % n) or (not n and desc):
-            raise MapError(f'map {self.path} is corrupt: keyframe {keyframe_id} keypoints are {len(uv)} + '
-                           f'{len(desc)} bytes for n={n}')
-        return (np.frombuffer(uv, '<f4').reshape(n, 2).copy(),
-                np.frombuffer(desc, np.uint8).reshape(n, len(desc) // n if n else 32).copy())
+            raise MapError(
+                f'map {self.path} is corrupt: keyframe {keyframe_id} keypoints are {len(uv)} + '
+                f'{len(desc)} bytes for n={n}'
+            )
+        return (
+            np.frombuffer(uv, '<f4').reshape(n, 2).copy(),
+            np.frombuffer(desc, np.uint8).reshape(n, len(desc) // n if n else 32).copy(),
+        )
 
     def get(self, keyframe_id: int) -> LandmarkSet:
         """The stored landmark set of a keyframe (descriptors back from float16; no activation map)."""
@@ -394,10 +450,11 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
 
             def remove(c):
                 for start in range(0, len(present), _SQL_CHUNK):
-                    chunk = present[start:start + _SQL_CHUNK]
+                    chunk = present[start : start + _SQL_CHUNK]
                     marks = ','.join('?' * len(chunk))
                     c.execute(f'DELETE FROM landmarks WHERE keyframe_id IN ({marks})', chunk)
                     c.execute(f'DELETE FROM keyframes WHERE id IN ({marks})', chunk)
+
             self._write(remove)
             gone = set(present)
             self._ids = [i for i in self._ids if i not in gone]
@@ -428,20 +485,29 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
             wal = self.path + '-wal'
             db_bytes = os.path.getsize(self.path)
             wal_bytes = os.path.getsize(wal) if os.path.exists(wal) else 0
-            return {'path': self.path, 'keyframes': len(self._ids), 'model': self.model,
-                    'descriptor_space': self._model and self._model['descriptor_space'],
-                    'descriptor_dim': self._model and int(self._model['descriptor_dim']),
-                    'schema_version': int(meta['schema_version']), 'backend': 'sqlite',
-                    'index': self._index.kind if self._index is not None else None,
-                    'quarantined': sorted(self._quarantined),
-                    'landmark_index': self._landmarks.kind if self._landmarks is not None else None,
-                    'landmarks': self._landmarks.ntotal if self._landmarks is not None else 0,
-                    'landmark_index_bytes': (os.path.getsize(self.landmark_path)
-                                             if os.path.exists(self.landmark_path) else 0),
-                    'first_id': self._ids[0] if self._ids else None,
-                    'last_id': self._ids[-1] if self._ids else None,
-                    'file_bytes': db_bytes + wal_bytes, 'db_bytes': db_bytes, 'wal_bytes': wal_bytes,
-                    'created': int(meta.get('created', 0)), 'created_by': meta.get('created_by', '')}
+            return {
+                'path': self.path,
+                'keyframes': len(self._ids),
+                'model': self.model,
+                'descriptor_space': self._model and self._model['descriptor_space'],
+                'descriptor_dim': self._model and int(self._model['descriptor_dim']),
+                'schema_version': int(meta['schema_version']),
+                'backend': 'sqlite',
+                'index': self._index.kind if self._index is not None else None,
+                'quarantined': sorted(self._quarantined),
+                'landmark_index': self._landmarks.kind if self._landmarks is not None else None,
+                'landmarks': self._landmarks.ntotal if self._landmarks is not None else 0,
+                'landmark_index_bytes': (
+                    os.path.getsize(self.landmark_path) if os.path.exists(self.landmark_path) else 0
+                ),
+                'first_id': self._ids[0] if self._ids else None,
+                'last_id': self._ids[-1] if self._ids else None,
+                'file_bytes': db_bytes + wal_bytes,
+                'db_bytes': db_bytes,
+                'wal_bytes': wal_bytes,
+                'created': int(meta.get('created', 0)),
+                'created_by': meta.get('created_by', ''),
+            }
 
     def save(self) -> None:
         """Checkpoint the WAL into the main file and truncate it. Not needed for durability (every
@@ -486,13 +552,19 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
                         problems.append(f'{n_kf} keyframes but no model record')
                     return problems
                 dim = int(self._model['descriptor_dim'])
-                if meta.get('descriptor_dim') != str(dim) or \
-                        meta.get('descriptor_space') != self._model['descriptor_space']:
+                if (
+                    meta.get('descriptor_dim') != str(dim)
+                    or meta.get('descriptor_space') != self._model['descriptor_space']
+                ):
                     problems.append('meta descriptor_space/descriptor_dim disagree with the model record')
                 # the same scan the open runs (the node quarantines exactly these keyframes)
                 add(self._damaged(dim).values(), lambda p: f'{p} (quarantined: never answered)')
-                orphans = [r[0] for r in c.execute(
-                    'SELECT keyframe_id FROM landmarks WHERE keyframe_id NOT IN (SELECT id FROM keyframes)')]
+                orphans = [
+                    r[0]
+                    for r in c.execute(
+                        'SELECT keyframe_id FROM landmarks WHERE keyframe_id NOT IN (SELECT id FROM keyframes)'
+                    )
+                ]
                 add(orphans, lambda i: f'landmarks row {i} has no keyframe')
                 problems.extend(self._faiss_problems())
                 problems.extend(self._landmark_problems(self._stored_counts()))

@@ -1,8 +1,8 @@
 """The SQLite map file: schema, creation under a temporary name, raw-file checks, identification,
 migrations and the load that rebuilds the in-memory indexes (a mixin of SQLiteMapStore)."""
+
 from __future__ import annotations
 
-import json
 import logging
 import os
 import sqlite3
@@ -51,11 +51,12 @@ CREATE TABLE landmarks (
 # schema version v -> function(conn) that upgrades a v map to v + 1 (called inside a transaction)
 MIGRATIONS: dict = {}
 
-_KF_COLS = 'k.id, k.stamp_sec, k.stamp_nanosec, k.image_w, k.image_h, k.grid_rows, k.grid_cols, ' \
-           'k.cell_w, k.cell_h, k.n, k.global_descriptor'
+_KF_COLS = (
+    'k.id, k.stamp_sec, k.stamp_nanosec, k.image_w, k.image_h, k.grid_rows, k.grid_cols, '
+    'k.cell_w, k.cell_h, k.n, k.global_descriptor'
+)
 _LM_COLS = 'l.cells, l.centers, l.scores, l.descriptors'
-_KF_INSERT = ('stamp_sec, stamp_nanosec, image_w, image_h, grid_rows, grid_cols, cell_w, cell_h, n, '
-              'global_descriptor')
+_KF_INSERT = 'stamp_sec, stamp_nanosec, image_w, image_h, grid_rows, grid_cols, cell_w, cell_h, n, global_descriptor'
 _SQL_CHUNK = 900  # ids per IN (...) list, below SQLite's oldest variable limit (999)
 
 
@@ -83,10 +84,17 @@ class SQLiteFile:
                     if statement.strip():
                         conn.execute(statement)
                 from .. import __version__
-                conn.executemany('INSERT INTO meta (key, value) VALUES (?, ?)', [
-                    ('format', FORMAT), ('schema_version', str(SCHEMA_VERSION)),
-                    ('created', str(int(time.time()))), ('created_by', f'lln_ros {__version__}'),
-                    ('map_uuid', uuid.uuid4().hex)])
+
+                conn.executemany(
+                    'INSERT INTO meta (key, value) VALUES (?, ?)',
+                    [
+                        ('format', FORMAT),
+                        ('schema_version', str(SCHEMA_VERSION)),
+                        ('created', str(int(time.time()))),
+                        ('created_by', f'lln_ros {__version__}'),
+                        ('map_uuid', uuid.uuid4().hex),
+                    ],
+                )
                 conn.execute('COMMIT')
             finally:
                 conn.close()
@@ -96,10 +104,10 @@ class SQLiteFile:
             finally:
                 os.close(fd)
             try:
-                os.link(tmp, self.path)        # fails if someone else created the map meanwhile
+                os.link(tmp, self.path)  # fails if someone else created the map meanwhile
             except FileExistsError:
                 pass
-            except OSError:                    # no hard links on this filesystem
+            except OSError:  # no hard links on this filesystem
                 if not os.path.exists(self.path):
                     os.replace(tmp, self.path)
             dfd = os.open(parent, os.O_RDONLY)
@@ -125,39 +133,47 @@ class SQLiteFile:
         except OSError as e:
             raise MapError(f'cannot read map {self.path}: {e}') from e
         if size == 0:
-            raise MapError(f'{self.path} is an empty file (0 bytes), not an lln_ros map; '
-                           f'delete it to start a new map')
+            raise MapError(f'{self.path} is an empty file (0 bytes), not an lln_ros map; delete it to start a new map')
         if len(head) < 100 or head[:16] != SQLITE_MAGIC:
-            raise MapError(f'{self.path} is not an lln_ros map: not an SQLite database '
-                           f'(corrupt, truncated or some other file; {size} bytes)')
+            raise MapError(
+                f'{self.path} is not an lln_ros map: not an SQLite database '
+                f'(corrupt, truncated or some other file; {size} bytes)'
+            )
         page_size = struct.unpack('>H', head[16:18])[0]
         page_size = 65536 if page_size == 1 else page_size
-        change, pages, valid_for = (struct.unpack('>I', head[o:o + 4])[0] for o in (24, 28, 92))
+        change, pages, valid_for = (struct.unpack('>I', head[o : o + 4])[0] for o in (24, 28, 92))
         wal = self.path + '-wal'
         wal_pending = os.path.exists(wal) and os.path.getsize(wal) > 0
         # with a pending WAL the main file may legitimately lag behind; quick_check covers that case
         if pages and change == valid_for and not wal_pending and size < pages * page_size:
-            raise MapError(f'map {self.path} is truncated: {size} bytes, its header says '
-                           f'{pages} pages of {page_size} bytes ({pages * page_size} bytes)')
+            raise MapError(
+                f'map {self.path} is truncated: {size} bytes, its header says '
+                f'{pages} pages of {page_size} bytes ({pages * page_size} bytes)'
+            )
 
     def _identify(self) -> None:
         c = self._conn
         tables = {r[0] for r in c.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
         if 'meta' not in tables:
-            raise MapError(f'{self.path} is an SQLite database but not an lln_ros map '
-                           f'(no meta table; tables: {sorted(tables) or "none"})')
+            raise MapError(
+                f'{self.path} is an SQLite database but not an lln_ros map '
+                f'(no meta table; tables: {sorted(tables) or "none"})'
+            )
         meta = self._meta()
         if meta.get('format') != FORMAT:
-            raise MapError(f'{self.path} is an SQLite database but not an lln_ros map '
-                           f'(meta format is {meta.get("format")!r}, expected {FORMAT!r})')
+            raise MapError(
+                f'{self.path} is an SQLite database but not an lln_ros map '
+                f'(meta format is {meta.get("format")!r}, expected {FORMAT!r})'
+            )
         try:
             version = int(meta.get('schema_version', ''))
         except ValueError:
-            raise MapError(f'map {self.path} has no valid schema_version '
-                           f'({meta.get("schema_version")!r})') from None
+            raise MapError(f'map {self.path} has no valid schema_version ({meta.get("schema_version")!r})') from None
         if version > SCHEMA_VERSION:
-            raise MapError(f'map {self.path} has schema version {version}; this lln_ros reads up to '
-                           f'{SCHEMA_VERSION}: upgrade lln_ros')
+            raise MapError(
+                f'map {self.path} has schema version {version}; this lln_ros reads up to '
+                f'{SCHEMA_VERSION}: upgrade lln_ros'
+            )
         missing = {'keyframes', 'landmarks'} - tables
         if missing and version == SCHEMA_VERSION:
             raise MapError(f'map {self.path} is damaged: missing tables {sorted(missing)}')
@@ -166,8 +182,9 @@ class SQLiteFile:
         c = self._conn
         mode = c.execute('PRAGMA journal_mode=WAL').fetchone()[0]
         if str(mode).lower() != 'wal':
-            raise MapError(f'cannot put map {self.path} in WAL mode (got {mode!r}); '
-                           f'is it on a network filesystem or read-only?')
+            raise MapError(
+                f'cannot put map {self.path} in WAL mode (got {mode!r}); is it on a network filesystem or read-only?'
+            )
         c.execute('PRAGMA synchronous=FULL')
         c.execute('PRAGMA foreign_keys=ON')
 
@@ -176,13 +193,13 @@ class SQLiteFile:
         while version < SCHEMA_VERSION:
             step = MIGRATIONS.get(version)
             if step is None:
-                raise MapError(f'map {self.path} has schema version {version} and there is no '
-                               f'migration to {version + 1}')
+                raise MapError(
+                    f'map {self.path} has schema version {version} and there is no migration to {version + 1}'
+                )
             self._conn.execute('BEGIN IMMEDIATE')
             try:
                 step(self._conn)
-                self._conn.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'",
-                                   (str(version + 1),))
+                self._conn.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (str(version + 1),))
                 self._conn.execute('COMMIT')
             except BaseException:
                 self._conn.execute('ROLLBACK')
@@ -211,8 +228,12 @@ class SQLiteFile:
         dim = int(self._model['descriptor_dim'])
         self._quarantined = self._damaged(dim)
         if self._quarantined:
-            log.warning('map %s: %d damaged keyframe(s) quarantined (kept in the file, never answered): %s',
-                        self.path, len(self._quarantined), '; '.join(list(self._quarantined.values())[:10]))
+            log.warning(
+                'map %s: %d damaged keyframe(s) quarantined (kept in the file, never answered): %s',
+                self.path,
+                len(self._quarantined),
+                '; '.join(list(self._quarantined.values())[:10]),
+            )
         # streamed into one preallocated array: a 100k map's rows as Python objects would double the peak
         x = np.empty((count, dim), np.float32)
         cursor = c.execute('SELECT id, global_descriptor FROM keyframes ORDER BY id')
@@ -222,7 +243,7 @@ class SQLiteFile:
                     x[len(self._ids)] = np.frombuffer(blob, '<f4')
                     self._ids.append(int(kid))
         self._index = GlobalIndex(dim, self.conf)
-        self._index.build(x[:len(self._ids)], np.asarray(self._ids, np.int64))
+        self._index.build(x[: len(self._ids)], np.asarray(self._ids, np.int64))
         problems = self._faiss_problems()
         if problems:
             raise MapError(f'map {self.path}: in-memory index disagrees with the file: {"; ".join(problems)}')
@@ -241,7 +262,8 @@ class SQLiteFile:
             'OR k.stamp_nanosec >= 1000000000 OR length(k.global_descriptor) IS NOT 4 * :d '
             'OR length(l.cells) IS NOT 4 * k.n OR length(l.centers) IS NOT 8 * k.n '
             'OR length(l.scores) IS NOT 4 * k.n OR length(l.descriptors) IS NOT 2 * k.n * :d ORDER BY k.id',
-            {'d': int(dim)})
+            {'d': int(dim)},
+        )
         out = {}
         for kid, n, rows_, cols_, nsec, lg, lc, lce, ls, ld, orphan in rows:
             if orphan:
@@ -249,8 +271,10 @@ class SQLiteFile:
                 continue
             want = (4 * dim, 4 * n, 8 * n, 4 * n, 2 * n * dim)
             if (lg, lc, lce, ls, ld) != want or n < 1:
-                out[kid] = (f'keyframe {kid}: blob sizes (global, cells, centers, scores, descriptors) '
-                            f'{(lg, lc, lce, ls, ld)} do not fit n={n}, D={dim} (expected {want})')
+                out[kid] = (
+                    f'keyframe {kid}: blob sizes (global, cells, centers, scores, descriptors) '
+                    f'{(lg, lc, lce, ls, ld)} do not fit n={n}, D={dim} (expected {want})'
+                )
             else:
                 out[kid] = f'keyframe {kid}: bad grid {rows_}x{cols_} or stamp nanosec {nsec}'
         return out

@@ -1,5 +1,6 @@
 """The SQLite map's landmark index: rebuilt, or loaded from <map>.landmarks and reconciled with the
 keyframes table, persisted when compressed (a mixin of SQLiteMapStore)."""
+
 from __future__ import annotations
 
 import logging
@@ -9,8 +10,8 @@ import uuid
 import numpy as np
 
 from ..core import landmark_index
-from ..errors import MapError
 from ..core.landmark_index import LandmarkIndex
+from ..errors import MapError
 from .sqlite_file import _SQL_CHUNK
 
 log = logging.getLogger(__name__)
@@ -28,8 +29,11 @@ class SQLiteLandmarks:
 
     def _stored_counts(self) -> dict[int, int]:
         """{keyframe id: n} the landmark index must hold (corrupt keyframes it cannot hold excluded)."""
-        return {int(i): int(n) for i, n in self._conn.execute('SELECT id, n FROM keyframes')
-                if int(i) not in self._unindexed}
+        return {
+            int(i): int(n)
+            for i, n in self._conn.execute('SELECT id, n FROM keyframes')
+            if int(i) not in self._unindexed
+        }
 
     def _landmark_rows(self, ids=None, every: int = 1):
         """Landmarks of the given keyframes (None = all; every: only ids divisible by it) in chunks:
@@ -39,21 +43,33 @@ class SQLiteLandmarks:
             chunks = [None]
         else:
             ids = sorted(int(i) for i in ids)
-            chunks = [ids[i:i + _SQL_CHUNK] for i in range(0, len(ids), _SQL_CHUNK)]
+            chunks = [ids[i : i + _SQL_CHUNK] for i in range(0, len(ids), _SQL_CHUNK)]
         for chunk in chunks:
-            where = f'WHERE k.id IN ({",".join("?" * len(chunk))})' if chunk is not None else \
-                (f'WHERE k.id % {int(every)} = 0' if every > 1 else '')
-            with self._read_errors():   # the join: orphan landmark rows are check()'s business, not the index's
-                cursor = self._conn.execute('SELECT k.id, l.cells, l.descriptors FROM keyframes k JOIN landmarks l '
-                                            f'ON l.keyframe_id = k.id {where} ORDER BY k.id', chunk or ())
+            where = (
+                f'WHERE k.id IN ({",".join("?" * len(chunk))})'
+                if chunk is not None
+                else (f'WHERE k.id % {int(every)} = 0' if every > 1 else '')
+            )
+            with self._read_errors():  # the join: orphan landmark rows are check()'s business, not the index's
+                cursor = self._conn.execute(
+                    'SELECT k.id, l.cells, l.descriptors FROM keyframes k JOIN landmarks l '
+                    f'ON l.keyframe_id = k.id {where} ORDER BY k.id',
+                    chunk or (),
+                )
                 while rows := cursor.fetchmany(512):
                     kf, cells, desc = [], [], []
                     for kid, c, d in rows:
                         n = len(c) // 4
                         if len(c) != 4 * n or len(d) != 2 * n * dim:
                             # not indexed, and named: check() reports it, a query that fetches it raises
-                            log.error('map %s is corrupt: keyframe %d landmark blobs are %d + %d bytes (D=%d)',
-                                      self.path, kid, len(c), len(d), dim)
+                            log.error(
+                                'map %s is corrupt: keyframe %d landmark blobs are %d + %d bytes (D=%d)',
+                                self.path,
+                                kid,
+                                len(c),
+                                len(d),
+                                dim,
+                            )
                             self._unindexed.add(int(kid))
                             continue
                         if n == 0:
@@ -93,12 +109,21 @@ class SQLiteLandmarks:
                 index.add(desc, kf, cells)
             self._landmarks_dirty = bool(stale or missing)
             if stale or missing:
-                log.info('map %s: landmark index caught up (%d keyframes added, %d removed)',
-                         self.path, len(missing), len(stale))
+                log.info(
+                    'map %s: landmark index caught up (%d keyframes added, %d removed)',
+                    self.path,
+                    len(missing),
+                    len(stale),
+                )
         else:
             if total > self.conf['landmark_index_threshold']:
-                log.warning('map %s: landmark index %s (%s); rebuilding it from the map (%d landmarks)',
-                            self.path, self.landmark_path, why, total)
+                log.warning(
+                    'map %s: landmark index %s (%s); rebuilding it from the map (%d landmarks)',
+                    self.path,
+                    self.landmark_path,
+                    why,
+                    total,
+                )
             index = self._build_landmarks(total, len(stored))
             self._landmarks_dirty = index.kind != 'exact'
         self._landmarks = index
@@ -135,8 +160,9 @@ class SQLiteLandmarks:
             log.warning('map %s: cannot remove %s: %s', self.path, self.landmark_path, e)
 
     def _faiss_problems(self) -> list[str]:
-        ids = [r[0] for r in self._conn.execute('SELECT id FROM keyframes ORDER BY id')
-               if r[0] not in self._quarantined]
+        ids = [
+            r[0] for r in self._conn.execute('SELECT id FROM keyframes ORDER BY id') if r[0] not in self._quarantined
+        ]
         if self._index is None:
             return [f'no FAISS index but {len(ids)} keyframes'] if ids else []
         problems = []
@@ -145,6 +171,7 @@ class SQLiteLandmarks:
         faiss_ids = self._index.ids()
         if faiss_ids != ids or self._ids != ids:
             only_f, only_s = sorted(set(faiss_ids) - set(ids)), sorted(set(ids) - set(faiss_ids))
-            problems.append(f'FAISS and SQLite keyframe ids differ (only in FAISS: {only_f[:10]}, '
-                            f'only in SQLite: {only_s[:10]})')
+            problems.append(
+                f'FAISS and SQLite keyframe ids differ (only in FAISS: {only_f[:10]}, only in SQLite: {only_s[:10]})'
+            )
         return problems

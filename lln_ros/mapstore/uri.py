@@ -1,4 +1,5 @@
 """Map URIs: which backend a map URI names."""
+
 from __future__ import annotations
 
 import os
@@ -14,7 +15,7 @@ def backend_for(uri) -> tuple[str, str]:
     """
     text = os.fspath(uri)
     if text.startswith('sqlite://'):
-        return 'sqlite', text[len('sqlite://'):]
+        return 'sqlite', text[len('sqlite://') :]
     if text.startswith(('milvus://', 'milvus-lite:')):
         return 'milvus', text
     path = os.path.abspath(os.path.expanduser(text))

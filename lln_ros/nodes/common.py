@@ -1,29 +1,37 @@
 """ROS glue shared by the lln_ros nodes (parameters: nodes/parameters.py): QoS, counters and diagnostics
 (levels: WARN for losses and refused input, ERROR when all input is refused)."""
+
 from __future__ import annotations
 
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
-                       qos_profile_sensor_data)
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
 from ..counters import Counters, problem_kind
 
 RELIABILITY = {'reliable': ReliabilityPolicy.RELIABLE, 'best_effort': ReliabilityPolicy.BEST_EFFORT}
 
 # the extractor's model_info: latched so a matcher started later still learns the model
-MODEL_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
+MODEL_QOS = QoSProfile(
+    depth=1,
+    history=HistoryPolicy.KEEP_LAST,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
 
 
 def subscription_qos(reliability: str, depth: int) -> QoSProfile:
     if reliability not in RELIABILITY:
         raise ValueError(f"reliability must be 'reliable' or 'best_effort', got {reliability!r}")
     if reliability == 'best_effort':
-        return QoSProfile(depth=depth, history=qos_profile_sensor_data.history,
-                          reliability=ReliabilityPolicy.BEST_EFFORT, durability=qos_profile_sensor_data.durability)
+        return QoSProfile(
+            depth=depth,
+            history=qos_profile_sensor_data.history,
+            reliability=ReliabilityPolicy.BEST_EFFORT,
+            durability=qos_profile_sensor_data.durability,
+        )
     return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 
 
@@ -34,12 +42,17 @@ class Health(Counters):
         super().__init__(log=node.get_logger().warning)
         self.node = node
 
-    def diagnostics(self, extra: dict | None = None, level: int = DiagnosticStatus.OK,
-                    message: str = 'running') -> DiagnosticArray:
+    def diagnostics(
+        self, extra: dict | None = None, level: int = DiagnosticStatus.OK, message: str = 'running'
+    ) -> DiagnosticArray:
         values = {**self.snapshot(), **(extra or {})}
-        status = DiagnosticStatus(level=level, name=self.node.get_fully_qualified_name(),
-                                  message=message, hardware_id='lln_ros',
-                                  values=[KeyValue(key=k, value=str(v)) for k, v in sorted(values.items())])
+        status = DiagnosticStatus(
+            level=level,
+            name=self.node.get_fully_qualified_name(),
+            message=message,
+            hardware_id='lln_ros',
+            values=[KeyValue(key=k, value=str(v)) for k, v in sorted(values.items())],
+        )
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.node.get_clock().now().to_msg()
         return msg
@@ -53,6 +66,7 @@ def run_node(make_node, name: str, args=None) -> int:
 
     from ..dds import apply_large_data_profile
     from ..errors import LLNError
+
     dds_level, dds_note = apply_large_data_profile()  # before rclpy.init: Fast DDS reads it then
     rclpy.init(args=args)
     node = None
@@ -89,6 +103,7 @@ class Diagnostics:
         from rclpy.clock import Clock, ClockType
 
         from ..stream import Window
+
         self.node, self.health, self.extra = node, health, extra
         self.status = status or (lambda delta: worst([]))
         self.window = Window(health.snapshot)
@@ -137,8 +152,11 @@ def worst(problems: list[tuple]) -> tuple[int, str, str]:
         return DiagnosticStatus.OK, 'running', ''
     rank = lambda level: level[0] if isinstance(level, bytes) else int(level)  # noqa: E731  (levels are bytes)
     ordered = sorted(problems, key=lambda p: -rank(p[0]))
-    return (ordered[0][0], '; '.join(p[1] for p in ordered),
-            '; '.join(p[1] for p in ordered if not (len(p) > 2 and p[2])))
+    return (
+        ordered[0][0],
+        '; '.join(p[1] for p in ordered),
+        '; '.join(p[1] for p in ordered if not (len(p) > 2 and p[2])),
+    )
 
 
 def loss_events(health: Health, what: str):
@@ -147,9 +165,13 @@ def loss_events(health: Health, what: str):
     from rclpy.event_handler import SubscriptionEventCallbacks
 
     def incompatible(info) -> None:
-        health.problem('qos_incompatible', f'{what}: a publisher offers a QoS this subscription cannot match '
-                       f'(policy id {info.last_policy_kind}); nothing arrives from it')
+        health.problem(
+            'qos_incompatible',
+            f'{what}: a publisher offers a QoS this subscription cannot match '
+            f'(policy id {info.last_policy_kind}); nothing arrives from it',
+        )
 
     def lost(info) -> None:
         health.count('dds_lost', int(info.total_count_change))
+
     return SubscriptionEventCallbacks(incompatible_qos=incompatible, message_lost=lost)

@@ -9,9 +9,10 @@ Only the newest frame waits for the network: when extraction falls behind, an ol
 is replaced and counted as dropped, so latency stays bounded by one extraction.
 
 Counters: received = published + dropped + bad_image + internal_error (+ the frames waiting, at
-most frame_queue, and one in flight). Every property of an input (encoding, size, a PNG/JPEG header above max_image_pixels,
-undecodable data) is bad_image; internal_error counts only faults of this code.
+most frame_queue, and one in flight). Every property of an input (encoding, size, a PNG/JPEG header
+above max_image_pixels, undecodable data) is bad_image; internal_error counts only faults of this code.
 """
+
 from __future__ import annotations
 
 import json
@@ -24,13 +25,13 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_msgs.msg import String
 
 from .. import msgs
-from ..errors import LLNError
 from ..core.backbones import BACKBONES
 from ..core.backbones import default_conf as BACKBONE
 from ..core.extractor import Extractor
 from ..core.extractor import default_conf as EXTRACTOR
-from ..io.image import check_image, heatmap_bgr
 from ..core.landmarks import METHODS
+from ..errors import LLNError
+from ..io.image import check_image, heatmap_bgr
 from ..limits import default_conf as LIMITS
 from ..stream import StampGaps
 from .common import MODEL_QOS, Health, loss_events, run_node, start_diagnostics, subscription_qos, worst
@@ -40,32 +41,48 @@ from .parameters import Param, declare_all
 PARAMETERS = {
     'backbone': Param(BACKBONE['name'], 'backbone', choices=tuple(BACKBONES)),
     'layer': Param(BACKBONE['layer'], "backbone feature layer; '' = the backbone's default"),
-    'backbone_weights': Param(BACKBONE['weights_path'], "local backbone state dict; '' = shipped weights "
-                                                        '(resnet101 needs one)'),
+    'backbone_weights': Param(
+        BACKBONE['weights_path'], "local backbone state dict; '' = shipped weights (resnet101 needs one)"
+    ),
     'weights': Param(EXTRACTOR['weights'], "LLN head checkpoint; '' = the head shipped for the backbone"),
     'top_n': Param(EXTRACTOR['top_n'], 'landmarks per image', range=(1, 100_000)),
-    'input_height': Param(EXTRACTOR['input_height'], 'network input height in pixels (aspect kept)',
-                          range=(32, 4096)),
+    'input_height': Param(EXTRACTOR['input_height'], 'network input height in pixels (aspect kept)', range=(32, 4096)),
     'method': Param(EXTRACTOR['method'], 'landmark selection', choices=METHODS),
-    'image_transport': Param('raw', "raw: sensor_msgs/Image on 'image'; compressed: 'image/compressed'",
-                             choices=('raw', 'compressed')),
-    'reliability': Param('best_effort', 'image subscription reliability (reliable: for bags)',
-                         choices=('best_effort', 'reliable')),
-    'frame_queue': Param(1, 'frames waiting for extraction: 1 = the newest only (live cameras, latency one '
-                         'extraction); e.g. 100 for bag replays, so no frame is skipped while the backlog fits',
-                         range=(1, 10_000)),
+    'image_transport': Param(
+        'raw', "raw: sensor_msgs/Image on 'image'; compressed: 'image/compressed'", choices=('raw', 'compressed')
+    ),
+    'reliability': Param(
+        'best_effort', 'image subscription reliability (reliable: for bags)', choices=('best_effort', 'reliable')
+    ),
+    'frame_queue': Param(
+        1,
+        'frames waiting for extraction: 1 = the newest only (live cameras, latency one '
+        'extraction); e.g. 100 for bag replays, so no frame is skipped while the backlog fits',
+        range=(1, 10_000),
+    ),
     'publish_activation': Param(False, "also publish the LLN activation heatmap on 'activation'", dynamic=True),
     'publish_keypoints': Param(False, "also publish ORB keypoints on 'keypoints' (matcher verify mode)"),
     'keypoints_max': Param(500, 'ORB keypoints per image with publish_keypoints', range=(1, LIMITS['max_keypoints'])),
-    'num_threads': Param(EXTRACTOR['num_threads'], 'inference threads (torch intra-op / ONNX Runtime intra-op); '
-                         '0 = the runtime default', range=(0, 1024)),
-    'runtime': Param(EXTRACTOR['runtime'], 'what runs the network: onnxruntime (falls back to torch when not '
-                     'installed) | torch; same landmarks, model_info says which ran', choices=('onnxruntime', 'torch')),
-    'diagnostics_period': Param(1.0, 'seconds between /diagnostics messages; 0 = off', dynamic=True,
-                                range=(0.0, 3600.0)),
-    'max_image_pixels': Param(LIMITS['max_image_pixels'], 'limit: width x height of an image, raw or decoded '
-                              '(checked from the PNG/JPEG header before decoding); more is bad_image',
-                              range=(1, 2**40)),
+    'num_threads': Param(
+        EXTRACTOR['num_threads'],
+        'inference threads (torch intra-op / ONNX Runtime intra-op); 0 = the runtime default',
+        range=(0, 1024),
+    ),
+    'runtime': Param(
+        EXTRACTOR['runtime'],
+        'what runs the network: onnxruntime (falls back to torch when not '
+        'installed) | torch; same landmarks, model_info says which ran',
+        choices=('onnxruntime', 'torch'),
+    ),
+    'diagnostics_period': Param(
+        1.0, 'seconds between /diagnostics messages; 0 = off', dynamic=True, range=(0.0, 3600.0)
+    ),
+    'max_image_pixels': Param(
+        LIMITS['max_image_pixels'],
+        'limit: width x height of an image, raw or decoded '
+        '(checked from the PNG/JPEG header before decoding); more is bad_image',
+        range=(1, 2**40),
+    ),
 }
 
 
@@ -79,6 +96,7 @@ class NewestFrame:
 
     def __init__(self, capacity: int = 1):
         from collections import deque
+
         self._msgs = deque()
         self.capacity = int(capacity)
         self._cond = threading.Condition()
@@ -103,10 +121,17 @@ class ExtractorNode(Node):
     def __init__(self, **kwargs):
         super().__init__('lln_extractor', **kwargs)
         p = self.params = declare_all(self, PARAMETERS, self.on_parameters)
-        self.extractor = Extractor({
-            'backbone': {'name': p['backbone'], 'layer': p['layer'], 'weights_path': p['backbone_weights']},
-            'weights': p['weights'], 'top_n': p['top_n'], 'input_height': p['input_height'],
-            'method': p['method'], 'num_threads': p['num_threads'], 'runtime': p['runtime']})
+        self.extractor = Extractor(
+            {
+                'backbone': {'name': p['backbone'], 'layer': p['layer'], 'weights_path': p['backbone_weights']},
+                'weights': p['weights'],
+                'top_n': p['top_n'],
+                'input_height': p['input_height'],
+                'method': p['method'],
+                'num_threads': p['num_threads'],
+                'runtime': p['runtime'],
+            }
+        )
         self.health = Health(self)
         self.landmarks_pub = self.create_publisher(PointCloud2, 'landmarks', 10)
         self.activation_pub = None
@@ -114,17 +139,21 @@ class ExtractorNode(Node):
         self.keypoints_pub, self.orb = None, None
         if p['publish_keypoints']:
             from ..reloc import Relocalizer
+
             self.orb = Relocalizer({'detector': 'orb', 'max_keypoints': p['keypoints_max']})
             self.keypoints_pub = self.create_publisher(PointCloud2, 'keypoints', 10)
         model_pub = self.create_publisher(String, 'model_info', MODEL_QOS)
         model_pub.publish(String(data=json.dumps(self.extractor.model_info)))
         compressed = p['image_transport'] == 'compressed'
         self.image_topic = self.resolve_topic_name('image/compressed' if compressed else 'image')
-        self.create_subscription(CompressedImage if compressed else Image,
-                                 'image/compressed' if compressed else 'image', self.on_image,
-                                 # a reader history shorter than the queue would overwrite a burst before we see it
-                                 subscription_qos(p['reliability'], max(5, p['frame_queue'])),
-                                 event_callbacks=loss_events(self.health, f'image subscription {self.image_topic}'))
+        self.create_subscription(
+            CompressedImage if compressed else Image,
+            'image/compressed' if compressed else 'image',
+            self.on_image,
+            # a reader history shorter than the queue would overwrite a burst before we see it
+            subscription_qos(p['reliability'], max(5, p['frame_queue'])),
+            event_callbacks=loss_events(self.health, f'image subscription {self.image_topic}'),
+        )
         self.gaps = StampGaps()
         self.last_image_at, self.publishers_since = 0.0, None
         self.mailbox = NewestFrame(p['frame_queue'])
@@ -132,13 +161,19 @@ class ExtractorNode(Node):
         self._running = True
         self.worker = threading.Thread(target=self._work, name='lln_extractor_worker', daemon=True)
         self.worker.start()
-        self.diagnostics = start_diagnostics(self, self.health, p['diagnostics_period'],
-                                             lambda: {'last_latency_ms': f'{self.latency_ms:.1f}'}, self.status)
+        self.diagnostics = start_diagnostics(
+            self,
+            self.health,
+            p['diagnostics_period'],
+            lambda: {'last_latency_ms': f'{self.latency_ms:.1f}'},
+            self.status,
+        )
         info = self.extractor.model_info
         self.get_logger().info(
-            f"extracting {p['method']} top-{p['top_n']} landmarks with {info['descriptor_space']} "
-            f"(head {info['head']}{'' if info['head_trained'] else ', UNTRAINED'}, {info['runtime']}) from "
-            f"'{self.image_topic}'")
+            f'extracting {p["method"]} top-{p["top_n"]} landmarks with {info["descriptor_space"]} '
+            f'(head {info["head"]}{"" if info["head_trained"] else ", UNTRAINED"}, {info["runtime"]}) from '
+            f"'{self.image_topic}'"
+        )
 
     def set_activation(self, on: bool) -> None:
         if on and self.activation_pub is None:
@@ -157,31 +192,52 @@ class ExtractorNode(Node):
     def status(self, delta: dict) -> tuple:
         """/diagnostics level and message from the last period's counter increases."""
         from diagnostic_msgs.msg import DiagnosticStatus as S
+
         problems = []
         if delta.get('dropped'):
-            problems.append((S.WARN, f"skipped {delta['dropped']} of {delta.get('received', 0)} frames (newest-frame "
-                                     f"policy, frame_queue {self.params['frame_queue']}: extraction takes "
-                                     f"{self.latency_ms:.0f} ms; lower the input rate, replay slower, or raise "
-                                     f"frame_queue for a bag to keep every frame)"))
+            problems.append(
+                (
+                    S.WARN,
+                    f'skipped {delta["dropped"]} of {delta.get("received", 0)} frames (newest-frame '
+                    f'policy, frame_queue {self.params["frame_queue"]}: extraction takes '
+                    f'{self.latency_ms:.0f} ms; lower the input rate, replay slower, or raise '
+                    f'frame_queue for a bag to keep every frame)',
+                )
+            )
         if delta.get('frames_missing'):
-            problems.append((S.WARN, f"{delta['frames_missing']} frames missing upstream (gaps in the image stamps: "
-                                     f"lost by DDS or the driver; README 'Camera-sized images')"))
+            problems.append(
+                (
+                    S.WARN,
+                    f'{delta["frames_missing"]} frames missing upstream (gaps in the image stamps: '
+                    f"lost by DDS or the driver; README 'Camera-sized images')",
+                )
+            )
         if delta.get('dds_lost'):
-            problems.append((S.WARN, f"DDS reports {delta['dds_lost']} image samples lost"))
+            problems.append((S.WARN, f'DDS reports {delta["dds_lost"]} image samples lost'))
         for key in ('bad_image', 'internal_error'):  # quiet: logged by kind as they happen
             if delta.get(key):
                 problems.append((S.WARN, f'{delta[key]} frames refused ({key})', True))
         if delta.get('qos_incompatible'):
-            problems.append((S.WARN, f'a publisher of {self.image_topic} has an incompatible QoS (try '
-                                     f'reliability {"reliable" if self.params["reliability"] == "best_effort" else "best_effort"})',
-                             True))
+            problems.append(
+                (
+                    S.WARN,
+                    f'a publisher of {self.image_topic} has an incompatible QoS (try '
+                    f'reliability {"reliable" if self.params["reliability"] == "best_effort" else "best_effort"})',
+                    True,
+                )
+            )
         publishers, now = self.count_publishers(self.image_topic), time.monotonic()
         self.publishers_since = (self.publishers_since or now) if publishers else None
         idle = now - max(self.last_image_at, self.publishers_since or now)
         if publishers and idle >= NO_DATA_S:  # an idle publisher for a moment is normal; for seconds, not
-            problems.append((S.WARN, f'{publishers} publisher(s) on {self.image_topic} but no image for '
-                                     f'{idle:.0f} s (QoS mismatch, or frames too large for the middleware: '
-                                     f'README \'Camera-sized images\')'))
+            problems.append(
+                (
+                    S.WARN,
+                    f'{publishers} publisher(s) on {self.image_topic} but no image for '
+                    f'{idle:.0f} s (QoS mismatch, or frames too large for the middleware: '
+                    f"README 'Camera-sized images')",
+                )
+            )
         return worst(problems)
 
     def on_image(self, msg) -> None:
@@ -201,8 +257,9 @@ class ExtractorNode(Node):
             try:
                 self.process(msg)
             except Exception as e:  # noqa: BLE001  the worker must outlive any one frame
-                self.health.problem('internal_error', f'unexpected error on a frame: {type(e).__name__}: {e}',
-                                    kind=type(e).__name__)
+                self.health.problem(
+                    'internal_error', f'unexpected error on a frame: {type(e).__name__}: {e}', kind=type(e).__name__
+                )
 
     def process(self, msg) -> None:
         start = time.perf_counter()

@@ -28,6 +28,7 @@ without rclpy); this node decodes (lln_ros.msgs), calls it and publishes. Input 
 (max_image_pixels, max_landmarks, max_descriptor_dim, max_grid_side, max_keypoints) default to
 lln_ros.limits.default_conf.
 """
+
 from __future__ import annotations
 
 import json
@@ -39,12 +40,12 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from .. import msgs
-from ..errors import LLNError
 from ..core.landmark_index import PREFILTERS
-from ..limits import default_conf as LIMITS
 from ..core.localizer import Localizer, open_map
 from ..core.localizer import default_conf as LOC
 from ..core.sequence import KeyframeSequence
+from ..errors import LLNError
+from ..limits import default_conf as LIMITS
 from ..stream import StampGaps
 from .common import MODEL_QOS, Health, loss_events, run_node, start_diagnostics, subscription_qos, worst
 from .parameters import Param, declare_all
@@ -52,56 +53,115 @@ from .parameters import Param, declare_all
 # defaults come from the ROS-free confs (lln_ros.core.localizer / limits): one source each.
 # dynamic=True: settable at run time (ros2 param set), applied from the next message on
 PARAMETERS = {
-    'map_path': Param('~/.ros/lln_ros/map.db', 'map URI: SQLite file path (created if missing), '
-                      'milvus-lite:///path.db or milvus://host:port[/db][?map=name]'),
-    'mode': Param(LOC['mode'], 'localization: answer queries only | mapping: answer, then store each query',
-                  choices=('localization', 'mapping')),
-    'prefilter': Param(LOC['prefilter'], 'first stage: landmarks (every query landmark against every map landmark, '
-                       'voted per keyframe) | holistic (global descriptor cosine) | exhaustive (every keyframe)',
-                       dynamic=True, choices=PREFILTERS),
-    'prefilter_k': Param(LOC['prefilter_k'], 'first-stage candidates reranked by the landmark similarity; 0 = every '
-                         'keyframe (exhaustive, whatever prefilter says; cost grows with the map)',
-                         dynamic=True, range=(0, 1_000_000)),
+    'map_path': Param(
+        '~/.ros/lln_ros/map.db',
+        'map URI: SQLite file path (created if missing), milvus-lite:///path.db or milvus://host:port[/db][?map=name]',
+    ),
+    'mode': Param(
+        LOC['mode'],
+        'localization: answer queries only | mapping: answer, then store each query',
+        choices=('localization', 'mapping'),
+    ),
+    'prefilter': Param(
+        LOC['prefilter'],
+        'first stage: landmarks (every query landmark against every map landmark, '
+        'voted per keyframe) | holistic (global descriptor cosine) | exhaustive (every keyframe)',
+        dynamic=True,
+        choices=PREFILTERS,
+    ),
+    'prefilter_k': Param(
+        LOC['prefilter_k'],
+        'first-stage candidates reranked by the landmark similarity; 0 = every '
+        'keyframe (exhaustive, whatever prefilter says; cost grows with the map)',
+        dynamic=True,
+        range=(0, 1_000_000),
+    ),
     'k': Param(LOC['k'], 'candidates published per query', dynamic=True, range=(1, 10_000_000)),
     # no range: any threshold is meaningful (lln-demo passes -1e9 for "publish every candidate")
     'min_score': Param(LOC['min_score'], 'candidates scoring below this are not published', dynamic=True),
-    'exclude_recent': Param(LOC['exclude_recent'], 'mapping mode: the newest N keyframes are never answers',
-                            dynamic=True, range=(0, 1_000_000)),
-    'method': Param(LOC['method'], 'lln: rerank by landmark similarity S | holistic: global descriptor only',
-                    dynamic=True, choices=('lln', 'holistic')),
-    'offset_scale': Param(LOC['offset_scale'], 'Gaussian width of the offset weights, in grid cells', dynamic=True,
-                          range=(1e-3, 1e3)),
+    'exclude_recent': Param(
+        LOC['exclude_recent'],
+        'mapping mode: the newest N keyframes are never answers',
+        dynamic=True,
+        range=(0, 1_000_000),
+    ),
+    'method': Param(
+        LOC['method'],
+        'lln: rerank by landmark similarity S | holistic: global descriptor only',
+        dynamic=True,
+        choices=('lln', 'holistic'),
+    ),
+    'offset_scale': Param(
+        LOC['offset_scale'], 'Gaussian width of the offset weights, in grid cells', dynamic=True, range=(1e-3, 1e3)
+    ),
     'descriptor_space': Param('', "expected model, e.g. efficientnet_lite0/stage6/192; '' = the map's or first seen"),
     'reliability': Param('reliable', 'keyframes/query subscriptions', choices=('reliable', 'best_effort')),
     'queue_depth': Param(100, 'keyframes/query subscription queue depth', range=(1, 100_000)),
     'verify': Param(LOC['verify'], "re-rank candidates by keypoint inliers (needs the extractor's publish_keypoints)"),
-    'verify_min_inliers': Param(LOC['verify_min_inliers'], 'verify: RANSAC inliers for a candidate to count as '
-                                'verified', dynamic=True, range=(1, 100_000)),
-    'verify_margin': Param(LOC['verify_margin'], 'verify: matched regions grown by this many grid cells',
-                           dynamic=True, range=(0.0, 100.0)),
-    'max_query_age': Param(LOC['max_query_age'], 'seconds; older queries (header stamp vs node clock: use_sim_time '
-                           'for bags) are dropped and counted as queries_stale, so a backlog cannot grow '
-                           'latency; 0 = off', dynamic=True, range=(0.0, 1e9)),
-    'diagnostics_period': Param(1.0, 'seconds between /diagnostics messages; 0 = off', dynamic=True,
-                                range=(0.0, 3600.0)),
-    'sequence_length': Param(LOC['sequence_length'], 'queries in the sequence search (0 = off, single-frame '
-                             'ranking); a change starts a new sequence', dynamic=True, range=(0, 10_000)),
-    'sequence_max_gap': Param(LOC['sequence_max_gap'], 'seconds between query stamps beyond which a new sequence '
-                              'starts', dynamic=True, range=(1e-3, 1e6)),
+    'verify_min_inliers': Param(
+        LOC['verify_min_inliers'],
+        'verify: RANSAC inliers for a candidate to count as verified',
+        dynamic=True,
+        range=(1, 100_000),
+    ),
+    'verify_margin': Param(
+        LOC['verify_margin'], 'verify: matched regions grown by this many grid cells', dynamic=True, range=(0.0, 100.0)
+    ),
+    'max_query_age': Param(
+        LOC['max_query_age'],
+        'seconds; older queries (header stamp vs node clock: use_sim_time '
+        'for bags) are dropped and counted as queries_stale, so a backlog cannot grow '
+        'latency; 0 = off',
+        dynamic=True,
+        range=(0.0, 1e9),
+    ),
+    'diagnostics_period': Param(
+        1.0, 'seconds between /diagnostics messages; 0 = off', dynamic=True, range=(0.0, 3600.0)
+    ),
+    'sequence_length': Param(
+        LOC['sequence_length'],
+        'queries in the sequence search (0 = off, single-frame ranking); a change starts a new sequence',
+        dynamic=True,
+        range=(0, 10_000),
+    ),
+    'sequence_max_gap': Param(
+        LOC['sequence_max_gap'],
+        'seconds between query stamps beyond which a new sequence starts',
+        dynamic=True,
+        range=(1e-3, 1e6),
+    ),
     # input limits (lln_ros.limits): a message declaring more is refused and counted, never sized from
-    'max_image_pixels': Param(LIMITS['max_image_pixels'], 'limit: image width x height a landmark cloud may '
-                              'declare', range=(1, 2**40)),
+    'max_image_pixels': Param(
+        LIMITS['max_image_pixels'], 'limit: image width x height a landmark cloud may declare', range=(1, 2**40)
+    ),
     'max_landmarks': Param(LIMITS['max_landmarks'], 'limit: landmark rows per keyframe or query', range=(1, 2**31 - 1)),
-    'max_descriptor_dim': Param(LIMITS['max_descriptor_dim'], 'limit: descriptor size D (clouds and model_info)',
-                                range=(1, 2**31 - 1)),
-    'max_grid_side': Param(LIMITS['max_grid_side'], 'limit: grid cells a side a landmark cloud may declare '
-                           '(image size / cell size)', range=(1, 2**31 - 1)),
+    'max_descriptor_dim': Param(
+        LIMITS['max_descriptor_dim'], 'limit: descriptor size D (clouds and model_info)', range=(1, 2**31 - 1)
+    ),
+    'max_grid_side': Param(
+        LIMITS['max_grid_side'],
+        'limit: grid cells a side a landmark cloud may declare (image size / cell size)',
+        range=(1, 2**31 - 1),
+    ),
     'max_keypoints': Param(LIMITS['max_keypoints'], 'limit: rows per keypoints cloud (verify)', range=(1, 2**31 - 1)),
 }
 # the Localizer's own settings among them (updated in place at run time: it reads them per message)
-LOCALIZER_KEYS = ('mode', 'prefilter', 'prefilter_k', 'k', 'min_score', 'exclude_recent', 'method', 'offset_scale',
-                  'max_query_age', 'verify', 'verify_min_inliers', 'verify_margin', 'sequence_length',
-                  'sequence_max_gap')
+LOCALIZER_KEYS = (
+    'mode',
+    'prefilter',
+    'prefilter_k',
+    'k',
+    'min_score',
+    'exclude_recent',
+    'method',
+    'offset_scale',
+    'max_query_age',
+    'verify',
+    'verify_min_inliers',
+    'verify_margin',
+    'sequence_length',
+    'sequence_max_gap',
+)
 
 
 class MatcherNode(Node):
@@ -111,17 +171,27 @@ class MatcherNode(Node):
         self.health = Health(self)
         conf = {name: p[name] for name in LOCALIZER_KEYS}
         conf['limits'] = {name: p[name] for name in LIMITS}
-        Localizer.check_conf(conf)   # a bad parameter ends the node before the map is touched
+        Localizer.check_conf(conf)  # a bad parameter ends the node before the map is touched
         self.store, quarantined = open_map(p['map_path'], p['mode'], p['descriptor_space'])
         self.loc = Localizer(self.store, conf, self.health, self.get_logger(), msgs.cloud_to_keypoints)
         qos = subscription_qos(p['reliability'], p['queue_depth'])
         self.candidates_pub = self.create_publisher(PointCloud2, 'candidates', 10)
         self.matches_pub = self.create_publisher(PointCloud2, 'matches', 10)
         self.query_topic = self.resolve_topic_name('query')
-        self.create_subscription(PointCloud2, 'keyframes', self.on_keyframe, qos,
-                                 event_callbacks=loss_events(self.health, 'keyframes subscription'))
-        self.create_subscription(PointCloud2, 'query', self.on_query, qos,
-                                 event_callbacks=loss_events(self.health, f'query subscription {self.query_topic}'))
+        self.create_subscription(
+            PointCloud2,
+            'keyframes',
+            self.on_keyframe,
+            qos,
+            event_callbacks=loss_events(self.health, 'keyframes subscription'),
+        )
+        self.create_subscription(
+            PointCloud2,
+            'query',
+            self.on_query,
+            qos,
+            event_callbacks=loss_events(self.health, f'query subscription {self.query_topic}'),
+        )
         self.gaps = StampGaps()
         self.last_query_age = None  # seconds, header stamp vs node clock (sim time with use_sim_time)
         self.create_subscription(String, 'model_info', self.on_model_info, MODEL_QOS)
@@ -130,16 +200,19 @@ class MatcherNode(Node):
         self.create_service(Trigger, '~/save', self.on_save)
         self.create_service(Trigger, '~/clear', self.on_clear)
         self.create_service(Trigger, '~/info', self.on_info)
-        self.diagnostics = start_diagnostics(self, self.health, p['diagnostics_period'], self.diagnostic_values,
-                                             self.status)
+        self.diagnostics = start_diagnostics(
+            self, self.health, p['diagnostics_period'], self.diagnostic_values, self.status
+        )
         if quarantined:
             self.get_logger().error(
                 f'map {self.store.path}: {len(quarantined)} damaged keyframe(s) quarantined: never answered, '
-                f'left in the file (lln-map check lists them): {"; ".join(list(quarantined.values())[:10])}')
+                f'left in the file (lln-map check lists them): {"; ".join(list(quarantined.values())[:10])}'
+            )
         model = self.store.model
         self.get_logger().info(
-            f"map {self.store.path}: {len(self.store)} keyframes, model "
-            f"{model['descriptor_space'] if model else '(none yet)'}; mode {p['mode']}")
+            f'map {self.store.path}: {len(self.store)} keyframes, model '
+            f'{model["descriptor_space"] if model else "(none yet)"}; mode {p["mode"]}'
+        )
 
     # ------------------------------------------------------------------ parameters and health
 
@@ -152,9 +225,11 @@ class MatcherNode(Node):
         if self.loc.reloc is not None:
             self.loc.reloc.conf.update({'min_inliers': conf['verify_min_inliers'], 'margin': conf['verify_margin']})
         if {'sequence_length', 'sequence_max_gap'} & set(changes):  # a new search: a new sequence
-            self.loc.sequence = KeyframeSequence({'length': conf['sequence_length'],
-                                                  'max_gap_s': conf['sequence_max_gap']}) \
-                if conf['sequence_length'] > 0 else None
+            self.loc.sequence = (
+                KeyframeSequence({'length': conf['sequence_length'], 'max_gap_s': conf['sequence_max_gap']})
+                if conf['sequence_length'] > 0
+                else None
+            )
         if 'diagnostics_period' in changes:
             self.diagnostics.set_period(changes['diagnostics_period'])
 
@@ -168,27 +243,53 @@ class MatcherNode(Node):
         """/diagnostics level and message: ERROR while every landmark input is refused (model
         mismatch), WARN for losses and refused messages of the last period."""
         from diagnostic_msgs.msg import DiagnosticStatus as S
+
         problems = []
         if self.loc.refusing:  # quiet: the Localizer logged the refusal as an ERROR line
             problems.append((S.ERROR, f'refusing all landmark input: {self.loc.refusing}', True))
         if delta.get('queries_stale'):
             age = self.last_query_age or 0.0
-            hint = (' (stamps are days old: a replayed bag? play it with --clock and start the nodes with '
-                    'use_sim_time:=true)' if age > 86400 and not self.get_parameter('use_sim_time').value else '')
-            problems.append((S.WARN, f"dropped {delta['queries_stale']} queries older than max_query_age "
-                                     f"{self.params['max_query_age']:g} s (last {age:.3f} s old){hint}"))
+            hint = (
+                ' (stamps are days old: a replayed bag? play it with --clock and start the nodes with '
+                'use_sim_time:=true)'
+                if age > 86400 and not self.get_parameter('use_sim_time').value
+                else ''
+            )
+            problems.append(
+                (
+                    S.WARN,
+                    f'dropped {delta["queries_stale"]} queries older than max_query_age '
+                    f'{self.params["max_query_age"]:g} s (last {age:.3f} s old){hint}',
+                )
+            )
         if delta.get('queries_missing'):
-            problems.append((S.WARN, f"{delta['queries_missing']} queries missing (gaps in the query stamps: frames "
-                                     f"lost before the matcher, see the extractor's diagnostics)"))
+            problems.append(
+                (
+                    S.WARN,
+                    f'{delta["queries_missing"]} queries missing (gaps in the query stamps: frames '
+                    f"lost before the matcher, see the extractor's diagnostics)",
+                )
+            )
         if delta.get('dds_lost'):
-            problems.append((S.WARN, f"DDS reports {delta['dds_lost']} landmark samples lost"))
-        for key in ('bad_query', 'bad_keyframe', 'bad_keypoints', 'bad_model_info', 'queries_failed',
-                    'keyframes_failed'):
+            problems.append((S.WARN, f'DDS reports {delta["dds_lost"]} landmark samples lost'))
+        for key in (
+            'bad_query',
+            'bad_keyframe',
+            'bad_keypoints',
+            'bad_model_info',
+            'queries_failed',
+            'keyframes_failed',
+        ):
             if delta.get(key) and not (self.loc.refusing and key in ('bad_query', 'bad_keyframe')):
                 problems.append((S.WARN, f'{delta[key]} messages refused ({key})', True))  # logged by kind already
         if delta.get('qos_incompatible'):
-            problems.append((S.WARN, 'a landmark publisher has an incompatible QoS (reliability: the extractor '
-                                     'publishes reliable)', True))
+            problems.append(
+                (
+                    S.WARN,
+                    'a landmark publisher has an incompatible QoS (reliability: the extractor publishes reliable)',
+                    True,
+                )
+            )
         return worst(problems)
 
     # ------------------------------------------------------------------ inputs
@@ -230,8 +331,9 @@ class MatcherNode(Node):
             return
         self.candidates_pub.publish(msgs.candidates_to_cloud(answer.rows, msg.header, answer.extra_fields))
         best = answer.best
-        self.matches_pub.publish(msgs.matches_to_cloud(
-            msgs.match_rows(best.keyframe_id, best.pairs) if best else [], msg.header))
+        self.matches_pub.publish(
+            msgs.matches_to_cloud(msgs.match_rows(best.keyframe_id, best.pairs) if best else [], msg.header)
+        )
         self.health.count('queries_answered')
 
     # ------------------------------------------------------------------ services
@@ -240,14 +342,17 @@ class MatcherNode(Node):
         def save():
             self.store.save()
             return f'saved {len(self.store)} keyframes to {self.store.path}'
+
         return self._service(response, save)
 
     def on_clear(self, request, response):
         return self._service(response, lambda: f'cleared {self.loc.clear()} keyframes from {self.store.path}')
 
     def on_info(self, request, response):
-        return self._service(response, lambda: json.dumps(
-            {**self.store.info(), 'mode': self.params['mode'], 'counters': self.health.snapshot()}))
+        return self._service(
+            response,
+            lambda: json.dumps({**self.store.info(), 'mode': self.params['mode'], 'counters': self.health.snapshot()}),
+        )
 
     def _service(self, response, action):
         try:

@@ -8,6 +8,7 @@ are range-checked by rclpy from their FloatingPointRange / IntegerRange, checked
 and by `check` here, and rejected with a reason; accepted changes update `values` (the dict the node
 reads) and then call on_change({name: value}).
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -21,6 +22,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 class Param:
     """One node parameter. range: inclusive (low, high) for int / float ones; choices: allowed
     strings; check: value -> '' when fine, else the reason it is refused."""
+
     default: Any
     description: str
     dynamic: bool = False
@@ -35,8 +37,9 @@ class Param:
         if self.range is not None and isinstance(self.default, int):
             d.integer_range = [IntegerRange(from_value=int(self.range[0]), to_value=int(self.range[1]), step=1)]
         elif self.range is not None:
-            d.floating_point_range = [FloatingPointRange(from_value=float(self.range[0]),
-                                                         to_value=float(self.range[1]), step=0.0)]
+            d.floating_point_range = [
+                FloatingPointRange(from_value=float(self.range[0]), to_value=float(self.range[1]), step=0.0)
+            ]
         notes = []
         if self.choices:
             notes.append('one of: ' + ' | '.join(self.choices))
@@ -46,7 +49,7 @@ class Param:
 
     def problem(self, value) -> str:
         if self.choices and value not in self.choices:
-            return f"must be one of {' | '.join(self.choices)}, got {value!r}"
+            return f'must be one of {" | ".join(self.choices)}, got {value!r}'
         return self.check(value) if self.check else ''
 
 
@@ -64,7 +67,7 @@ def declare_all(node, spec: dict[str, Param | tuple], on_change: Callable[[dict]
         except (InvalidParameterValueException, InvalidParameterTypeException) as e:
             # rclpy: "Invalid parameter value (-1) for parameter. Reason: <why>: <name>" -> <why>
             reason = str(e).split('Reason: ', 1)[-1]
-            reason = reason[:-len(f': {name}')] if reason.endswith(f': {name}') else reason
+            reason = reason[: -len(f': {name}')] if reason.endswith(f': {name}') else reason
             raise ValueError(f'parameter {name}: {reason}') from None
         values[name] = node.get_parameter(name).value
         problem = param.problem(values[name])

@@ -13,6 +13,7 @@ thumbnails, keyed by header stamp, and finds a candidate's image by its stamp_se
 keyframe older than that (or from a map built in another run) is drawn as a grey panel that says so.
 Nothing here feeds back into the matcher; the node can start and stop at any time.
 """
+
 from __future__ import annotations
 
 import sys
@@ -34,22 +35,25 @@ from .common import Health, run_node, subscription_qos
 from .parameters import Param, declare_all
 
 PARAMETERS = {
-    'image_transport': Param('raw', "raw: sensor_msgs/Image on 'image' | compressed: 'image/compressed'",
-                             choices=('raw', 'compressed')),
+    'image_transport': Param(
+        'raw', "raw: sensor_msgs/Image on 'image' | compressed: 'image/compressed'", choices=('raw', 'compressed')
+    ),
     'reliability': Param('best_effort', 'image subscription reliability', choices=('best_effort', 'reliable')),
     'history': Param(600, 'camera frames kept (JPEG thumbnails) to draw keyframes from', range=(1, 100000)),
     'thumbnail_height': Param(240, 'height of the kept frames, pixels', range=(32, 2160)),
     'overlay_height': Param(360, 'height of each image on the overlay, pixels', dynamic=True, range=(32, 2160)),
-    'max_links': Param(60, 'matched region pairs drawn per overlay (strongest first)', dynamic=True,
-                       range=(0, 1000)),
+    'max_links': Param(60, 'matched region pairs drawn per overlay (strongest first)', dynamic=True, range=(0, 1000)),
     'publish_overlay': Param(True, "publish 'overlay'", dynamic=True),
     'publish_markers': Param(True, "publish 'markers'", dynamic=True),
-    'timeline_frame': Param('lln_timeline', 'frame_id of the markers (set it as the fixed frame in rviz2)',
-                            dynamic=True),
-    'timeline_scale': Param(0.2, 'metres of the marker time axis per second of stamps', dynamic=True,
-                            range=(1e-6, 1e3)),
-    'score_scale': Param(20.0, 'score drawn at full colour on the markers (viridis: dark = low)', dynamic=True,
-                         range=(1e-6, 1e6)),
+    'timeline_frame': Param(
+        'lln_timeline', 'frame_id of the markers (set it as the fixed frame in rviz2)', dynamic=True
+    ),
+    'timeline_scale': Param(
+        0.2, 'metres of the marker time axis per second of stamps', dynamic=True, range=(1e-6, 1e3)
+    ),
+    'score_scale': Param(
+        20.0, 'score drawn at full colour on the markers (viridis: dark = low)', dynamic=True, range=(1e-6, 1e6)
+    ),
 }
 
 
@@ -64,9 +68,12 @@ class VisualizerNode(Node):
         self.t0 = None
         self.marker_id = 0
         compressed = p['image_transport'] == 'compressed'
-        self.create_subscription(CompressedImage if compressed else Image,
-                                 'image/compressed' if compressed else 'image', self.on_image,
-                                 subscription_qos(p['reliability'], 5))
+        self.create_subscription(
+            CompressedImage if compressed else Image,
+            'image/compressed' if compressed else 'image',
+            self.on_image,
+            subscription_qos(p['reliability'], 5),
+        )
         self.create_subscription(PointCloud2, 'candidates', lambda m: self.on_answer(m, 'candidates'), 10)
         self.create_subscription(PointCloud2, 'matches', lambda m: self.on_answer(m, 'matches'), 10)
         self.overlay_pub = self.create_publisher(Image, 'overlay', 2)
@@ -124,13 +131,24 @@ class VisualizerNode(Node):
                 if best is None:
                     caption.append('no candidate: new place (or the map is empty)')
                 else:
-                    inliers = f", {best['inliers']:.0f} inliers" if 'inliers' in candidates.dtype.names \
-                        and np.isfinite(best['inliers']) else ''
-                    caption.append(f"best keyframe #{int(best['keyframe_id'])} at {best_stamp / 1e9:.3f}: "
-                                   f"score {best['score']:.2f}, holistic {best['holistic_score']:.2f}{inliers}")
-                canvas = draw_match_overlay(query, keyframe, matches if best is not None else matches[:0], caption,
-                                            max_links=self.params['max_links'],
-                                            height=self.params['overlay_height'], original_heights=(qh, kh))
+                    inliers = (
+                        f', {best["inliers"]:.0f} inliers'
+                        if 'inliers' in candidates.dtype.names and np.isfinite(best['inliers'])
+                        else ''
+                    )
+                    caption.append(
+                        f'best keyframe #{int(best["keyframe_id"])} at {best_stamp / 1e9:.3f}: '
+                        f'score {best["score"]:.2f}, holistic {best["holistic_score"]:.2f}{inliers}'
+                    )
+                canvas = draw_match_overlay(
+                    query,
+                    keyframe,
+                    matches if best is not None else matches[:0],
+                    caption,
+                    max_links=self.params['max_links'],
+                    height=self.params['overlay_height'],
+                    original_heights=(qh, kh),
+                )
                 self.overlay_pub.publish(msgs.array_to_image(canvas, 'bgr8', header))
             else:
                 self.health.count('overlay_without_image')
@@ -159,8 +177,11 @@ class VisualizerNode(Node):
             arc.color = ColorRGBA(r=r, g=g, b=b, a=1.0)
             xq, xk = x(stamp), x(best_stamp)
             for t in np.linspace(0, np.pi, 24):
-                arc.points.append(Point(x=(xq + xk) / 2 + (xq - xk) / 2 * float(np.cos(t)), y=0.0,
-                                        z=abs(xq - xk) / 2 * float(np.sin(t))))
+                arc.points.append(
+                    Point(
+                        x=(xq + xk) / 2 + (xq - xk) / 2 * float(np.cos(t)), y=0.0, z=abs(xq - xk) / 2 * float(np.sin(t))
+                    )
+                )
             out.markers.append(arc)
         self.marker_id += 1
         return out
