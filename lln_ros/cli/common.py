@@ -127,9 +127,8 @@ def add_runtime_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         '--runtime',
         default=None,
-        choices=('onnxruntime', 'torch'),
-        help='what runs the network (default onnxruntime, torch when ONNX Runtime is not '
-        'installed); the landmarks are the same',
+        help='what runs the network: onnxruntime | torch (default onnxruntime, torch when ONNX Runtime is '
+        'not installed); the landmarks are the same. Checked by the extractor, as its conf is',
     )
 
 
