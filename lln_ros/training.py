@@ -1,5 +1,8 @@
 """Training the LLN head with image-level labels only (Xin et al., ICRA 2019, Sec. III-B).
 
+Why this module is past 500 lines: two objectives (the paper's triplet and the rerank objective)
+share the tuple mining, the padding of mixed grids and the validation loop.
+
 Two objectives, both on tuples of 1 query, its positives and K hard negatives re-mined with the
 current head every epoch:
 

@@ -1,5 +1,8 @@
 """MCAP bags without rosbag2: write image sequences, read messages back, play them into ROS.
 
+Why this module is past 500 lines: writing, reading, describing and playing bags (with /clock and
+pacing) share the message-type and QoS code; split, each part would import the others.
+
     write_image_bag(paths, out, topic='/camera/image_raw', rate=10.0, compressed=False)
     write_bag(out, [(topic, msg, stamp_ns), ...])        # any rclpy message objects
     for topic, msg, t in read_messages(bag): ...         # deserialised rclpy messages

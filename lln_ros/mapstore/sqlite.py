@@ -1,5 +1,8 @@
 """The embedded map backend: one SQLite file plus in-memory FAISS indexes.
 
+Why this module is past 500 lines: the query path, writes, deletes, keypoints, info and check of one
+backend; the file handling and the landmark index are already in sqlite_file.py / sqlite_landmarks.py.
+
 Storage
 -------
 One SQLite file in WAL mode with ``synchronous=FULL``: ``add`` commits one transaction and fsyncs
