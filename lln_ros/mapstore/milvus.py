@@ -161,6 +161,9 @@ class MilvusMapStore(MapStore):
         self._model = None
         self._ids: list[int] = []
         self._landmarks = None  # the landmark first stage: a local FAISS index, built at open
+        # ids this process deleted: with Session consistency another read may still list them for a while,
+        # and a refresh must not bring them back (into _ids or the landmark index)
+        self._deleted: set[int] = set()
         self._next_id = self._reserved = 1
         self._refreshed = time.monotonic()
         self._has_keypoints = False
@@ -411,6 +414,8 @@ class MilvusMapStore(MapStore):
                 count = int(self._client.query(self._fr_c, filter='', output_fields=['count(*)'])[0]['count(*)'])
                 if count != len(self._ids) or len(new) == _QUERY_ROWS:
                     self._ids = self._scan_ids()
+                if self._deleted:
+                    self._ids = [i for i in self._ids if i not in self._deleted]
                 # another process's keyframes reach this process's landmark index too
                 now = set(self._ids)
                 if self._landmarks is None:
@@ -667,6 +672,7 @@ class MilvusMapStore(MapStore):
             if present:
                 self._delete_ids(present)
                 gone = set(present)
+                self._deleted |= gone
                 self._ids = [i for i in self._ids if i not in gone]
                 self._landmarks.remove_keyframes(present)
             return len(present)
@@ -675,6 +681,7 @@ class MilvusMapStore(MapStore):
         with self._lock, self._errors('clear'):
             self._ready()
             self._delete_ids(list(self._ids))
+            self._deleted |= set(self._ids)
             removed, self._ids = len(self._ids), []
             if self._landmarks is not None:
                 self._landmarks.reset()
