@@ -103,8 +103,10 @@ def test_camera_sized_frames_reach_the_extractor(colcon_install, tmp_path):
             assert any(lvl == DiagnosticStatus.WARN and 'newest-frame' in msg for lvl, msg in statuses), statuses
 
         # a camera without the profile (Fast DDS defaults): frames are lost in the middleware, and the
-        # extractor says so from the stamp gaps, at level WARN
-        before, missing = counter('received'), counter('frames_missing')
+        # extractor says so at level WARN, from the stamp gaps and from DDS's own sample-lost events
+        # (under load a run of losses at the end of the stream leaves no gap behind it: measured 27 of
+        # 60 lost frames as gaps, 58 as DDS events, in a fresh-clone make test beside a CPU hog)
+        before, missing, dds_lost = counter('received'), counter('frames_missing'), counter('dds_lost')
         statuses.clear()
         plain = {
             k: v for k, v in env.items() if k not in ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
@@ -133,8 +135,12 @@ def test_camera_sized_frames_reach_the_extractor(colcon_install, tmp_path):
             f'{counter("frames_missing") - missing} counted missing'
         )
         if lost >= 3:  # (on an idle machine loopback UDP may deliver most of them; then there is nothing to see)
-            assert counter('frames_missing') - missing >= lost // 2, diag
-            assert any(lvl == DiagnosticStatus.WARN and 'missing upstream' in msg for lvl, msg in statuses), statuses
+            seen = max(counter('frames_missing') - missing, counter('dds_lost') - dds_lost)
+            assert seen >= lost // 2, diag
+            assert any(
+                lvl == DiagnosticStatus.WARN and ('missing upstream' in msg or 'samples lost' in msg)
+                for lvl, msg in statuses
+            ), statuses
     finally:
         probe.close()
         code = extractor.stop()
