@@ -331,44 +331,21 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
                 new_session=True,
             )
         )
-        procs.append(
-            NodeProcess(
-                exes['extractor'],
-                [
-                    '-r',
-                    '__node:=lln_extractor_map',
-                    '-r',
-                    f'image:={MAP_IMAGE}',
-                    '-r',
-                    'landmarks:=/keyframes',
-                    *extractor_params,
-                ],
-                env,
-                logs / 'extractor_map.log',
-                'extractor (map)',
-                out,
-                new_session=True,
+        # one extractor per traverse, wired by remaps as a user would (the matcher stores /keyframes and
+        # answers /query)
+        for role, image, landmarks in (('map', MAP_IMAGE, '/keyframes'), ('query', QUERY_IMAGE, '/query')):
+            remaps = ['-r', f'__node:=lln_extractor_{role}', '-r', f'image:={image}', '-r', f'landmarks:={landmarks}']
+            procs.append(
+                NodeProcess(
+                    exes['extractor'],
+                    [*remaps, *extractor_params],
+                    env,
+                    logs / f'extractor_{role}.log',
+                    f'extractor ({role})',
+                    out,
+                    new_session=True,
+                )
             )
-        )
-        procs.append(
-            NodeProcess(
-                exes['extractor'],
-                [
-                    '-r',
-                    '__node:=lln_extractor_query',
-                    '-r',
-                    f'image:={QUERY_IMAGE}',
-                    '-r',
-                    'landmarks:=/query',
-                    *extractor_params,
-                ],
-                env,
-                logs / 'extractor_query.log',
-                'extractor (query)',
-                out,
-                new_session=True,
-            )
-        )
         graph.watch = procs
         graph.collect_answers()
         graph.collect_diagnostics()
