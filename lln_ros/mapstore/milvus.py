@@ -582,6 +582,10 @@ class MilvusMapStore(MapStore):
                 search_params={'metric_type': 'IP'},
                 output_fields=['*'],
             )[0]
+            # a search right after a delete may still see the deleted rows (Session consistency, a loaded
+            # server): answer only with keyframes this process knows to be live
+            live = set(self._ids)
+            hits = [h for h in hits if int(h['id']) in live]
             ids = np.array([int(h['id']) for h in hits], np.int64)
             hol = np.array([float(h['distance']) for h in hits], np.float32)
             return hol, ids, self._fetch(ids, [{**h['entity'], 'id': h['id']} for h in hits])
