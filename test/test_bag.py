@@ -469,3 +469,23 @@ def test_play_clock_drives_sim_time_faster_than_real_time(tmp_path):
     assert all(0 <= a < 0.5 for a in ages), ages
     wall = got[-1]['wall'] - got[0]['wall']
     assert wall < (stamps[-1] - stamps[0]) / 1e9 / 2, f'{wall:.2f} s of wall time for 4.5 s of bag'
+
+
+TEARDOWN_STUCK = """
+import threading, time
+from lln_ros.cli.common import exit_if_teardown_hangs
+print('published', flush=True)
+exit_if_teardown_hangs('lln-bag', 0.5, done='all 3 messages were published')
+threading.Event().wait()  # a teardown that never returns, as the Fast DDS deadlock does
+"""
+
+
+def test_a_stuck_teardown_ends_the_player_with_its_status():
+    """The player arms this watchdog once every message is out: a process whose only work left is a
+    deadlocked DDS teardown exits 0 with a warning instead of hanging whoever waits on it."""
+    t0 = time.monotonic()
+    done = subprocess.run([PY, '-c', TEARDOWN_STUCK], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout == 'published\n'
+    assert 'DDS teardown did not finish within 0.5 s; exiting (all 3 messages were published)' in done.stderr
+    assert time.monotonic() - t0 < 50

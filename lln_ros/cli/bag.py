@@ -14,7 +14,11 @@ import argparse
 import json
 import sys
 
-from .common import run_cli
+from .common import exit_if_teardown_hangs, run_cli
+
+# a player's work is over when every message is acknowledged; a teardown longer than this is the
+# Fast DDS participant-deletion deadlock (exit_if_teardown_hangs), not work
+TEARDOWN_TIMEOUT_S = 10.0
 
 
 def _positive(text: str) -> float:
@@ -182,6 +186,9 @@ def run(args) -> int:
             clock_hz=args.clock,
             pace_topic=args.pace,
             pace_timeout=args.pace_timeout,
+            on_published=lambda n: exit_if_teardown_hangs(
+                'lln-bag', TEARDOWN_TIMEOUT_S, done=f'all {n} messages were published'
+            ),
         )
     return 0
 

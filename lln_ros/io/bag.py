@@ -425,6 +425,7 @@ def play_bag(
     clock_hz: float = 0.0,
     pace_topic: str = '',
     pace_timeout: float = 10.0,
+    on_published: Callable[[int], None] | None = None,
 ) -> int:
     """Publish a bag's messages into the ROS graph at the recorded timing divided by `rate`.
 
@@ -443,6 +444,9 @@ def play_bag(
     `landmarks`) has carried as many messages as were published, up to pace_timeout seconds (then
     log it and go on). The recorded timing stays the fastest pace; a wait shifts the rest of the bag
     (and its /clock) later instead of bursting to catch up.
+    on_published(count): called once every message is out (and acknowledged), before the DDS teardown;
+    a command line arms a teardown watchdog there (Fast DDS can deadlock deleting a participant while
+    a subscriber's participant goes away at the same instant).
     """
     import rclpy
     from rclpy.duration import Duration
@@ -524,6 +528,8 @@ def play_bag(
         elif linger > 0 and count:
             time.sleep(linger)  # best effort: destroying the writer at once can lose the last sample
         log(f'published {count} messages')
+        if on_published is not None:
+            on_published(count)
     finally:
         if node is not None:
             node.destroy_node()
