@@ -138,14 +138,12 @@ def generate_launch_description() -> LaunchDescription:
         SetEnvironmentVariable(name, LaunchConfiguration('dds_profile'))
         for name in ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
     ]
+    # what every lln_ros node of this launch shares
+    ours = dict(package='lln_ros', output='screen', emulate_tty=True, namespace=namespace, ros_arguments=ros_arguments)
     extractor = Node(
-        package='lln_ros',
         executable='extractor',
         name='lln_extractor',
-        output='screen',
-        emulate_tty=True,
-        namespace=namespace,
-        ros_arguments=ros_arguments,
+        **ours,
         parameters=[
             LaunchConfiguration('extractor_params'),
             {
@@ -159,13 +157,9 @@ def generate_launch_description() -> LaunchDescription:
         remappings=[('image', image), ('image/compressed', [image, '/compressed'])],
     )
     matcher = Node(
-        package='lln_ros',
         executable='matcher',
         name='lln_matcher',
-        output='screen',
-        emulate_tty=True,
-        namespace=namespace,
-        ros_arguments=ros_arguments,
+        **ours,
         parameters=[
             LaunchConfiguration('matcher_params'),
             {
@@ -178,13 +172,9 @@ def generate_launch_description() -> LaunchDescription:
         remappings=[(LaunchConfiguration('feed'), 'landmarks')],
     )
     visualizer = Node(
-        package='lln_ros',
         executable='visualizer',
         name='lln_visualizer',
-        output='screen',
-        emulate_tty=True,
-        namespace=namespace,
-        ros_arguments=ros_arguments,
+        **ours,
         condition=IfCondition(LaunchConfiguration('visualize')),
         parameters=[
             {

@@ -36,8 +36,17 @@ def launch_tree(colcon_install):
     return share, tree, calls
 
 
-def keywords(call: ast.Call) -> dict:
-    return {kw.arg: kw.value for kw in call.keywords}
+def keywords(call: ast.Call, tree: ast.AST | None = None) -> dict:
+    """A call's keywords, with `**name` expanded where `name = dict(...)` is assigned in tree."""
+    found = {}
+    for kw in call.keywords:
+        if kw.arg is None and tree is not None and isinstance(kw.value, ast.Name):
+            for node in ast.walk(tree):
+                if isinstance(node, ast.Assign) and [getattr(t, 'id', None) for t in node.targets] == [kw.value.id]:
+                    found.update(keywords(node.value, tree))
+        else:
+            found[kw.arg] = kw.value
+    return found
 
 
 def test_launch_arguments(colcon_install):
@@ -57,12 +66,12 @@ def test_launch_arguments(colcon_install):
 def test_launch_nodes_and_files(colcon_install):
     share, tree, calls = launch_tree(colcon_install)
     lib = colcon_install / 'lln_ros' / 'lib' / 'lln_ros'
-    nodes = {keywords(n)['executable'].value: keywords(n) for n in calls if n.func.id == 'Node'}
+    nodes = {keywords(n)['executable'].value: keywords(n, tree) for n in calls if n.func.id == 'Node'}
     assert {'extractor', 'matcher', 'visualizer', 'rviz2'} <= set(nodes)
     for exe in ('extractor', 'matcher', 'visualizer'):
         kw = nodes[exe]
         assert (lib / exe).is_file(), f'ros2 run lln_ros {exe} would not find it'
-        assert 'namespace' in kw and 'ros_arguments' in kw, exe
+        assert kw['package'].value == 'lln_ros' and 'namespace' in kw and 'ros_arguments' in kw, exe
         params = ast.unparse(kw['parameters'])
         assert "'use_sim_time': use_sim_time" in params, exe
     assert "'verify': verify" in ast.unparse(nodes['matcher']['parameters'])
