@@ -6,12 +6,15 @@ Fast DDS passes a message between processes of one host through the writer's sha
 readers lose (README "Camera-sized images"). config/fastdds_large_data.xml enlarges the segment.
 
     note = apply_large_data_profile()   # in a process that publishes images, before rclpy.init
+    exit_if_teardown_hangs('lln-bag', 10.0)  # work done: a stuck participant deletion must not hang us
 """
 
 from __future__ import annotations
 
 import os
 import re
+import sys
+import threading
 from pathlib import Path
 
 PROFILE_NAME = 'fastdds_large_data.xml'
@@ -84,3 +87,22 @@ def apply_large_data_profile(environ=os.environ) -> tuple[str, str]:
 
 def _mib(n: int) -> str:
     return f'{n / 2**20:g} MiB'
+
+
+def exit_if_teardown_hangs(prog: str, seconds: float, status: int = 0, done: str = 'the work is done') -> None:
+    """Arm a watchdog: if this process has not exited `seconds` from now, say so and exit `status`.
+
+    For a process whose work is finished (messages acknowledged, map closed) when only the DDS
+    teardown is left: Fast DDS can deadlock deleting a participant while a peer's participant goes
+    away at the same instant (seen under load in CI: a player stuck after 'published 10 messages'),
+    and whoever waits on the process (a script, a launch file, a test) would hang with it."""
+
+    def give_up():
+        print(f'{prog}: warning: DDS teardown did not finish within {seconds:g} s; exiting ({done})', file=sys.stderr)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+
+    timer = threading.Timer(seconds, give_up)
+    timer.daemon = True
+    timer.start()

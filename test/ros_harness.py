@@ -7,6 +7,7 @@ install gives. Children start without preexec_fn (vfork, see lln_ros/ros/supervi
 
 from __future__ import annotations
 
+import fcntl
 import itertools
 import os
 import shutil
@@ -22,12 +23,44 @@ REPO = Path(__file__).resolve().parents[1]
 VENV_BIN = Path(sys.executable).parent
 _domains = itertools.count()
 
+# Concurrent test runs on one host (two checkouts' suites, a helper's tests beside CI) must never share a
+# DDS domain, or one run's nodes answer the other's probes. Each pytest process holds one of SLOTS
+# lock files for its lifetime and cycles through its own DOMAINS_PER_SLOT domains (a new one per
+# ros_env, so a test never meets a late-dying node of the one before).
+SLOTS, DOMAINS_PER_SLOT = 8, 25  # domains 1..200 (Fast DDS maps domain ids up to 232 to UDP ports)
+_slot_lock = None
+
+
+def _slot() -> int | None:
+    """This process's slot (held until it exits), or None when all are taken (then ids may collide)."""
+    global _slot_lock
+    if _slot_lock is None:
+        folder = Path(os.environ.get('TMPDIR', '/tmp')) / 'lln_ros_test_domains'
+        folder.mkdir(exist_ok=True)
+        for slot in range(SLOTS):
+            f = open(folder / f'slot{slot}.lock', 'w')
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                f.close()
+                continue
+            _slot_lock = (slot, f)
+            break
+        else:
+            return None
+    return _slot_lock[0]
+
+
 __all__ = ['Probe', 'RosProcess', 'colcon_build', 'installed_env', 'ros_env']
 
 
 def ros_env(tmp_path: Path, extra: dict | None = None) -> dict:
     """Environment for child ROS processes: a domain of our own, discovery on this host only."""
-    domain = 1 + (os.getpid() * 7 + next(_domains)) % 100
+    slot = _slot()
+    if slot is None:
+        domain = 1 + (os.getpid() * 7 + next(_domains)) % (SLOTS * DOMAINS_PER_SLOT)
+    else:
+        domain = 1 + slot * DOMAINS_PER_SLOT + next(_domains) % DOMAINS_PER_SLOT
     return supervisor.ros_env(domain, log_dir=tmp_path / 'ros_log', extra=extra)
 
 

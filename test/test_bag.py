@@ -473,7 +473,7 @@ def test_play_clock_drives_sim_time_faster_than_real_time(tmp_path):
 
 TEARDOWN_STUCK = """
 import threading, time
-from lln_ros.cli.common import exit_if_teardown_hangs
+from lln_ros.dds import exit_if_teardown_hangs
 print('published', flush=True)
 exit_if_teardown_hangs('lln-bag', 0.5, done='all 3 messages were published')
 threading.Event().wait()  # a teardown that never returns, as the Fast DDS deadlock does

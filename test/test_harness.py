@@ -45,3 +45,28 @@ def test_children_start_without_fork_handlers_while_grpc_is_busy(tmp_path, capfd
     assert 'fork_posix' not in err and 'skipping fork() handlers' not in err, err[-2000:]
     assert codes == [0] * 30, [p.log() for p in procs if p.proc.returncode]
     assert all("up ['--ros-args', '-p'" in p.log() for p in procs)
+
+
+def test_concurrent_test_runs_get_disjoint_dds_domains(tmp_path):
+    """Two pytest processes on one host (two suites, or a helper's tests beside CI) hold different
+    domain slots, so their nodes never discover each other."""
+    import ast
+    import subprocess
+
+    import ros_harness
+
+    here = {int(ros_harness.ros_env(tmp_path)['ROS_DOMAIN_ID']) for _ in range(30)}
+    code = (
+        'import sys; sys.path.insert(0, sys.argv[1]); import ros_harness, pathlib; '
+        'print(sorted({int(ros_harness.ros_env(pathlib.Path(sys.argv[2]))["ROS_DOMAIN_ID"]) for _ in range(30)}))'
+    )
+    out = subprocess.run(
+        [sys.executable, '-c', code, str(ros_harness.REPO / 'test'), str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+    there = set(ast.literal_eval(out.stdout.strip().splitlines()[-1]))
+    assert len(here) == ros_harness.DOMAINS_PER_SLOT and len(there) == ros_harness.DOMAINS_PER_SLOT
+    assert not here & there, (sorted(here), sorted(there))

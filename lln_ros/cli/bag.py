@@ -14,7 +14,8 @@ import argparse
 import json
 import sys
 
-from .common import exit_if_teardown_hangs, run_cli
+from ..dds import exit_if_teardown_hangs
+from .common import run_cli
 
 # a player's work is over when every message is acknowledged; a teardown longer than this is the
 # Fast DDS participant-deletion deadlock (exit_if_teardown_hangs), not work

@@ -70,25 +70,6 @@ def run_cli(
             signal.signal(sig, handler)
 
 
-def exit_if_teardown_hangs(prog: str, seconds: float, status: int = 0, done: str = 'the work is done') -> None:
-    """Arm a watchdog: if this process has not exited `seconds` from now, say so and exit `status`.
-
-    For a command whose work is finished when only the DDS teardown is left: Fast DDS can deadlock
-    deleting a participant while a peer's participant goes away at the same instant (seen under load
-    in CI, a player stuck after 'published 10 messages'), and a script waiting on us would hang."""
-    import threading
-
-    def give_up():
-        print(f'{prog}: warning: DDS teardown did not finish within {seconds:g} s; exiting ({done})', file=sys.stderr)
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(status)
-
-    timer = threading.Timer(seconds, give_up)
-    timer.daemon = True
-    timer.start()
-
-
 def progress_log(quiet: bool):
     """log(msg): a line on stderr, or nothing with --quiet."""
     return (lambda msg: None) if quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))

@@ -60,6 +60,15 @@ def _load_state_dict(path: str, what: str) -> dict:
     return state
 
 
+def load_strict(module: nn.Module, state: dict, mismatch: str) -> None:
+    """module.load_state_dict(state, strict=True), a mismatch raised as ModelError('{mismatch}: <first
+    line of torch's text>') (torch lists every missing and unexpected key on many lines)."""
+    try:
+        module.load_state_dict(state, strict=True)
+    except RuntimeError as e:
+        raise ModelError(f'{mismatch}: {str(e).splitlines()[0]}') from e
+
+
 class EfficientNetLite(nn.Module):
     """EfficientNet-Lite (Apache-2.0 implementation from efficientnet-lite-pytorch), cut at `layer`.
 
@@ -81,12 +90,7 @@ class EfficientNetLite(nn.Module):
         net = EfficientNet.from_name(model_name, image_size=None)
         path = weights_path or _efficientnet_weights(model_name)
         state = _load_state_dict(path, model_name)
-        try:
-            net.load_state_dict(state, strict=True)
-        except RuntimeError as e:
-            raise ModelError(
-                f'{model_name}: {path!r} is not an {model_name} state dict: {str(e).splitlines()[0]}'
-            ) from e
+        load_strict(net, state, f'{model_name}: {path!r} is not an {model_name} state dict')
         self.net = net
         self.layer = layer
         # block index where each stride-32 stage ends, found from the built model (not hard-coded)
@@ -207,12 +211,7 @@ class ResNet101Block3(nn.Module):
             )
         state = _load_state_dict(weights_path, 'resnet101')
         state = {k: v for k, v in state.items() if not k.startswith(('layer4.', 'fc.'))}
-        try:
-            self.load_state_dict(state, strict=True)
-        except RuntimeError as e:
-            raise ModelError(
-                f'resnet101: {weights_path!r} is not a torchvision resnet101 state dict: {str(e).splitlines()[0]}'
-            ) from e
+        load_strict(self, state, f'resnet101: {weights_path!r} is not a torchvision resnet101 state dict')
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         x = (images - self.mean) / self.std

@@ -18,6 +18,7 @@ import torch
 from torch import nn
 
 from ..errors import ModelError
+from .backbones import load_strict
 
 CHECKPOINT_VERSION = 1
 
@@ -123,10 +124,5 @@ def load_checkpoint(
     conf = dict(meta['head_conf'])
     conf['kernel_sizes'] = tuple(conf['kernel_sizes'])
     head = LLNHead(meta['descriptor_dim'], conf)
-    try:
-        head.load_state_dict(state, strict=True)
-    except RuntimeError as e:
-        raise ModelError(
-            f'{path!r}: weights do not fit the head shape in its metadata: {str(e).splitlines()[0]}'
-        ) from e
+    load_strict(head, state, f'{path!r}: weights do not fit the head shape in its metadata')
     return head.eval(), meta

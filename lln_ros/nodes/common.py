@@ -60,16 +60,18 @@ class Health(Counters):
 
 def run_node(make_node, name: str, args=None) -> int:
     """init / spin / shutdown. A node that cannot start (corrupt map, bad parameter, missing
-    weights) logs one fatal line naming the problem and exits 1, without a traceback."""
+    weights) logs one fatal line naming the problem and exits 1, without a traceback.
+    At the end the node's own state is released first (node.close(): the map closed, the worker
+    joined); only then is the DDS teardown run, under a watchdog (lln_ros.dds.exit_if_teardown_hangs)."""
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
-    from ..dds import apply_large_data_profile
+    from ..dds import apply_large_data_profile, exit_if_teardown_hangs
     from ..errors import LLNError
 
     dds_level, dds_note = apply_large_data_profile()  # before rclpy.init: Fast DDS reads it then
     rclpy.init(args=args)
-    node = None
+    node, status = None, 0
     try:
         node = make_node()
         if dds_level == 'warn':
@@ -81,12 +83,19 @@ def run_node(make_node, name: str, args=None) -> int:
         pass
     except (LLNError, ValueError, OSError) as e:
         rclpy.logging.get_logger(name).fatal(f'cannot start: {e}')
-        return 1
+        status = 1
     finally:
+        if node is not None and hasattr(node, 'close'):
+            node.close()
+        exit_if_teardown_hangs(name, TEARDOWN_TIMEOUT_S, status, done='its state was saved')
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+    return status
+
+
+# a teardown longer than this is the Fast DDS participant-deletion deadlock, not work
+TEARDOWN_TIMEOUT_S = 10.0
 
 
 LOG_PERIOD_S = 60.0  # a diagnostics problem of one kind is logged at most once a minute (as Counters does)

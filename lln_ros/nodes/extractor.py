@@ -280,9 +280,13 @@ class ExtractorNode(Node):
         self.latency_ms = (time.perf_counter() - start) * 1e3
         self.health.count('published')
 
-    def destroy_node(self):
+    def close(self) -> None:
+        """Stop the extraction worker; run_node calls it before the DDS teardown."""
         self._running = False
         self.worker.join(timeout=2.0)
+
+    def destroy_node(self):
+        self.close()
         return super().destroy_node()
 
 

@@ -363,9 +363,14 @@ class MatcherNode(Node):
             self.get_logger().error(str(e))
         return response
 
-    def destroy_node(self):
+    def close(self) -> None:
+        """Close the map (idempotent); run_node calls it before the DDS teardown."""
         if getattr(self, 'store', None) is not None:
             self.store.close()
+            self.store = None
+
+    def destroy_node(self):
+        self.close()
         return super().destroy_node()
 
 
