@@ -1,7 +1,7 @@
 """The Milvus map backend: the same MapStore API on a Milvus server, cluster or Milvus Lite.
 
-Why this module is past 500 lines: the schema 2 backend is ~650 lines; the rest is the schema 1
-reader that the migration needs, kept until no schema 1 map is left.
+Why this module is past 600 lines: one class, the MapStore API on Milvus; the schema 1 reader
+the migration needs is in milvus_schema1.py.
 
     MapStore.open('milvus-lite:///data/map.db')                 # Milvus Lite (embedded, a directory)
     MapStore.open('milvus://milvus.fleet:19530/lln?map=city')   # a Milvus server or cluster
@@ -40,6 +40,18 @@ Milvus acknowledged the insert; inserts go in batches of at most conf['insert_by
 refuses gRPC messages over 64 MB). Every pymilvus / gRPC error becomes a MapError naming the map.
 Ids are reserved in blocks of ID_BLOCK in the meta record, so an add costs one insert; a process
 that stops skips the rest of its block (ids are never reused, not always consecutive).
+
+Read cache: a stored keyframe is never rewritten (ids are never reused; only deletes change the map),
+so the rows this process has read or written are kept (RowCache, at most conf['cache_mb'], least
+recently used dropped first) and a query asks the server only for the candidates it has not seen.
+The open reads every row anyway (to build the landmark index), so a map that fits is then served
+from memory: the server is the map of record, shared and durable, not the per-query path.
+
+Integrity: every row read (all of them at open) is checked against its declared sizes (RowCache's
+row_problem: landmark bytes = n x (16 + 2 D), n >= 1, grid >= 1x1, stamp nanosec < 1e9). A damaged
+keyframe is quarantined, as the SQLite backend does: left in the collection, named in the log and
+in ``quarantined`` / info() / check(), never answered; a query never counts it as bad input. The
+check costs nothing beyond the open's read of every row (bench/bench_milvus_server.py times it).
 """
 
 from __future__ import annotations
@@ -51,6 +63,7 @@ import logging
 import os
 import threading
 import time
+from collections import OrderedDict
 from urllib.parse import parse_qs, urlparse
 
 import numpy as np
@@ -59,6 +72,7 @@ from ..core import landmark_index
 from ..core.landmarks import LandmarkSet
 from ..errors import DescriptorError, LLNError, MapError
 from .base import FORMAT, MapStore
+from .milvus_schema1 import MIGRATIONS
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +121,73 @@ def unpack(pieces) -> bytes:
     return base64.b64decode(''.join(pieces))
 
 
+def compact_row(r: dict) -> dict:
+    """A frames row as Milvus returns it -> the cached form: id, the scalars, gd (D,) float32 and
+    blob (the landmark bytes; None when the pieces are not base64)."""
+    try:
+        blob = unpack(r['landmarks'])
+    except (ValueError, TypeError):  # binascii.Error is a ValueError
+        blob = None
+    row = {f: r[f] for f in _SCALARS}
+    row.update(id=int(r['id']), gd=np.asarray(r['global_descriptor'], np.float32), blob=blob)
+    return row
+
+
+def row_problem(row: dict, dim: int) -> str | None:
+    """What is wrong with a compact row against its declared sizes, or None (the integrity check)."""
+    kid, n, blob = row['id'], int(row['n']), row['blob']
+    if blob is None:
+        return f'keyframe {kid}: landmark blob is not base64'
+    want = n * (16 + 2 * dim)
+    if n < 1 or len(blob) != want:
+        return (
+            f'keyframe {kid}: landmark blob size {len(blob)} bytes does not fit n={n}, D={dim} '
+            f'(expected {want}: cells 4n + centers 8n + scores 4n + descriptors 2nD)'
+        )
+    if int(row['grid_rows']) < 1 or int(row['grid_cols']) < 1 or not 0 <= int(row['stamp_nanosec']) < 10**9:
+        return f'keyframe {kid}: bad grid {row["grid_rows"]}x{row["grid_cols"]} or stamp nanosec {row["stamp_nanosec"]}'
+    return None
+
+
+class RowCache:
+    """Compact rows by keyframe id, the least recently used dropped past max_bytes. Needs no
+    invalidation from other processes: a stored keyframe is never rewritten, only deleted, and a
+    deleted id leaves the id list (and is dropped here) before any query could ask for it."""
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes, self.bytes = int(max_bytes), 0
+        self._rows: OrderedDict[int, dict] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    def get(self, kid: int) -> dict | None:
+        row = self._rows.get(kid)
+        if row is not None:
+            self._rows.move_to_end(kid)
+        return row
+
+    def put(self, row: dict) -> None:
+        if self.max_bytes <= 0:
+            return
+        self.drop([row['id']])
+        row['size'] = len(row['blob']) + row['gd'].nbytes + 600  # + the dict and its scalars
+        self._rows[row['id']] = row
+        self.bytes += row['size']
+        while self.bytes > self.max_bytes:
+            self.bytes -= self._rows.popitem(last=False)[1]['size']
+
+    def drop(self, ids) -> None:
+        for i in ids:
+            row = self._rows.pop(int(i), None)
+            if row is not None:
+                self.bytes -= row['size']
+
+    def clear(self) -> None:
+        self._rows.clear()
+        self.bytes = 0
+
+
 def explain(e: BaseException) -> str:
     """A pymilvus / gRPC error as one line, with what to do for the common ones."""
     code = getattr(e, 'code', None)
@@ -143,6 +224,8 @@ class MilvusMapStore(MapStore):
         'consistency': 'Session',  # collections' consistency level; Strong waits ~0.4 s per read
         'seal_rows': 1000,  # flush (seal) after this many inserted rows: searching unsealed rows is
         # brute force and slow (Milvus Lite: 30 -> 500 ms at 4,000 unsealed)
+        'cache_mb': 512,  # read cache of stored keyframes (~21 KB each at n=50, D=192: ~24k keyframes);
+        # 0 = every query fetches its candidates from the server
     }
 
     def __init__(
@@ -167,6 +250,8 @@ class MilvusMapStore(MapStore):
         self._next_id = self._reserved = 1
         self._refreshed = time.monotonic()
         self._has_keypoints = False
+        self._quarantined: dict[int, str] = {}  # damaged keyframes found by a read: never answered
+        self._cache = RowCache(float(self.conf['cache_mb']) * 2**20)
         m = where['map']
         self._meta_c, self._fr_c, self._kp_c = f'{m}_meta', f'{m}_frames', f'{m}_keypoints'
         self._v1 = (f'{m}_keyframes', f'{m}_landmarks')
@@ -324,14 +409,8 @@ class MilvusMapStore(MapStore):
         )
         return {r['key']: r['value'] for r in rows}
 
-    def _scan_ids(self, strong: bool = False) -> list[int]:
-        it = self._client.query_iterator(
-            self._fr_c,
-            batch_size=4096,
-            filter='id >= 0',
-            output_fields=['id'],
-            **({'consistency_level': 'Strong'} if strong else {}),
-        )
+    def _scan_ids(self) -> list[int]:
+        it = self._client.query_iterator(self._fr_c, batch_size=4096, filter='id >= 0', output_fields=['id'])
         ids = []
         try:
             while rows := it.next():
@@ -378,16 +457,60 @@ class MilvusMapStore(MapStore):
             return
         if not self._client.has_collection(self._fr_c):
             self._create_frames(int(self._model['descriptor_dim']))
-        self._ids = self._scan_ids(strong=True)
+        self._load_landmarks()  # reads and checks every row
         self._refreshed = time.monotonic()
-        if self._ids and self._ids[-1] >= self._next_id:
-            raise MapError(f'map {self.path} is damaged: keyframe {self._ids[-1]} but next_id {self._next_id}')
-        self._load_landmarks()
+        last = max(self._ids[-1] if self._ids else 0, max(self._quarantined, default=0))
+        if last >= self._next_id:
+            raise MapError(f'map {self.path} is damaged: keyframe {last} but next_id {self._next_id}')
+
+    def _quarantine(self, bad: dict) -> None:
+        """Take damaged keyframes {id: problem} out of service: out of the id list and the landmark
+        index, never answered; left in the collection (lln-map check names them)."""
+        self._quarantined.update(bad)
+        self._ids = [i for i in self._ids if i not in bad]
+        self._cache.drop(bad)
+        if self._landmarks is not None:
+            self._landmarks.remove_keyframes(sorted(bad))
+        log.warning(
+            'map %s: %d damaged keyframe(s) quarantined (kept in the map, never answered): %s',
+            self.path,
+            len(bad),
+            '; '.join(list(bad.values())[:10]),
+        )
+
+    def _scan_rows(self):
+        """Every row of the frames collection in id order, as lists of compact rows (256 per reply),
+        read at one timestamp: a query iterator takes the newest at its start (one wait, as Strong)."""
+        it = self._client.query_iterator(
+            self._fr_c, batch_size=256, filter='id >= 0', output_fields=['*'], consistency_level='Strong'
+        )
+        try:
+            while rows := it.next():
+                yield [compact_row(r) for r in rows]
+        finally:
+            it.close()
 
     def _load_landmarks(self) -> None:
-        """The landmark index is local (FAISS), built from the stored keyframes at every open."""
+        """One read of every row: the id list, the integrity check (damaged keyframes quarantined),
+        the read cache and the landmark index (local FAISS, built at every open)."""
         self._landmarks = self._new_landmark_index()
-        self._index_landmarks(self._ids)
+        self._ids, dim, bad = [], int(self._model['descriptor_dim']), {}
+        for rows in self._scan_rows():
+            good = []
+            for row in rows:
+                if row['id'] in self._deleted:
+                    continue
+                problem = row_problem(row, dim)
+                if problem:
+                    bad[row['id']] = problem
+                else:
+                    good.append(row)
+                    self._cache.put(row)
+            self._ids.extend(r['id'] for r in good)
+            self._landmarks.add_sets([r['id'] for r in good], [self._row_to_set(r) for r in good])
+        self._ids.sort()
+        if bad:
+            self._quarantine(bad)
 
     def _index_landmarks(self, ids) -> None:
         for start in range(0, len(ids), 512):
@@ -408,20 +531,23 @@ class MilvusMapStore(MapStore):
                         return
                     self._client.load_collection(self._fr_c)
                 before = set(self._ids)
-                last = self._ids[-1] if self._ids else -1
+                last = max(self._ids[-1] if self._ids else -1, max(self._quarantined, default=-1))
                 new = self._client.query(self._fr_c, filter=f'id > {last}', output_fields=['id'], limit=_QUERY_ROWS)
                 self._ids.extend(sorted(int(r['id']) for r in new))
                 count = int(self._client.query(self._fr_c, filter='', output_fields=['count(*)'])[0]['count(*)'])
-                if count != len(self._ids) or len(new) == _QUERY_ROWS:
+                if count != len(self._ids) + len(self._quarantined) or len(new) == _QUERY_ROWS:
                     self._ids = self._scan_ids()
-                if self._deleted:
-                    self._ids = [i for i in self._ids if i not in self._deleted]
+                    present = set(self._ids)  # a quarantined keyframe another process deleted is gone
+                    self._quarantined = {k: v for k, v in self._quarantined.items() if k in present}
+                if self._deleted or self._quarantined:
+                    self._ids = [i for i in self._ids if i not in self._deleted and i not in self._quarantined]
                 # another process's keyframes reach this process's landmark index too
                 now = set(self._ids)
                 if self._landmarks is None:
                     self._load_landmarks()
                 elif now != before:
                     self._landmarks.remove_keyframes(sorted(before - now))
+                    self._cache.drop(before - now)
                     self._index_landmarks(sorted(now - before))
                 if self._ids and self._ids[-1] >= self._next_id:  # another process wrote
                     self._next_id = self._reserved = self._ids[-1] + 1
@@ -476,48 +602,58 @@ class MilvusMapStore(MapStore):
             ),
         }
 
-    def _row_to_set(self, k: dict) -> LandmarkSet:
-        kid, n, dim = int(k['id']), int(k['n']), int(self._model['descriptor_dim'])
-        try:
-            blob = unpack(k['landmarks'])
-        except (ValueError, TypeError) as e:
-            raise MapError(f'map {self.path} is corrupt: keyframe {kid} landmarks are not base64 ({e})') from None
-        if n < 1 or len(blob) != n * (16 + 2 * dim):
-            raise MapError(
-                f'map {self.path} is corrupt: keyframe {kid} landmarks are {len(blob)} bytes, '
-                f'expected {n * (16 + 2 * dim)} (n={n}, D={dim})'
-            )
+    def _row_to_set(self, row: dict) -> LandmarkSet:
+        """A compact row (compact_row) -> its LandmarkSet; MapError when it is damaged."""
+        kid, n, dim = row['id'], int(row['n']), int(self._model['descriptor_dim'])
+        problem = row_problem(row, dim)
+        if problem:
+            raise MapError(f'map {self.path} is corrupt: {problem}')
+        blob = row['blob']
         cells = np.frombuffer(blob, '<i2', 2 * n, 0).reshape(n, 2)
         centers = np.frombuffer(blob, '<f4', 2 * n, 4 * n).reshape(n, 2)
         scores = np.frombuffer(blob, '<f4', n, 12 * n)
         desc = np.frombuffer(blob, '<f2', n * dim, 16 * n).reshape(n, dim)
         return LandmarkSet(
-            global_descriptor=np.asarray(k['global_descriptor'], np.float32),
+            global_descriptor=row['gd'],
             descriptors=desc.astype(np.float32),
             cells=cells.astype(np.int32),
             centers=centers.astype(np.float32),
             scores=scores.astype(np.float32),
-            cell_size=np.array([k['cell_w'], k['cell_h']], np.float32),
-            image_size=np.array([k['image_w'], k['image_h']], np.float32),
-            grid=(int(k['grid_rows']), int(k['grid_cols'])),
+            cell_size=np.array([row['cell_w'], row['cell_h']], np.float32),
+            image_size=np.array([row['image_w'], row['image_h']], np.float32),
+            grid=(int(row['grid_rows']), int(row['grid_cols'])),
             activation=None,
             descriptor_space=self._model['descriptor_space'],
-            meta={'keyframe_id': kid, 'stamp': (int(k['stamp_sec']), int(k['stamp_nanosec']))},
+            meta={'keyframe_id': kid, 'stamp': (int(row['stamp_sec']), int(row['stamp_nanosec']))},
         )
 
-    def _fetch(self, ids, kf_rows: list | None = None) -> dict[int, LandmarkSet]:
-        ids = [int(i) for i in ids]
-        if not ids:
-            return {}
+    def _fetch(self, ids) -> dict[int, LandmarkSet]:
+        """The sets of these ids: from the read cache, the rest in one query by primary key per
+        _FETCH_IDS; a damaged row is quarantined (left out of the answer)."""
+        sets, missing = {}, []
+        for i in ids:
+            row = self._cache.get(int(i))
+            if row is None:
+                missing.append(int(i))
+            else:
+                sets[row['id']] = self._row_to_set(row)
+        if not missing:
+            return sets
+        dim, bad = int(self._model['descriptor_dim']), {}
         with self._errors('read'):
-            if kf_rows is None:
-                kf_rows = []
-                for start in range(0, len(ids), _FETCH_IDS):
-                    chunk = ids[start : start + _FETCH_IDS]
-                    kf_rows += self._client.query(
-                        self._fr_c, filter=f'id in {chunk}', output_fields=['*'], limit=len(chunk)
-                    )
-            return {int(k['id']): self._row_to_set(k) for k in kf_rows}
+            for start in range(0, len(missing), _FETCH_IDS):
+                chunk = missing[start : start + _FETCH_IDS]
+                for r in self._client.query(self._fr_c, filter=f'id in {chunk}', output_fields=['*'], limit=len(chunk)):
+                    row = compact_row(r)
+                    problem = row_problem(row, dim)
+                    if problem:
+                        bad[row['id']] = problem
+                        continue
+                    self._cache.put(row)
+                    sets[row['id']] = self._row_to_set(row)
+        if bad:
+            self._quarantine(bad)
+        return sets
 
     # ------------------------------------------------------------------ public API
 
@@ -554,6 +690,8 @@ class MilvusMapStore(MapStore):
                 )
                 if batch and (row is None or size + nbytes > self.conf['insert_bytes']):
                     self._client.insert(self._fr_c, batch)
+                    for r in batch:  # acknowledged: what a later query reads
+                        self._cache.put(compact_row(r))
                     self._ids.extend(r['id'] for r in batch)
                     self._next_id = max(self._next_id, max(r['id'] for r in batch) + 1)
                     self._unsealed += len(batch)
@@ -580,7 +718,7 @@ class MilvusMapStore(MapStore):
                 limit=min(k, _QUERY_ROWS),
                 filter=where,
                 search_params={'metric_type': 'IP'},
-                output_fields=['*'],
+                output_fields=['id'],  # the rows come from the read cache or one fetch by primary key
             )[0]
             # a search right after a delete may still see the deleted rows (Session consistency, a loaded
             # server): answer only with keyframes this process knows to be live
@@ -588,7 +726,9 @@ class MilvusMapStore(MapStore):
             hits = [h for h in hits if int(h['id']) in live]
             ids = np.array([int(h['id']) for h in hits], np.int64)
             hol = np.array([float(h['distance']) for h in hits], np.float32)
-            return hol, ids, self._fetch(ids, [{**h['entity'], 'id': h['id']} for h in hits])
+            sets = self._fetch(ids)
+            keep = np.array([int(i) in sets for i in ids], bool)  # a damaged row was just quarantined
+            return hol[keep], ids[keep], sets
 
     def get(self, keyframe_id: int) -> LandmarkSet:
         with self._lock, self._errors('get'):
@@ -678,15 +818,18 @@ class MilvusMapStore(MapStore):
                 gone = set(present)
                 self._deleted |= gone
                 self._ids = [i for i in self._ids if i not in gone]
+                self._cache.drop(present)
                 self._landmarks.remove_keyframes(present)
             return len(present)
 
     def clear(self) -> int:
         with self._lock, self._errors('clear'):
             self._ready()
-            self._delete_ids(list(self._ids))
-            self._deleted |= set(self._ids)
-            removed, self._ids = len(self._ids), []
+            every = sorted(set(self._ids) | set(self._quarantined))  # damaged keyframes go too
+            self._delete_ids(every)
+            self._deleted |= set(every)
+            removed, self._ids, self._quarantined = len(self._ids), [], {}
+            self._cache.clear()
             if self._landmarks is not None:
                 self._landmarks.reset()
             return removed
@@ -706,6 +849,9 @@ class MilvusMapStore(MapStore):
                 'index': self.conf['index_type'],
                 'landmark_index': self._landmarks.kind if self._landmarks is not None else None,
                 'landmarks': self._landmarks.ntotal if self._landmarks is not None else 0,
+                'quarantined': sorted(self._quarantined),
+                'cache_keyframes': len(self._cache),
+                'cache_mb': round(self._cache.bytes / 2**20, 1),
                 'first_id': self._ids[0] if self._ids else None,
                 'last_id': self._ids[-1] if self._ids else None,
                 'created': int(meta.get('created', 0)),
@@ -741,21 +887,20 @@ class MilvusMapStore(MapStore):
                     problems.append(f'schema_version is {meta.get("schema_version")!r}, expected {SCHEMA_VERSION}')
                 if self._model is None:
                     return problems
-                found, bad, n_of = [], [], {}
-                it = self._client.query_iterator(self._fr_c, batch_size=256, filter='id >= 0', output_fields=['*'])
-                try:
-                    while rows := it.next():
-                        for r in rows:
-                            found.append(int(r['id']))
-                            n_of[int(r['id'])] = int(r['n'])
-                            try:
-                                self._row_to_set(r)
-                            except MapError as e:
-                                bad.append(str(e))
-                finally:
-                    it.close()
-                if sorted(found) != self._ids:
-                    problems.append(f'frames collection holds {len(found)} ids, this process knows {len(self._ids)}')
+                found, bad, n_of, dim = [], [], {}, int(self._model['descriptor_dim'])
+                for rows in self._scan_rows():
+                    for row in rows:
+                        found.append(row['id'])
+                        # the same check the open runs: the node quarantines exactly these keyframes
+                        problem = row_problem(row, dim)
+                        if problem:
+                            bad.append(f'{problem} (quarantined: never answered)')
+                        else:
+                            n_of[row['id']] = int(row['n'])
+                if sorted(n_of) != self._ids:
+                    problems.append(
+                        f'frames collection holds {len(n_of)} healthy keyframes, this process knows {len(self._ids)}'
+                    )
                 if self._has_keypoints:
                     kp = self._client.query(
                         self._kp_c, filter='keyframe_id >= 0', output_fields=['keyframe_id'], limit=_QUERY_ROWS
@@ -783,95 +928,8 @@ class MilvusMapStore(MapStore):
                     self._client = None
                     self._landmarks = None
                     self._ids = []
+                    self._cache.clear()
 
     def __repr__(self) -> str:
         state = 'closed' if self._client is None else f'{len(self._ids)} keyframes'
         return f'MilvusMapStore({self.path!r}, {state})'
-
-
-# ---------------------------------------------------------------------- migrations
-
-
-def _v1_rows_to_sets(store: MilvusMapStore, kf_rows: list, lm_rows: list) -> list[tuple]:
-    """Schema 1 rows (a keyframe row + one row per landmark) -> [(id, LandmarkSet, (sec, nsec))]."""
-    by_kf: dict[int, list] = {}
-    for r in lm_rows:
-        by_kf.setdefault(int(r['keyframe_id']), []).append(r)
-    out = []
-    for k in kf_rows:
-        kid, n = int(k['id']), int(k['n'])
-        lms = sorted(by_kf.get(kid, []), key=lambda r: r['rank'])
-        if len(lms) != n:
-            raise MapError(
-                f'map {store.path} (schema 1) is damaged: keyframe {kid} has {len(lms)} landmarks, '
-                f'expected {n}; not migrated'
-            )
-        out.append(
-            (
-                kid,
-                LandmarkSet(
-                    global_descriptor=np.asarray(k['global_descriptor'], np.float32),
-                    descriptors=np.array([r['descriptor'] for r in lms], np.int16).view(np.float16).astype(np.float32),
-                    cells=np.array([[r['col'], r['row']] for r in lms], np.int32),
-                    centers=np.array([r['center'] for r in lms], np.float32),
-                    scores=np.array([r['score'] for r in lms], np.float32),
-                    cell_size=np.array([k['cell_w'], k['cell_h']], np.float32),
-                    image_size=np.array([k['image_w'], k['image_h']], np.float32),
-                    grid=(int(k['grid_rows']), int(k['grid_cols'])),
-                    activation=None,
-                    descriptor_space=store._model['descriptor_space'],
-                ),
-                (int(k['stamp_sec']), int(k['stamp_nanosec'])),
-            )
-        )
-    return out
-
-
-def _migrate_1_to_2(store: MilvusMapStore, meta: dict) -> None:
-    """Schema 1 (a row per landmark in {map}_landmarks) -> 2 (a row per keyframe in {map}_frames).
-    Copies every keyframe, checks the count, then the caller records schema 2 and the old
-    collections are dropped. Stopped half-way, it starts again from the schema 1 collections."""
-    c, (kf_c, lm_c) = store._client, store._v1
-    if 'model' not in meta or not c.has_collection(kf_c):
-        return
-    store._model = store._read_model_record(meta['model'])
-    if c.has_collection(store._fr_c):
-        c.drop_collection(store._fr_c)  # from a migration that stopped half-way
-    store._create_frames(int(store._model['descriptor_dim']))
-    for name in (kf_c, lm_c):
-        c.load_collection(name)
-    it = c.query_iterator(kf_c, batch_size=4096, filter='id >= 0', output_fields=['id'], consistency_level='Strong')
-    ids = []
-    try:
-        while rows := it.next():
-            ids.extend(int(r['id']) for r in rows)
-    finally:
-        it.close()
-    ids.sort()
-    for start in range(0, len(ids), _FETCH_IDS):
-        chunk = ids[start : start + _FETCH_IDS]
-        kf_rows = c.query(kf_c, filter=f'id in {chunk}', output_fields=['*'], limit=len(chunk))
-        lm_rows = []
-        for i in range(0, len(kf_rows), 64):  # <= 64 keyframes of <= 256 landmarks: under 16,384 rows
-            part = [int(k['id']) for k in kf_rows[i : i + 64]]
-            lm_rows += c.query(
-                lm_c,
-                filter=f'keyframe_id in {part}',
-                limit=sum(int(k['n']) for k in kf_rows[i : i + 64]),
-                output_fields=['keyframe_id', 'rank', 'col', 'row', 'score', 'center', 'descriptor'],
-            )
-        rows = [
-            store._frame_row(kid, lset, sec, nsec)
-            for kid, lset, (sec, nsec) in _v1_rows_to_sets(store, kf_rows, lm_rows)
-        ]
-        c.insert(store._fr_c, rows)
-    copied = int(c.query(store._fr_c, filter='', output_fields=['count(*)'], consistency_level='Strong')[0]['count(*)'])
-    if copied != len(ids):
-        raise MapError(
-            f'migrating map {store.path} to schema 2: copied {copied} of {len(ids)} keyframes; '
-            f'the schema 1 collections are kept, opening again retries'
-        )
-
-
-# schema version v -> function(store, meta) that upgrades a v map to v + 1
-MIGRATIONS = {1: _migrate_1_to_2}
