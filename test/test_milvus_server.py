@@ -497,3 +497,33 @@ def test_damaged_keyframe_is_quarantined_at_open(milvus_uri):
     with MapStore.open(milvus_uri, create=False) as store:  # still there, still quarantined
         assert store.quarantined.keys() == {victim} and len(store) == 6
         assert store.clear() == 6 and store.check() == [] and store.quarantined == {}
+
+
+@pytest.mark.parametrize('milvus_uri', BOTH, indirect=True)
+def test_trained_landmark_index_is_kept_between_opens(milvus_uri, tmp_path, caplog):
+    """A trained (IVF-PQ) landmark index is kept in a file on this machine at close and read at the
+    next open instead of training again (minutes on a loaded machine), caught up with what another
+    writer added and deleted meanwhile; a file of another map (other map_uuid) is not used."""
+    import logging
+
+    rng = np.random.default_rng(22)
+    conf = {'landmark_index_threshold': 1000, 'landmark_dir': str(tmp_path / 'lm')}
+    sets = [make_set(rng) for _ in range(40)]  # 2,000 landmarks: IVF-PQ
+    with MapStore.open(milvus_uri, model=MODEL, conf=conf) as store:
+        ids = store.add_many(sets, [(i, 0) for i in range(40)])
+        assert store.info()['landmark_index'] == 'ivfpq'
+    files = list((tmp_path / 'lm').iterdir())
+    assert len(files) == 1 and files[0].suffix == '.landmarks'
+    with MapStore.open(milvus_uri, create=False, conf={**conf, 'landmark_dir': ''}) as other:
+        new = other.add(make_set(rng), (99, 0))
+        other.delete([ids[0]])
+    caplog.set_level(logging.INFO, logger='lln_ros')
+    with MapStore.open(milvus_uri, create=False, conf=conf) as store:
+        assert not [r for r in caplog.records if 'training' in r.getMessage()], 'trained again'
+        assert store._landmarks.keyframe_counts() == {i: 50 for i in ids[1:] + [new]}
+        assert store.check() == []
+        assert store.query(make_set(rng, base=sets[5], noise=0.2), k=1)[0].keyframe_id == ids[5]
+    with MapStore.open(milvus_uri, create=False, conf=conf) as store:
+        assert store._read_landmark_file() is not None
+        store._uuid = 'another map'  # as if the map had been dropped and made again under this name
+        assert store._read_landmark_file() is None

@@ -1,7 +1,8 @@
 """The Milvus map backend: the same MapStore API on a Milvus server, cluster or Milvus Lite.
 
-Why this module is past 600 lines: one class, the MapStore API on Milvus; the schema 1 reader
-the migration needs is in milvus_schema1.py.
+Why this module is past 600 lines: one class, the MapStore API on Milvus, and this docstring; the
+row format, read cache and integrity check are in milvus_rows.py, the open's read of every row and
+the keypoints in milvus_mixins.py, the schema 1 reader the migration needs in milvus_schema1.py.
 
     MapStore.open('milvus-lite:///data/map.db')                 # Milvus Lite (embedded, a directory)
     MapStore.open('milvus://milvus.fleet:19530/lln?map=city')   # a Milvus server or cluster
@@ -16,7 +17,8 @@ pymilvus MilvusClient API; tested on Milvus Lite 3.2.2 and on a real Milvus 2.3.
 Schema version 2 (collections; Milvus 2.3 allows one vector field per collection)::
 
     {map}_meta       key VARCHAR primary, value VARCHAR, unused FLOAT_VECTOR(2)   -- format,
-                     schema_version, model, descriptor_space, descriptor_dim, next_id (ids never reused)
+                     schema_version, model, descriptor_space, descriptor_dim, next_id (ids never
+                     reused), map_uuid (names the map to this machine's landmark index file)
     {map}_frames     one row per keyframe: id INT64 primary, stamp_sec, stamp_nanosec INT64,
                      image_w, image_h, cell_w, cell_h FLOAT, grid_rows, grid_cols, n INT32,
                      global_descriptor FLOAT_VECTOR(D) (FLAT index, inner product; searched by Milvus),
@@ -27,8 +29,8 @@ Schema version 2 (collections; Milvus 2.3 allows one vector field per collection
                      n, width INT32, data ARRAY<VARCHAR>: base64 of uv float32 (n, 2) | descriptors
                      uint8 (n, width), unused FLOAT_VECTOR(2)
 
-One row per keyframe because a query then costs one Milvus search that returns the prefiltered
-keyframes with their landmarks; schema 1 had a row per landmark ({map}_keyframes + {map}_landmarks)
+One row per keyframe because a query's candidates are then one fetch by primary key (or none: the
+read cache below); schema 1 had a row per landmark ({map}_keyframes + {map}_landmarks)
 and a query filtered ~1,500 rows (526 ms p50 at 1,000 keyframes on Milvus Lite). A keyframe holds up
 to 3.1 MB of landmarks (n * D <= ~1.5 M). Schema 1 maps are migrated at open (MIGRATIONS).
 
@@ -47,8 +49,12 @@ recently used dropped first) and a query asks the server only for the candidates
 The open reads every row anyway (to build the landmark index), so a map that fits is then served
 from memory: the server is the map of record, shared and durable, not the per-query path.
 
-Integrity: every row read (all of them at open) is checked against its declared sizes (RowCache's
-row_problem: landmark bytes = n x (16 + 2 D), n >= 1, grid >= 1x1, stamp nanosec < 1e9). A damaged
+Landmark index: local FAISS (lln_ros.core.landmark_index), built from the rows at open; once trained
+(IVF-PQ) it is kept in a file on this machine (conf['landmark_dir']) and caught up with the rows at
+the next open instead of training again.
+
+Integrity: every row read (all of them at open) is checked against its declared sizes (row_problem:
+landmark bytes = n x (16 + 2 D), n >= 1, grid >= 1x1, stamp nanosec < 1e9). A damaged
 keyframe is quarantined, as the SQLite backend does: left in the collection, named in the log and
 in ``quarantined`` / info() / check(), never answered; a query never counts it as bad input. The
 check costs nothing beyond the open's read of every row (bench/bench_milvus_server.py times it).
@@ -56,163 +62,44 @@ check costs nothing beyond the open's read of every row (bench/bench_milvus_serv
 
 from __future__ import annotations
 
-import base64
 import contextlib
 import json
 import logging
 import os
 import threading
 import time
-from collections import OrderedDict
-from urllib.parse import parse_qs, urlparse
+import uuid
 
 import numpy as np
 
 from ..core import landmark_index
 from ..core.landmarks import LandmarkSet
-from ..errors import DescriptorError, LLNError, MapError
+from ..errors import LLNError, MapError
 from .base import FORMAT, MapStore
+from .milvus_mixins import MilvusKeypoints, MilvusLandmarks
+from .milvus_rows import (  # noqa: F401  (pack, unpack, parse_uri, RowCache: this module's API too)
+    _FETCH_IDS,
+    _PIECES,
+    _QUERY_ROWS,
+    _SCALARS,
+    RowCache,
+    _is_milvus_error,
+    compact_row,
+    explain,
+    pack,
+    parse_uri,
+    row_problem,
+    unpack,
+)
 from .milvus_schema1 import MIGRATIONS
 
 log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 2
 ID_BLOCK = 1024  # ids reserved per meta write
-_PIECE = 65532  # base64 characters per VARCHAR piece: a multiple of 4, <= 65535
-_PIECES = 64  # pieces per row (the ARRAY's max_capacity)
-_FETCH_IDS = 256  # keyframes per fetch-by-id query: a reply of ~9 MB at n=50, D=320
-_QUERY_ROWS = 16384  # Milvus caps offset + limit of one query at 16384 rows
-_SCALARS = ('stamp_sec', 'stamp_nanosec', 'image_w', 'image_h', 'cell_w', 'cell_h', 'grid_rows', 'grid_cols', 'n')
 
 
-def parse_uri(uri: str) -> dict:
-    """{'uri', 'db_name', 'map', 'label'} for pymilvus from a milvus:// or milvus-lite:// URI."""
-    text = os.fspath(uri)
-    if text.startswith('milvus-lite:'):
-        path = text[len('milvus-lite:') :]
-        path = path[2:] if path.startswith('//') else path
-        path, _, query = path.partition('?')
-        path = os.path.abspath(os.path.expanduser(path))
-        if not path.endswith('.db'):
-            raise MapError(f'Milvus Lite map path must end in .db, got {path}')
-        name = parse_qs(query).get('map', ['lln'])[0]
-        return {'uri': path, 'db_name': '', 'map': name, 'label': f'milvus-lite://{path}?map={name}'}
-    url = urlparse(text)
-    if url.scheme != 'milvus' or not url.hostname:
-        raise MapError(f"Milvus map URI must look like 'milvus://host:port[/database][?map=name]', got {text!r}")
-    name = parse_qs(url.query).get('map', ['lln'])[0]
-    db = url.path.strip('/')
-    endpoint = f'http://{url.hostname}:{url.port or 19530}'
-    return {'uri': endpoint, 'db_name': db, 'map': name, 'label': f'milvus://{url.netloc}/{db}?map={name}'}
-
-
-def pack(*arrays: np.ndarray) -> list[str]:
-    """Arrays' bytes, concatenated, as base64 pieces for an ARRAY<VARCHAR> field."""
-    text = base64.b64encode(b''.join(a.tobytes() for a in arrays)).decode('ascii')
-    if len(text) > _PIECE * _PIECES:
-        raise DescriptorError(
-            f'{len(text) * 3 // 4} bytes do not fit one Milvus row '
-            f'(at most {_PIECE * _PIECES * 3 // 4}); store fewer landmarks or keypoints'
-        )
-    return [text[i : i + _PIECE] for i in range(0, len(text), _PIECE)] or ['']
-
-
-def unpack(pieces) -> bytes:
-    return base64.b64decode(''.join(pieces))
-
-
-def compact_row(r: dict) -> dict:
-    """A frames row as Milvus returns it -> the cached form: id, the scalars, gd (D,) float32 and
-    blob (the landmark bytes; None when the pieces are not base64)."""
-    try:
-        blob = unpack(r['landmarks'])
-    except (ValueError, TypeError):  # binascii.Error is a ValueError
-        blob = None
-    row = {f: r[f] for f in _SCALARS}
-    row.update(id=int(r['id']), gd=np.asarray(r['global_descriptor'], np.float32), blob=blob)
-    return row
-
-
-def row_problem(row: dict, dim: int) -> str | None:
-    """What is wrong with a compact row against its declared sizes, or None (the integrity check)."""
-    kid, n, blob = row['id'], int(row['n']), row['blob']
-    if blob is None:
-        return f'keyframe {kid}: landmark blob is not base64'
-    want = n * (16 + 2 * dim)
-    if n < 1 or len(blob) != want:
-        return (
-            f'keyframe {kid}: landmark blob size {len(blob)} bytes does not fit n={n}, D={dim} '
-            f'(expected {want}: cells 4n + centers 8n + scores 4n + descriptors 2nD)'
-        )
-    if int(row['grid_rows']) < 1 or int(row['grid_cols']) < 1 or not 0 <= int(row['stamp_nanosec']) < 10**9:
-        return f'keyframe {kid}: bad grid {row["grid_rows"]}x{row["grid_cols"]} or stamp nanosec {row["stamp_nanosec"]}'
-    return None
-
-
-class RowCache:
-    """Compact rows by keyframe id, the least recently used dropped past max_bytes. Needs no
-    invalidation from other processes: a stored keyframe is never rewritten, only deleted, and a
-    deleted id leaves the id list (and is dropped here) before any query could ask for it."""
-
-    def __init__(self, max_bytes: int):
-        self.max_bytes, self.bytes = int(max_bytes), 0
-        self._rows: OrderedDict[int, dict] = OrderedDict()
-
-    def __len__(self) -> int:
-        return len(self._rows)
-
-    def get(self, kid: int) -> dict | None:
-        row = self._rows.get(kid)
-        if row is not None:
-            self._rows.move_to_end(kid)
-        return row
-
-    def put(self, row: dict) -> None:
-        if self.max_bytes <= 0:
-            return
-        self.drop([row['id']])
-        row['size'] = len(row['blob']) + row['gd'].nbytes + 600  # + the dict and its scalars
-        self._rows[row['id']] = row
-        self.bytes += row['size']
-        while self.bytes > self.max_bytes:
-            self.bytes -= self._rows.popitem(last=False)[1]['size']
-
-    def drop(self, ids) -> None:
-        for i in ids:
-            row = self._rows.pop(int(i), None)
-            if row is not None:
-                self.bytes -= row['size']
-
-    def clear(self) -> None:
-        self._rows.clear()
-        self.bytes = 0
-
-
-def explain(e: BaseException) -> str:
-    """A pymilvus / gRPC error as one line, with what to do for the common ones."""
-    code = getattr(e, 'code', None)
-    code = code() if callable(code) else code
-    text = f'{type(e).__name__}: {getattr(e, "details", lambda: None)() or e}'.replace('\n', ' ')
-    if 'RESOURCE_EXHAUSTED' in f'{code} {text}' or 'larger than max' in text:
-        text += (
-            ' (a gRPC message over the server limit, 64 MB on Milvus 2.3 (grpc.serverMaxRecvSize): '
-            "lower conf['insert_bytes'])"
-        )
-    elif 'UNAVAILABLE' in f'{code} {text}' or 'connect' in text.lower():
-        text += ' (is the Milvus server running and reachable?)'
-    return text[:800]
-
-
-def _is_milvus_error(e: BaseException) -> bool:
-    mod = type(e).__module__ or ''
-    return (
-        mod.startswith(('pymilvus', 'grpc', 'milvus_lite'))
-        or isinstance(e, (ConnectionError, TimeoutError))
-        or any(c.__module__.startswith(('grpc', 'pymilvus')) for c in type(e).__mro__)
-    )
-
-
-class MilvusMapStore(MapStore):
+class MilvusMapStore(MilvusLandmarks, MilvusKeypoints, MapStore):
     """A map in Milvus collections (see the module docstring); MapStore's API and error behaviour."""
 
     default_conf = {
@@ -224,6 +111,9 @@ class MilvusMapStore(MapStore):
         'consistency': 'Session',  # collections' consistency level; Strong waits ~0.4 s per read
         'seal_rows': 1000,  # flush (seal) after this many inserted rows: searching unsealed rows is
         # brute force and slow (Milvus Lite: 30 -> 500 ms at 4,000 unsealed)
+        'landmark_dir': '~/.cache/lln_ros/milvus-landmarks',  # where this machine keeps a trained
+        # (IVF-PQ) landmark index between opens, a file per map, caught up with the rows at open
+        # (training it again took minutes on a loaded 2-core machine); '' = rebuilt at every open
         'cache_mb': 512,  # read cache of stored keyframes (~21 KB each at n=50, D=192: ~24k keyframes);
         # 0 = every query fetches its candidates from the server
     }
@@ -250,6 +140,7 @@ class MilvusMapStore(MapStore):
         self._next_id = self._reserved = 1
         self._refreshed = time.monotonic()
         self._has_keypoints = False
+        self._uuid, self._landmarks_dirty = None, False
         self._quarantined: dict[int, str] = {}  # damaged keyframes found by a read: never answered
         self._cache = RowCache(float(self.conf['cache_mb']) * 2**20)
         m = where['map']
@@ -376,6 +267,7 @@ class MilvusMapStore(MapStore):
                 'created': str(int(time.time())),
                 'created_by': f'lln_ros {__version__}',
                 'next_id': '1',
+                'map_uuid': uuid.uuid4().hex,  # names this map to its landmark index files
             }
         )
 
@@ -450,6 +342,7 @@ class MilvusMapStore(MapStore):
             if self._client.has_collection(old):
                 self._client.drop_collection(old)
         self._model = self._read_model_record(meta['model']) if 'model' in meta else None
+        self._uuid = meta.get('map_uuid')
         self._next_id = self._reserved = int(meta.get('next_id', 1))
         self._ids = []
         self._has_keypoints = self._client.has_collection(self._kp_c)
@@ -462,60 +355,6 @@ class MilvusMapStore(MapStore):
         last = max(self._ids[-1] if self._ids else 0, max(self._quarantined, default=0))
         if last >= self._next_id:
             raise MapError(f'map {self.path} is damaged: keyframe {last} but next_id {self._next_id}')
-
-    def _quarantine(self, bad: dict) -> None:
-        """Take damaged keyframes {id: problem} out of service: out of the id list and the landmark
-        index, never answered; left in the collection (lln-map check names them)."""
-        self._quarantined.update(bad)
-        self._ids = [i for i in self._ids if i not in bad]
-        self._cache.drop(bad)
-        if self._landmarks is not None:
-            self._landmarks.remove_keyframes(sorted(bad))
-        log.warning(
-            'map %s: %d damaged keyframe(s) quarantined (kept in the map, never answered): %s',
-            self.path,
-            len(bad),
-            '; '.join(list(bad.values())[:10]),
-        )
-
-    def _scan_rows(self):
-        """Every row of the frames collection in id order, as lists of compact rows (256 per reply),
-        read at one timestamp: a query iterator takes the newest at its start (one wait, as Strong)."""
-        it = self._client.query_iterator(
-            self._fr_c, batch_size=256, filter='id >= 0', output_fields=['*'], consistency_level='Strong'
-        )
-        try:
-            while rows := it.next():
-                yield [compact_row(r) for r in rows]
-        finally:
-            it.close()
-
-    def _load_landmarks(self) -> None:
-        """One read of every row: the id list, the integrity check (damaged keyframes quarantined),
-        the read cache and the landmark index (local FAISS, built at every open)."""
-        self._landmarks = self._new_landmark_index()
-        self._ids, dim, bad = [], int(self._model['descriptor_dim']), {}
-        for rows in self._scan_rows():
-            good = []
-            for row in rows:
-                if row['id'] in self._deleted:
-                    continue
-                problem = row_problem(row, dim)
-                if problem:
-                    bad[row['id']] = problem
-                else:
-                    good.append(row)
-                    self._cache.put(row)
-            self._ids.extend(r['id'] for r in good)
-            self._landmarks.add_sets([r['id'] for r in good], [self._row_to_set(r) for r in good])
-        self._ids.sort()
-        if bad:
-            self._quarantine(bad)
-
-    def _index_landmarks(self, ids) -> None:
-        for start in range(0, len(ids), 512):
-            sets = self._fetch(ids[start : start + 512])
-            self._landmarks.add_sets(list(sets), list(sets.values()))
 
     def _refresh(self) -> None:
         """See other processes' writes: new ids above ours, a rescan when the count disagrees."""
@@ -549,6 +388,7 @@ class MilvusMapStore(MapStore):
                     self._landmarks.remove_keyframes(sorted(before - now))
                     self._cache.drop(before - now)
                     self._index_landmarks(sorted(now - before))
+                    self._landmarks_dirty = True
                 if self._ids and self._ids[-1] >= self._next_id:  # another process wrote
                     self._next_id = self._reserved = self._ids[-1] + 1
                 if not self._has_keypoints:
@@ -702,6 +542,7 @@ class MilvusMapStore(MapStore):
             if ids is not None:
                 self._ids.sort()
             self._landmarks.add_sets(new_ids, sets)
+            self._landmarks_dirty = True
             if self.conf['seal_rows'] and self._unsealed >= self.conf['seal_rows']:
                 self._client.flush(self._fr_c)
                 self._unsealed = 0
@@ -738,69 +579,6 @@ class MilvusMapStore(MapStore):
             raise KeyError(f'no keyframe {keyframe_id} in map {self.path}')
         return sets[int(keyframe_id)]
 
-    def add_keypoints(self, keyframe_id: int, uv: np.ndarray, descriptors: np.ndarray) -> None:
-        """Store a keyframe's keypoints (as SQLiteMapStore.add_keypoints): uv (N, 2) float32 original
-        pixels, binary descriptors (N, B) uint8; replaces earlier ones."""
-        uv = np.ascontiguousarray(uv, '<f4').reshape(-1, 2)
-        desc = np.ascontiguousarray(descriptors)
-        if desc.dtype != np.uint8 or desc.ndim != 2 or len(desc) != len(uv):
-            raise DescriptorError(
-                f'keypoints need (N, B) uint8 descriptors for N={len(uv)} points, got {desc.dtype} {desc.shape}'
-            )
-        row = {
-            'keyframe_id': int(keyframe_id),
-            'n': len(uv),
-            'width': int(desc.shape[1]),
-            'data': pack(uv, desc),
-            'unused': [0.0, 0.0],
-        }
-        with self._lock, self._errors('storing keypoints'):
-            self._ready()
-            if int(keyframe_id) not in set(self._ids):
-                raise KeyError(f'no keyframe {keyframe_id} in map {self.path}')
-            if not self._has_keypoints and not self._client.has_collection(self._kp_c):
-                from pymilvus import DataType
-
-                self._create(
-                    self._kp_c,
-                    [
-                        ('keyframe_id', 'INT64', {'is_primary': True}),
-                        ('n', 'INT32', {}),
-                        ('width', 'INT32', {}),
-                        (
-                            'data',
-                            'ARRAY',
-                            {'element_type': DataType.VARCHAR, 'max_capacity': _PIECES, 'max_length': 65535},
-                        ),
-                    ],
-                    'unused',
-                    2,
-                )
-            self._has_keypoints = True
-            self._client.upsert(self._kp_c, [row])
-
-    def keypoints(self, keyframe_id: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """(uv (N, 2) float32, descriptors (N, B) uint8) of a keyframe, or None when none were stored."""
-        with self._lock, self._errors('reading keypoints'):
-            self._ready()
-            if not self._has_keypoints:
-                return None
-            rows = self._client.query(
-                self._kp_c, filter=f'keyframe_id == {int(keyframe_id)}', output_fields=['n', 'width', 'data']
-            )
-        if not rows:
-            return None
-        n, width, blob = int(rows[0]['n']), int(rows[0]['width']), unpack(rows[0]['data'])
-        if len(blob) != n * (8 + width):
-            raise MapError(
-                f'map {self.path} is corrupt: keyframe {keyframe_id} keypoints are {len(blob)} bytes '
-                f'for n={n}, width {width}'
-            )
-        return (
-            np.frombuffer(blob, '<f4', 2 * n).reshape(n, 2).copy(),
-            np.frombuffer(blob, np.uint8, n * width, 8 * n).reshape(n, width).copy(),
-        )
-
     def _delete_ids(self, present: list[int]) -> None:
         for start in range(0, len(present), 4096):
             chunk = present[start : start + 4096]
@@ -820,6 +598,7 @@ class MilvusMapStore(MapStore):
                 self._ids = [i for i in self._ids if i not in gone]
                 self._cache.drop(present)
                 self._landmarks.remove_keyframes(present)
+                self._landmarks_dirty = True
             return len(present)
 
     def clear(self) -> int:
@@ -832,6 +611,7 @@ class MilvusMapStore(MapStore):
             self._cache.clear()
             if self._landmarks is not None:
                 self._landmarks.reset()
+                self._landmarks_dirty = True
             return removed
 
     def info(self) -> dict:
@@ -859,12 +639,13 @@ class MilvusMapStore(MapStore):
             }
 
     def save(self) -> None:
-        """Flush (seal) the collections' growing segments."""
+        """Flush (seal) the collections' growing segments; keep a changed trained landmark index."""
         with self._lock, self._errors('flush'):
             self._ready()
             for name in (self._meta_c, self._fr_c, self._kp_c):
                 if self._client.has_collection(name):
                     self._client.flush(name)
+            self._persist_landmarks()
 
     def compact(self) -> dict:
         with self._lock, self._errors('compact'):
@@ -923,6 +704,11 @@ class MilvusMapStore(MapStore):
         with self._lock:
             if self._client is not None:
                 try:
+                    try:
+                        with self._errors('keeping the landmark index'):
+                            self._persist_landmarks()
+                    except MapError as e:  # rebuilt from the map at the next open
+                        log.warning('%s', e)
                     self._client.close()
                 finally:
                     self._client = None
