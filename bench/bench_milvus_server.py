@@ -159,6 +159,12 @@ def main(argv=None) -> int:
                 client.drop_collection(c)
         client.close()
         shutil.rmtree(work, ignore_errors=True)
+        from lln_ros.mapstore.milvus import MilvusMapStore
+        from lln_ros.mapstore.milvus_mixins import landmark_file
+
+        kept = landmark_file(where['label'], MilvusMapStore.default_conf['landmark_dir'])
+        if kept and os.path.exists(kept):  # this machine's landmark index file of the dropped map
+            os.remove(kept)
     print(f'n=50, D=192, {args.queries} queries per size, prefilter landmarks (default), k=5, {os.cpu_count()} cores')
     print('| keyframes | backend | p50 ms | p95 ms | p50 / SQLite p50 | top-1 | load before -> after |')
     print('|---|---|---|---|---|---|---|')

@@ -389,6 +389,7 @@ class MilvusMapStore(MilvusLandmarks, MilvusKeypoints, MapStore):
                     self._cache.drop(before - now)
                     self._index_landmarks(sorted(now - before))
                     self._landmarks_dirty = True
+                    self._retrain_if_needed()
                 if self._ids and self._ids[-1] >= self._next_id:  # another process wrote
                     self._next_id = self._reserved = self._ids[-1] + 1
                 if not self._has_keypoints:
@@ -543,6 +544,7 @@ class MilvusMapStore(MilvusLandmarks, MilvusKeypoints, MapStore):
                 self._ids.sort()
             self._landmarks.add_sets(new_ids, sets)
             self._landmarks_dirty = True
+            self._retrain_if_needed()
             if self.conf['seal_rows'] and self._unsealed >= self.conf['seal_rows']:
                 self._client.flush(self._fr_c)
                 self._unsealed = 0
