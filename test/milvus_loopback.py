@@ -221,6 +221,14 @@ def drop_maps(server: LoopbackMilvus, db: str, prefix: str) -> list[str]:
         names = [n for n in client.list_collections() if n.startswith(prefix)]
         for name in names:
             client.drop_collection(name)
+        # and this machine's landmark index files of those maps, so test runs leave none behind
+        from lln_ros.mapstore.milvus import MilvusMapStore
+        from lln_ros.mapstore.milvus_mixins import landmark_file
+
+        for m in {n.rsplit('_', 1)[0] for n in names}:
+            path = landmark_file(f'{server.uri}/{db}?map={m}', MilvusMapStore.default_conf['landmark_dir'])
+            if path and os.path.exists(path):
+                os.remove(path)
         return names
     finally:
         client.close()

@@ -1,7 +1,8 @@
 """The Milvus map backend: the same MapStore API on a Milvus server, cluster or Milvus Lite.
 
-Why this module is past 500 lines: the schema 2 backend is ~650 lines; the rest is the schema 1
-reader that the migration needs, kept until no schema 1 map is left.
+Why this module is past 600 lines: one class, the MapStore API on Milvus, and this docstring; the
+row format, read cache and integrity check are in milvus_rows.py, the open's read of every row and
+the keypoints in milvus_mixins.py, the schema 1 reader the migration needs in milvus_schema1.py.
 
     MapStore.open('milvus-lite:///data/map.db')                 # Milvus Lite (embedded, a directory)
     MapStore.open('milvus://milvus.fleet:19530/lln?map=city')   # a Milvus server or cluster
@@ -16,7 +17,8 @@ pymilvus MilvusClient API; tested on Milvus Lite 3.2.2 and on a real Milvus 2.3.
 Schema version 2 (collections; Milvus 2.3 allows one vector field per collection)::
 
     {map}_meta       key VARCHAR primary, value VARCHAR, unused FLOAT_VECTOR(2)   -- format,
-                     schema_version, model, descriptor_space, descriptor_dim, next_id (ids never reused)
+                     schema_version, model, descriptor_space, descriptor_dim, next_id (ids never
+                     reused), map_uuid (names the map to this machine's landmark index file)
     {map}_frames     one row per keyframe: id INT64 primary, stamp_sec, stamp_nanosec INT64,
                      image_w, image_h, cell_w, cell_h FLOAT, grid_rows, grid_cols, n INT32,
                      global_descriptor FLOAT_VECTOR(D) (FLAT index, inner product; searched by Milvus),
@@ -27,8 +29,8 @@ Schema version 2 (collections; Milvus 2.3 allows one vector field per collection
                      n, width INT32, data ARRAY<VARCHAR>: base64 of uv float32 (n, 2) | descriptors
                      uint8 (n, width), unused FLOAT_VECTOR(2)
 
-One row per keyframe because a query then costs one Milvus search that returns the prefiltered
-keyframes with their landmarks; schema 1 had a row per landmark ({map}_keyframes + {map}_landmarks)
+One row per keyframe because a query's candidates are then one fetch by primary key (or none: the
+read cache below); schema 1 had a row per landmark ({map}_keyframes + {map}_landmarks)
 and a query filtered ~1,500 rows (526 ms p50 at 1,000 keyframes on Milvus Lite). A keyframe holds up
 to 3.1 MB of landmarks (n * D <= ~1.5 M). Schema 1 maps are migrated at open (MIGRATIONS).
 
@@ -40,98 +42,64 @@ Milvus acknowledged the insert; inserts go in batches of at most conf['insert_by
 refuses gRPC messages over 64 MB). Every pymilvus / gRPC error becomes a MapError naming the map.
 Ids are reserved in blocks of ID_BLOCK in the meta record, so an add costs one insert; a process
 that stops skips the rest of its block (ids are never reused, not always consecutive).
+
+Read cache: a stored keyframe is never rewritten (ids are never reused; only deletes change the map),
+so the rows this process has read or written are kept (RowCache, at most conf['cache_mb'], least
+recently used dropped first) and a query asks the server only for the candidates it has not seen.
+The open reads every row anyway (to build the landmark index), so a map that fits is then served
+from memory: the server is the map of record, shared and durable, not the per-query path.
+
+Landmark index: local FAISS (lln_ros.core.landmark_index), built from the rows at open; once trained
+(IVF-PQ) it is kept in a file on this machine (conf['landmark_dir']) and caught up with the rows at
+the next open instead of training again.
+
+Integrity: every row read (all of them at open) is checked against its declared sizes (row_problem:
+landmark bytes = n x (16 + 2 D), n >= 1, grid >= 1x1, stamp nanosec < 1e9). A damaged
+keyframe is quarantined, as the SQLite backend does: left in the collection, named in the log and
+in ``quarantined`` / info() / check(), never answered; a query never counts it as bad input. The
+check costs nothing beyond the open's read of every row (bench/bench_milvus_server.py times it).
 """
 
 from __future__ import annotations
 
-import base64
 import contextlib
 import json
 import logging
 import os
 import threading
 import time
-from urllib.parse import parse_qs, urlparse
+import uuid
 
 import numpy as np
 
 from ..core import landmark_index
 from ..core.landmarks import LandmarkSet
-from ..errors import DescriptorError, LLNError, MapError
+from ..errors import LLNError, MapError
 from .base import FORMAT, MapStore
+from .milvus_mixins import MilvusKeypoints, MilvusLandmarks
+from .milvus_rows import (  # noqa: F401  (pack, unpack, parse_uri, RowCache: this module's API too)
+    _FETCH_IDS,
+    _PIECES,
+    _QUERY_ROWS,
+    _SCALARS,
+    RowCache,
+    _is_milvus_error,
+    compact_row,
+    explain,
+    pack,
+    parse_uri,
+    row_problem,
+    unpack,
+)
+from .milvus_schema1 import MIGRATIONS
 
 log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 2
 ID_BLOCK = 1024  # ids reserved per meta write
-_PIECE = 65532  # base64 characters per VARCHAR piece: a multiple of 4, <= 65535
-_PIECES = 64  # pieces per row (the ARRAY's max_capacity)
-_FETCH_IDS = 256  # keyframes per fetch-by-id query: a reply of ~9 MB at n=50, D=320
-_QUERY_ROWS = 16384  # Milvus caps offset + limit of one query at 16384 rows
-_SCALARS = ('stamp_sec', 'stamp_nanosec', 'image_w', 'image_h', 'cell_w', 'cell_h', 'grid_rows', 'grid_cols', 'n')
 
 
-def parse_uri(uri: str) -> dict:
-    """{'uri', 'db_name', 'map', 'label'} for pymilvus from a milvus:// or milvus-lite:// URI."""
-    text = os.fspath(uri)
-    if text.startswith('milvus-lite:'):
-        path = text[len('milvus-lite:') :]
-        path = path[2:] if path.startswith('//') else path
-        path, _, query = path.partition('?')
-        path = os.path.abspath(os.path.expanduser(path))
-        if not path.endswith('.db'):
-            raise MapError(f'Milvus Lite map path must end in .db, got {path}')
-        name = parse_qs(query).get('map', ['lln'])[0]
-        return {'uri': path, 'db_name': '', 'map': name, 'label': f'milvus-lite://{path}?map={name}'}
-    url = urlparse(text)
-    if url.scheme != 'milvus' or not url.hostname:
-        raise MapError(f"Milvus map URI must look like 'milvus://host:port[/database][?map=name]', got {text!r}")
-    name = parse_qs(url.query).get('map', ['lln'])[0]
-    db = url.path.strip('/')
-    endpoint = f'http://{url.hostname}:{url.port or 19530}'
-    return {'uri': endpoint, 'db_name': db, 'map': name, 'label': f'milvus://{url.netloc}/{db}?map={name}'}
-
-
-def pack(*arrays: np.ndarray) -> list[str]:
-    """Arrays' bytes, concatenated, as base64 pieces for an ARRAY<VARCHAR> field."""
-    text = base64.b64encode(b''.join(a.tobytes() for a in arrays)).decode('ascii')
-    if len(text) > _PIECE * _PIECES:
-        raise DescriptorError(
-            f'{len(text) * 3 // 4} bytes do not fit one Milvus row '
-            f'(at most {_PIECE * _PIECES * 3 // 4}); store fewer landmarks or keypoints'
-        )
-    return [text[i : i + _PIECE] for i in range(0, len(text), _PIECE)] or ['']
-
-
-def unpack(pieces) -> bytes:
-    return base64.b64decode(''.join(pieces))
-
-
-def explain(e: BaseException) -> str:
-    """A pymilvus / gRPC error as one line, with what to do for the common ones."""
-    code = getattr(e, 'code', None)
-    code = code() if callable(code) else code
-    text = f'{type(e).__name__}: {getattr(e, "details", lambda: None)() or e}'.replace('\n', ' ')
-    if 'RESOURCE_EXHAUSTED' in f'{code} {text}' or 'larger than max' in text:
-        text += (
-            ' (a gRPC message over the server limit, 64 MB on Milvus 2.3 (grpc.serverMaxRecvSize): '
-            "lower conf['insert_bytes'])"
-        )
-    elif 'UNAVAILABLE' in f'{code} {text}' or 'connect' in text.lower():
-        text += ' (is the Milvus server running and reachable?)'
-    return text[:800]
-
-
-def _is_milvus_error(e: BaseException) -> bool:
-    mod = type(e).__module__ or ''
-    return (
-        mod.startswith(('pymilvus', 'grpc', 'milvus_lite'))
-        or isinstance(e, (ConnectionError, TimeoutError))
-        or any(c.__module__.startswith(('grpc', 'pymilvus')) for c in type(e).__mro__)
-    )
-
-
-class MilvusMapStore(MapStore):
+class MilvusMapStore(MilvusLandmarks, MilvusKeypoints, MapStore):
     """A map in Milvus collections (see the module docstring); MapStore's API and error behaviour."""
 
     default_conf = {
@@ -143,6 +111,11 @@ class MilvusMapStore(MapStore):
         'consistency': 'Session',  # collections' consistency level; Strong waits ~0.4 s per read
         'seal_rows': 1000,  # flush (seal) after this many inserted rows: searching unsealed rows is
         # brute force and slow (Milvus Lite: 30 -> 500 ms at 4,000 unsealed)
+        'landmark_dir': '~/.cache/lln_ros/milvus-landmarks',  # where this machine keeps a trained
+        # (IVF-PQ) landmark index between opens, a file per map, caught up with the rows at open
+        # (training it again took minutes on a loaded 2-core machine); '' = rebuilt at every open
+        'cache_mb': 512,  # read cache of stored keyframes (~21 KB each at n=50, D=192: ~24k keyframes);
+        # 0 = every query fetches its candidates from the server
     }
 
     def __init__(
@@ -167,6 +140,9 @@ class MilvusMapStore(MapStore):
         self._next_id = self._reserved = 1
         self._refreshed = time.monotonic()
         self._has_keypoints = False
+        self._uuid, self._landmarks_dirty = None, False
+        self._quarantined: dict[int, str] = {}  # damaged keyframes found by a read: never answered
+        self._cache = RowCache(float(self.conf['cache_mb']) * 2**20)
         m = where['map']
         self._meta_c, self._fr_c, self._kp_c = f'{m}_meta', f'{m}_frames', f'{m}_keypoints'
         self._v1 = (f'{m}_keyframes', f'{m}_landmarks')
@@ -291,6 +267,7 @@ class MilvusMapStore(MapStore):
                 'created': str(int(time.time())),
                 'created_by': f'lln_ros {__version__}',
                 'next_id': '1',
+                'map_uuid': uuid.uuid4().hex,  # names this map to its landmark index files
             }
         )
 
@@ -324,14 +301,8 @@ class MilvusMapStore(MapStore):
         )
         return {r['key']: r['value'] for r in rows}
 
-    def _scan_ids(self, strong: bool = False) -> list[int]:
-        it = self._client.query_iterator(
-            self._fr_c,
-            batch_size=4096,
-            filter='id >= 0',
-            output_fields=['id'],
-            **({'consistency_level': 'Strong'} if strong else {}),
-        )
+    def _scan_ids(self) -> list[int]:
+        it = self._client.query_iterator(self._fr_c, batch_size=4096, filter='id >= 0', output_fields=['id'])
         ids = []
         try:
             while rows := it.next():
@@ -371,6 +342,7 @@ class MilvusMapStore(MapStore):
             if self._client.has_collection(old):
                 self._client.drop_collection(old)
         self._model = self._read_model_record(meta['model']) if 'model' in meta else None
+        self._uuid = meta.get('map_uuid')
         self._next_id = self._reserved = int(meta.get('next_id', 1))
         self._ids = []
         self._has_keypoints = self._client.has_collection(self._kp_c)
@@ -378,21 +350,11 @@ class MilvusMapStore(MapStore):
             return
         if not self._client.has_collection(self._fr_c):
             self._create_frames(int(self._model['descriptor_dim']))
-        self._ids = self._scan_ids(strong=True)
+        self._load_landmarks()  # reads and checks every row
         self._refreshed = time.monotonic()
-        if self._ids and self._ids[-1] >= self._next_id:
-            raise MapError(f'map {self.path} is damaged: keyframe {self._ids[-1]} but next_id {self._next_id}')
-        self._load_landmarks()
-
-    def _load_landmarks(self) -> None:
-        """The landmark index is local (FAISS), built from the stored keyframes at every open."""
-        self._landmarks = self._new_landmark_index()
-        self._index_landmarks(self._ids)
-
-    def _index_landmarks(self, ids) -> None:
-        for start in range(0, len(ids), 512):
-            sets = self._fetch(ids[start : start + 512])
-            self._landmarks.add_sets(list(sets), list(sets.values()))
+        last = max(self._ids[-1] if self._ids else 0, max(self._quarantined, default=0))
+        if last >= self._next_id:
+            raise MapError(f'map {self.path} is damaged: keyframe {last} but next_id {self._next_id}')
 
     def _refresh(self) -> None:
         """See other processes' writes: new ids above ours, a rescan when the count disagrees."""
@@ -408,21 +370,26 @@ class MilvusMapStore(MapStore):
                         return
                     self._client.load_collection(self._fr_c)
                 before = set(self._ids)
-                last = self._ids[-1] if self._ids else -1
+                last = max(self._ids[-1] if self._ids else -1, max(self._quarantined, default=-1))
                 new = self._client.query(self._fr_c, filter=f'id > {last}', output_fields=['id'], limit=_QUERY_ROWS)
                 self._ids.extend(sorted(int(r['id']) for r in new))
                 count = int(self._client.query(self._fr_c, filter='', output_fields=['count(*)'])[0]['count(*)'])
-                if count != len(self._ids) or len(new) == _QUERY_ROWS:
+                if count != len(self._ids) + len(self._quarantined) or len(new) == _QUERY_ROWS:
                     self._ids = self._scan_ids()
-                if self._deleted:
-                    self._ids = [i for i in self._ids if i not in self._deleted]
+                    present = set(self._ids)  # a quarantined keyframe another process deleted is gone
+                    self._quarantined = {k: v for k, v in self._quarantined.items() if k in present}
+                if self._deleted or self._quarantined:
+                    self._ids = [i for i in self._ids if i not in self._deleted and i not in self._quarantined]
                 # another process's keyframes reach this process's landmark index too
                 now = set(self._ids)
                 if self._landmarks is None:
                     self._load_landmarks()
                 elif now != before:
                     self._landmarks.remove_keyframes(sorted(before - now))
+                    self._cache.drop(before - now)
                     self._index_landmarks(sorted(now - before))
+                    self._landmarks_dirty = True
+                    self._retrain_if_needed()
                 if self._ids and self._ids[-1] >= self._next_id:  # another process wrote
                     self._next_id = self._reserved = self._ids[-1] + 1
                 if not self._has_keypoints:
@@ -476,48 +443,58 @@ class MilvusMapStore(MapStore):
             ),
         }
 
-    def _row_to_set(self, k: dict) -> LandmarkSet:
-        kid, n, dim = int(k['id']), int(k['n']), int(self._model['descriptor_dim'])
-        try:
-            blob = unpack(k['landmarks'])
-        except (ValueError, TypeError) as e:
-            raise MapError(f'map {self.path} is corrupt: keyframe {kid} landmarks are not base64 ({e})') from None
-        if n < 1 or len(blob) != n * (16 + 2 * dim):
-            raise MapError(
-                f'map {self.path} is corrupt: keyframe {kid} landmarks are {len(blob)} bytes, '
-                f'expected {n * (16 + 2 * dim)} (n={n}, D={dim})'
-            )
+    def _row_to_set(self, row: dict) -> LandmarkSet:
+        """A compact row (compact_row) -> its LandmarkSet; MapError when it is damaged."""
+        kid, n, dim = row['id'], int(row['n']), int(self._model['descriptor_dim'])
+        problem = row_problem(row, dim)
+        if problem:
+            raise MapError(f'map {self.path} is corrupt: {problem}')
+        blob = row['blob']
         cells = np.frombuffer(blob, '<i2', 2 * n, 0).reshape(n, 2)
         centers = np.frombuffer(blob, '<f4', 2 * n, 4 * n).reshape(n, 2)
         scores = np.frombuffer(blob, '<f4', n, 12 * n)
         desc = np.frombuffer(blob, '<f2', n * dim, 16 * n).reshape(n, dim)
         return LandmarkSet(
-            global_descriptor=np.asarray(k['global_descriptor'], np.float32),
+            global_descriptor=row['gd'],
             descriptors=desc.astype(np.float32),
             cells=cells.astype(np.int32),
             centers=centers.astype(np.float32),
             scores=scores.astype(np.float32),
-            cell_size=np.array([k['cell_w'], k['cell_h']], np.float32),
-            image_size=np.array([k['image_w'], k['image_h']], np.float32),
-            grid=(int(k['grid_rows']), int(k['grid_cols'])),
+            cell_size=np.array([row['cell_w'], row['cell_h']], np.float32),
+            image_size=np.array([row['image_w'], row['image_h']], np.float32),
+            grid=(int(row['grid_rows']), int(row['grid_cols'])),
             activation=None,
             descriptor_space=self._model['descriptor_space'],
-            meta={'keyframe_id': kid, 'stamp': (int(k['stamp_sec']), int(k['stamp_nanosec']))},
+            meta={'keyframe_id': kid, 'stamp': (int(row['stamp_sec']), int(row['stamp_nanosec']))},
         )
 
-    def _fetch(self, ids, kf_rows: list | None = None) -> dict[int, LandmarkSet]:
-        ids = [int(i) for i in ids]
-        if not ids:
-            return {}
+    def _fetch(self, ids) -> dict[int, LandmarkSet]:
+        """The sets of these ids: from the read cache, the rest in one query by primary key per
+        _FETCH_IDS; a damaged row is quarantined (left out of the answer)."""
+        sets, missing = {}, []
+        for i in ids:
+            row = self._cache.get(int(i))
+            if row is None:
+                missing.append(int(i))
+            else:
+                sets[row['id']] = self._row_to_set(row)
+        if not missing:
+            return sets
+        dim, bad = int(self._model['descriptor_dim']), {}
         with self._errors('read'):
-            if kf_rows is None:
-                kf_rows = []
-                for start in range(0, len(ids), _FETCH_IDS):
-                    chunk = ids[start : start + _FETCH_IDS]
-                    kf_rows += self._client.query(
-                        self._fr_c, filter=f'id in {chunk}', output_fields=['*'], limit=len(chunk)
-                    )
-            return {int(k['id']): self._row_to_set(k) for k in kf_rows}
+            for start in range(0, len(missing), _FETCH_IDS):
+                chunk = missing[start : start + _FETCH_IDS]
+                for r in self._client.query(self._fr_c, filter=f'id in {chunk}', output_fields=['*'], limit=len(chunk)):
+                    row = compact_row(r)
+                    problem = row_problem(row, dim)
+                    if problem:
+                        bad[row['id']] = problem
+                        continue
+                    self._cache.put(row)
+                    sets[row['id']] = self._row_to_set(row)
+        if bad:
+            self._quarantine(bad)
+        return sets
 
     # ------------------------------------------------------------------ public API
 
@@ -554,6 +531,8 @@ class MilvusMapStore(MapStore):
                 )
                 if batch and (row is None or size + nbytes > self.conf['insert_bytes']):
                     self._client.insert(self._fr_c, batch)
+                    for r in batch:  # acknowledged: what a later query reads
+                        self._cache.put(compact_row(r))
                     self._ids.extend(r['id'] for r in batch)
                     self._next_id = max(self._next_id, max(r['id'] for r in batch) + 1)
                     self._unsealed += len(batch)
@@ -564,6 +543,8 @@ class MilvusMapStore(MapStore):
             if ids is not None:
                 self._ids.sort()
             self._landmarks.add_sets(new_ids, sets)
+            self._landmarks_dirty = True
+            self._retrain_if_needed()
             if self.conf['seal_rows'] and self._unsealed >= self.conf['seal_rows']:
                 self._client.flush(self._fr_c)
                 self._unsealed = 0
@@ -580,7 +561,7 @@ class MilvusMapStore(MapStore):
                 limit=min(k, _QUERY_ROWS),
                 filter=where,
                 search_params={'metric_type': 'IP'},
-                output_fields=['*'],
+                output_fields=['id'],  # the rows come from the read cache or one fetch by primary key
             )[0]
             # a search right after a delete may still see the deleted rows (Session consistency, a loaded
             # server): answer only with keyframes this process knows to be live
@@ -588,7 +569,9 @@ class MilvusMapStore(MapStore):
             hits = [h for h in hits if int(h['id']) in live]
             ids = np.array([int(h['id']) for h in hits], np.int64)
             hol = np.array([float(h['distance']) for h in hits], np.float32)
-            return hol, ids, self._fetch(ids, [{**h['entity'], 'id': h['id']} for h in hits])
+            sets = self._fetch(ids)
+            keep = np.array([int(i) in sets for i in ids], bool)  # a damaged row was just quarantined
+            return hol[keep], ids[keep], sets
 
     def get(self, keyframe_id: int) -> LandmarkSet:
         with self._lock, self._errors('get'):
@@ -597,69 +580,6 @@ class MilvusMapStore(MapStore):
         if int(keyframe_id) not in sets:
             raise KeyError(f'no keyframe {keyframe_id} in map {self.path}')
         return sets[int(keyframe_id)]
-
-    def add_keypoints(self, keyframe_id: int, uv: np.ndarray, descriptors: np.ndarray) -> None:
-        """Store a keyframe's keypoints (as SQLiteMapStore.add_keypoints): uv (N, 2) float32 original
-        pixels, binary descriptors (N, B) uint8; replaces earlier ones."""
-        uv = np.ascontiguousarray(uv, '<f4').reshape(-1, 2)
-        desc = np.ascontiguousarray(descriptors)
-        if desc.dtype != np.uint8 or desc.ndim != 2 or len(desc) != len(uv):
-            raise DescriptorError(
-                f'keypoints need (N, B) uint8 descriptors for N={len(uv)} points, got {desc.dtype} {desc.shape}'
-            )
-        row = {
-            'keyframe_id': int(keyframe_id),
-            'n': len(uv),
-            'width': int(desc.shape[1]),
-            'data': pack(uv, desc),
-            'unused': [0.0, 0.0],
-        }
-        with self._lock, self._errors('storing keypoints'):
-            self._ready()
-            if int(keyframe_id) not in set(self._ids):
-                raise KeyError(f'no keyframe {keyframe_id} in map {self.path}')
-            if not self._has_keypoints and not self._client.has_collection(self._kp_c):
-                from pymilvus import DataType
-
-                self._create(
-                    self._kp_c,
-                    [
-                        ('keyframe_id', 'INT64', {'is_primary': True}),
-                        ('n', 'INT32', {}),
-                        ('width', 'INT32', {}),
-                        (
-                            'data',
-                            'ARRAY',
-                            {'element_type': DataType.VARCHAR, 'max_capacity': _PIECES, 'max_length': 65535},
-                        ),
-                    ],
-                    'unused',
-                    2,
-                )
-            self._has_keypoints = True
-            self._client.upsert(self._kp_c, [row])
-
-    def keypoints(self, keyframe_id: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """(uv (N, 2) float32, descriptors (N, B) uint8) of a keyframe, or None when none were stored."""
-        with self._lock, self._errors('reading keypoints'):
-            self._ready()
-            if not self._has_keypoints:
-                return None
-            rows = self._client.query(
-                self._kp_c, filter=f'keyframe_id == {int(keyframe_id)}', output_fields=['n', 'width', 'data']
-            )
-        if not rows:
-            return None
-        n, width, blob = int(rows[0]['n']), int(rows[0]['width']), unpack(rows[0]['data'])
-        if len(blob) != n * (8 + width):
-            raise MapError(
-                f'map {self.path} is corrupt: keyframe {keyframe_id} keypoints are {len(blob)} bytes '
-                f'for n={n}, width {width}'
-            )
-        return (
-            np.frombuffer(blob, '<f4', 2 * n).reshape(n, 2).copy(),
-            np.frombuffer(blob, np.uint8, n * width, 8 * n).reshape(n, width).copy(),
-        )
 
     def _delete_ids(self, present: list[int]) -> None:
         for start in range(0, len(present), 4096):
@@ -678,17 +598,22 @@ class MilvusMapStore(MapStore):
                 gone = set(present)
                 self._deleted |= gone
                 self._ids = [i for i in self._ids if i not in gone]
+                self._cache.drop(present)
                 self._landmarks.remove_keyframes(present)
+                self._landmarks_dirty = True
             return len(present)
 
     def clear(self) -> int:
         with self._lock, self._errors('clear'):
             self._ready()
-            self._delete_ids(list(self._ids))
-            self._deleted |= set(self._ids)
-            removed, self._ids = len(self._ids), []
+            every = sorted(set(self._ids) | set(self._quarantined))  # damaged keyframes go too
+            self._delete_ids(every)
+            self._deleted |= set(every)
+            removed, self._ids, self._quarantined = len(self._ids), [], {}
+            self._cache.clear()
             if self._landmarks is not None:
                 self._landmarks.reset()
+                self._landmarks_dirty = True
             return removed
 
     def info(self) -> dict:
@@ -706,6 +631,9 @@ class MilvusMapStore(MapStore):
                 'index': self.conf['index_type'],
                 'landmark_index': self._landmarks.kind if self._landmarks is not None else None,
                 'landmarks': self._landmarks.ntotal if self._landmarks is not None else 0,
+                'quarantined': sorted(self._quarantined),
+                'cache_keyframes': len(self._cache),
+                'cache_mb': round(self._cache.bytes / 2**20, 1),
                 'first_id': self._ids[0] if self._ids else None,
                 'last_id': self._ids[-1] if self._ids else None,
                 'created': int(meta.get('created', 0)),
@@ -713,12 +641,13 @@ class MilvusMapStore(MapStore):
             }
 
     def save(self) -> None:
-        """Flush (seal) the collections' growing segments."""
+        """Flush (seal) the collections' growing segments; keep a changed trained landmark index."""
         with self._lock, self._errors('flush'):
             self._ready()
             for name in (self._meta_c, self._fr_c, self._kp_c):
                 if self._client.has_collection(name):
                     self._client.flush(name)
+            self._persist_landmarks()
 
     def compact(self) -> dict:
         with self._lock, self._errors('compact'):
@@ -741,21 +670,20 @@ class MilvusMapStore(MapStore):
                     problems.append(f'schema_version is {meta.get("schema_version")!r}, expected {SCHEMA_VERSION}')
                 if self._model is None:
                     return problems
-                found, bad, n_of = [], [], {}
-                it = self._client.query_iterator(self._fr_c, batch_size=256, filter='id >= 0', output_fields=['*'])
-                try:
-                    while rows := it.next():
-                        for r in rows:
-                            found.append(int(r['id']))
-                            n_of[int(r['id'])] = int(r['n'])
-                            try:
-                                self._row_to_set(r)
-                            except MapError as e:
-                                bad.append(str(e))
-                finally:
-                    it.close()
-                if sorted(found) != self._ids:
-                    problems.append(f'frames collection holds {len(found)} ids, this process knows {len(self._ids)}')
+                found, bad, n_of, dim = [], [], {}, int(self._model['descriptor_dim'])
+                for rows in self._scan_rows():
+                    for row in rows:
+                        found.append(row['id'])
+                        # the same check the open runs: the node quarantines exactly these keyframes
+                        problem = row_problem(row, dim)
+                        if problem:
+                            bad.append(f'{problem} (quarantined: never answered)')
+                        else:
+                            n_of[row['id']] = int(row['n'])
+                if sorted(n_of) != self._ids:
+                    problems.append(
+                        f'frames collection holds {len(n_of)} healthy keyframes, this process knows {len(self._ids)}'
+                    )
                 if self._has_keypoints:
                     kp = self._client.query(
                         self._kp_c, filter='keyframe_id >= 0', output_fields=['keyframe_id'], limit=_QUERY_ROWS
@@ -778,100 +706,18 @@ class MilvusMapStore(MapStore):
         with self._lock:
             if self._client is not None:
                 try:
+                    try:
+                        with self._errors('keeping the landmark index'):
+                            self._persist_landmarks()
+                    except MapError as e:  # rebuilt from the map at the next open
+                        log.warning('%s', e)
                     self._client.close()
                 finally:
                     self._client = None
                     self._landmarks = None
                     self._ids = []
+                    self._cache.clear()
 
     def __repr__(self) -> str:
         state = 'closed' if self._client is None else f'{len(self._ids)} keyframes'
         return f'MilvusMapStore({self.path!r}, {state})'
-
-
-# ---------------------------------------------------------------------- migrations
-
-
-def _v1_rows_to_sets(store: MilvusMapStore, kf_rows: list, lm_rows: list) -> list[tuple]:
-    """Schema 1 rows (a keyframe row + one row per landmark) -> [(id, LandmarkSet, (sec, nsec))]."""
-    by_kf: dict[int, list] = {}
-    for r in lm_rows:
-        by_kf.setdefault(int(r['keyframe_id']), []).append(r)
-    out = []
-    for k in kf_rows:
-        kid, n = int(k['id']), int(k['n'])
-        lms = sorted(by_kf.get(kid, []), key=lambda r: r['rank'])
-        if len(lms) != n:
-            raise MapError(
-                f'map {store.path} (schema 1) is damaged: keyframe {kid} has {len(lms)} landmarks, '
-                f'expected {n}; not migrated'
-            )
-        out.append(
-            (
-                kid,
-                LandmarkSet(
-                    global_descriptor=np.asarray(k['global_descriptor'], np.float32),
-                    descriptors=np.array([r['descriptor'] for r in lms], np.int16).view(np.float16).astype(np.float32),
-                    cells=np.array([[r['col'], r['row']] for r in lms], np.int32),
-                    centers=np.array([r['center'] for r in lms], np.float32),
-                    scores=np.array([r['score'] for r in lms], np.float32),
-                    cell_size=np.array([k['cell_w'], k['cell_h']], np.float32),
-                    image_size=np.array([k['image_w'], k['image_h']], np.float32),
-                    grid=(int(k['grid_rows']), int(k['grid_cols'])),
-                    activation=None,
-                    descriptor_space=store._model['descriptor_space'],
-                ),
-                (int(k['stamp_sec']), int(k['stamp_nanosec'])),
-            )
-        )
-    return out
-
-
-def _migrate_1_to_2(store: MilvusMapStore, meta: dict) -> None:
-    """Schema 1 (a row per landmark in {map}_landmarks) -> 2 (a row per keyframe in {map}_frames).
-    Copies every keyframe, checks the count, then the caller records schema 2 and the old
-    collections are dropped. Stopped half-way, it starts again from the schema 1 collections."""
-    c, (kf_c, lm_c) = store._client, store._v1
-    if 'model' not in meta or not c.has_collection(kf_c):
-        return
-    store._model = store._read_model_record(meta['model'])
-    if c.has_collection(store._fr_c):
-        c.drop_collection(store._fr_c)  # from a migration that stopped half-way
-    store._create_frames(int(store._model['descriptor_dim']))
-    for name in (kf_c, lm_c):
-        c.load_collection(name)
-    it = c.query_iterator(kf_c, batch_size=4096, filter='id >= 0', output_fields=['id'], consistency_level='Strong')
-    ids = []
-    try:
-        while rows := it.next():
-            ids.extend(int(r['id']) for r in rows)
-    finally:
-        it.close()
-    ids.sort()
-    for start in range(0, len(ids), _FETCH_IDS):
-        chunk = ids[start : start + _FETCH_IDS]
-        kf_rows = c.query(kf_c, filter=f'id in {chunk}', output_fields=['*'], limit=len(chunk))
-        lm_rows = []
-        for i in range(0, len(kf_rows), 64):  # <= 64 keyframes of <= 256 landmarks: under 16,384 rows
-            part = [int(k['id']) for k in kf_rows[i : i + 64]]
-            lm_rows += c.query(
-                lm_c,
-                filter=f'keyframe_id in {part}',
-                limit=sum(int(k['n']) for k in kf_rows[i : i + 64]),
-                output_fields=['keyframe_id', 'rank', 'col', 'row', 'score', 'center', 'descriptor'],
-            )
-        rows = [
-            store._frame_row(kid, lset, sec, nsec)
-            for kid, lset, (sec, nsec) in _v1_rows_to_sets(store, kf_rows, lm_rows)
-        ]
-        c.insert(store._fr_c, rows)
-    copied = int(c.query(store._fr_c, filter='', output_fields=['count(*)'], consistency_level='Strong')[0]['count(*)'])
-    if copied != len(ids):
-        raise MapError(
-            f'migrating map {store.path} to schema 2: copied {copied} of {len(ids)} keyframes; '
-            f'the schema 1 collections are kept, opening again retries'
-        )
-
-
-# schema version v -> function(store, meta) that upgrades a v map to v + 1
-MIGRATIONS = {1: _migrate_1_to_2}
