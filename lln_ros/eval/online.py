@@ -1,11 +1,20 @@
 """lln-demo's scoring: rankings from the answers the nodes published, transport accounting (what was
 sent, received, dropped, stored, answered), and online against the offline evaluator, metric by
-metric, query by query and candidate by candidate, with the cause of every difference."""
+metric, query by query and candidate by candidate, with the cause of every difference.
+
+The offline evaluator needs every image's backbone feature map (the nodes publish only the selected
+landmarks, not the dense maps its heatmaps and other selections use), so its feature cache is filled
+beside the online run (CacheFill): a worker process takes chunks of images from the front of the list
+while the nodes run, and once they are done this process takes chunks from the back until the two
+meet. On two cores the offline features then cost little more than the online run itself.
+"""
 
 from __future__ import annotations
 
 import math
+import multiprocessing
 import shlex
+import signal
 import time
 from pathlib import Path
 
@@ -251,23 +260,134 @@ def compare(
     }
 
 
-def run_offline(ds, spec: str, args, out: Path, log) -> dict:
-    """The same dataset through lln-eval's code (evaluate) with the nodes' method, top-n and
-    prefilter-k, into out/offline; the ranking and summary of its one row."""
+def offline_extractor_conf(args) -> dict:
+    """The Extractor conf of the offline side: the nodes' method, top-n, runtime, weights, threads."""
     from ..cli.common import runtime_conf
+
+    return {
+        'top_n': args.top_n,
+        'method': 'lln' if args.method == 'holistic' else args.method,
+        'num_threads': args.threads,
+        **runtime_conf(args),
+        'weights': str(Path(args.weights).expanduser().resolve()) if args.weights else '',
+    }
+
+
+def offline_cache_dir(args, out: Path) -> str:
+    return args.cache or str(out / 'cache' / 'features')
+
+
+def dataset_paths(ds) -> list[str]:
+    """Every distinct image of the dataset, as the evaluator lists them (refs, then queries)."""
+    return list(dict.fromkeys([str(p) for p in ds.ref_paths] + [str(p) for p in ds.query_paths]))
+
+
+FILL_CHUNK = 8  # images per claim and per backbone call: FeatureCache's own batch size
+
+
+def _claim(lock, front, back, from_back: bool) -> int | None:
+    """The next unclaimed chunk index from one end, or None when the two ends have met."""
+    with lock:
+        if front.value >= back.value:
+            return None
+        if from_back:
+            back.value -= 1
+            return back.value
+        front.value += 1
+        return front.value - 1
+
+
+def _fill_worker(paths, conf, cache_dir, lock, front, back, height) -> None:
+    """Worker process: chunks from the front into the cache until the ends meet."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle; it terminates us
+    from ..core.extractor import Extractor
+    from ..io.features import FeatureCache
+
+    cache = FeatureCache(cache_dir, Extractor(conf))
+    while (c := _claim(lock, front, back, False)) is not None:
+        cache.load(paths[c * FILL_CHUNK : (c + 1) * FILL_CHUNK], size=height)
+
+
+class CacheFill:
+    """The offline feature cache filled by a worker process while the online run goes on.
+
+    fill = CacheFill(paths, conf, cache_dir); ...online run...; fill.finish(extractor) fills what is
+    left from the back in this process (the worker still going from the front) and waits for the
+    worker; fill.stop() ends the worker early (errors, Ctrl-C). Entries already in the cache are
+    only read, so a warm cache costs a pass over the file digests."""
+
+    def __init__(self, paths: list[str], conf: dict, cache_dir: str):
+        from ..core.extractor import default_conf
+
+        ctx = multiprocessing.get_context('spawn')  # no fork of a process that runs DDS threads
+        self.paths, self.cache_dir = paths, cache_dir
+        self.height = int(conf.get('input_height', default_conf['input_height']))
+        self.chunks = -(-len(paths) // FILL_CHUNK)
+        self._lock = ctx.Lock()
+        self._front = ctx.Value('i', 0, lock=False)  # guarded by _lock
+        self._back = ctx.Value('i', self.chunks, lock=False)
+        self.started = time.monotonic()
+        self.proc = ctx.Process(
+            target=_fill_worker,
+            args=(paths, conf, cache_dir, self._lock, self._front, self._back, self.height),
+            name='lln-demo-cache-fill',
+            daemon=True,
+        )
+        self.proc.start()
+
+    def progress(self) -> int:
+        """Chunks claimed so far (worker and this process)."""
+        with self._lock:
+            return self._front.value + self.chunks - self._back.value
+
+    def finish(self, extractor) -> dict:
+        """Fill the rest from the back (here), wait for the worker; what each side did."""
+        from ..io.features import FeatureCache
+
+        with self._lock:
+            worker_before = self._front.value
+        t = time.monotonic()
+        cache = FeatureCache(self.cache_dir, extractor)
+        mine = 0
+        while (c := _claim(self._lock, self._front, self._back, True)) is not None:
+            cache.load(self.paths[c * FILL_CHUNK : (c + 1) * FILL_CHUNK], size=self.height)
+            mine += 1
+        self.proc.join()
+        with self._lock:
+            worker = self._front.value
+        return {
+            'images': len(self.paths),
+            'chunk': FILL_CHUNK,
+            'chunks_by_worker_during_online': worker_before,
+            'chunks_by_worker_after': worker - worker_before,
+            'chunks_by_main_after': mine,
+            'worker_exit': self.proc.exitcode,
+            'tail_seconds': time.monotonic() - t,
+        }
+
+    def stop(self) -> None:
+        if self.proc.is_alive():
+            self.proc.terminate()
+            self.proc.join(5)
+
+
+def run_offline(ds, spec: str, args, out: Path, log, fill: CacheFill | None = None) -> dict:
+    """The same dataset through lln-eval's code (evaluate) with the nodes' method, top-n and
+    prefilter-k, into out/offline; the ranking and summary of its one row. fill: the cache filled
+    beside the online run, finished here before the evaluator reads it."""
     from ..core.extractor import Extractor
     from .runner import evaluate
 
-    ext_method = 'lln' if args.method == 'holistic' else args.method
-    extractor = Extractor(
-        {
-            'top_n': args.top_n,
-            'method': ext_method,
-            'num_threads': args.threads,
-            **runtime_conf(args),
-            'weights': str(Path(args.weights).expanduser().resolve()) if args.weights else '',
-        }
-    )
+    extractor = Extractor(offline_extractor_conf(args))
+    t = time.monotonic()
+    fill_report = None
+    if fill is not None:
+        done = fill.progress()
+        log(
+            f'lln-demo: offline: {done} of {fill.chunks} feature chunks ({FILL_CHUNK} images each) were '
+            'filled beside the online run; the rest now from both ends'
+        )
+        fill_report = fill.finish(extractor)
     conf = {
         'methods': [args.method],
         'top_n': args.top_n,
@@ -278,11 +398,10 @@ def run_offline(ds, spec: str, args, out: Path, log) -> dict:
         'timing_repeats': 1,
         'examples': args.examples,
         'heatmap_images': 4,
-        'cache_dir': args.cache or str(out / 'cache' / 'features'),
+        'cache_dir': offline_cache_dir(args, out),
         'plots': True,
         'progress': not args.quiet,
     }
-    t = time.monotonic()
     command = (
         f'lln-eval --dataset {shlex.quote(spec)} --methods {args.method} --top-n {args.top_n} '
         f'--prefilter {args.prefilter} --prefilter-k {args.prefilter_k} --out {shlex.quote(str(out / "offline"))}'
@@ -299,6 +418,7 @@ def run_offline(ds, spec: str, args, out: Path, log) -> dict:
         'summary': {key: entry[key] for key, _ in METRICS},
         'entry': entry,
         'seconds': time.monotonic() - t,
+        'cache_fill': fill_report,
         'model': extractor.model_info,
         'results': str(out / 'offline' / 'results.json'),
     }
