@@ -1,6 +1,6 @@
 """lln-demo: build a map from one traverse and query it with another through the ROS 2 nodes.
 
-    lln-demo --out DIR [--dataset SPEC] [--range START:END] [--download] [--rate HZ]
+    lln-demo --out DIR [--dataset SPEC] [--range START:END] [--download] [--fps HZ]
              [--method lln|act|rand|all|holistic] [--top-n 50] [--prefilter landmarks|holistic|exhaustive]
              [--prefilter-k 100]
              [--offline | --no-offline] [--check]
@@ -29,7 +29,7 @@ What it does:
   5. with --offline (the default) runs the offline evaluator (lln-eval's code) on the same dataset with
      the same method, top-n, prefilter and prefilter-k into DIR/offline/, and prints online vs offline.
      Its backbone features (the feature cache, --cache) are computed by a worker process beside the
-     online run from step 2 on (paced playback only: a --rate run leaves the CPU to the nodes), and
+     online run from step 2 on (paced playback only: an --fps run leaves the CPU to the nodes), and
      what is left when the nodes are done from both ends of the list at once: on two cores the
      comparison then costs little more time than the online run itself.
 
@@ -44,7 +44,7 @@ as the extractor goes), and queries also wait while the matcher has MAX_IN_FLIGH
 it is sent again until it has arrived downstream (a keyframe in the map / an answer), because a frame
 published before the extractor's writer has matched the matcher's reader is lost even when the graph
 already shows both.
---rate HZ instead plays the bags at HZ frames per second with `lln-bag play` (what `ros2 bag play`
+--fps HZ instead plays the bags at HZ frames per second with `lln-bag play` (what `ros2 bag play`
 does); frames the extractor cannot keep up with are dropped by its newest-frame policy, counted and
 reported (the extractors' /diagnostics `received`/`published`/`dropped`, the stamps in the map file,
 the answers).
@@ -82,6 +82,7 @@ from ..eval.online import (
 from ..eval.report import METRICS, online_console, online_markdown, transport_lines, write_answers, write_json
 from ..ros.probe import HANDSHAKE_TRIES
 from ..ros.supervisor import SupervisorError, find_executables
+from .bag import DeprecatedAlias
 from .common import (
     DATA_ENV,
     RunError,
@@ -152,10 +153,13 @@ def build_parser():
     )
     p.add_argument('--download-url', default=None, help='where --download fetches from (default: the public archive)')
     p.add_argument(
-        '--rate',
+        '--fps',
         type=positive_float,
         metavar='HZ',
         help='play the bags at HZ frames/s with lln-bag play (default: paced by the extractor)',
+    )
+    p.add_argument(
+        '--rate', dest='fps', type=positive_float, action=DeprecatedAlias, new='--fps', help='deprecated: --fps'
     )
     p.add_argument(
         '--method',
@@ -303,10 +307,10 @@ def run(args, argv, log) -> int:
     prepare_out(out)
     timing = {'read_dataset': time.monotonic() - t0}
 
-    # the offline side's backbone features, computed beside the online run (not with --rate: a fixed
+    # the offline side's backbone features, computed beside the online run (not with --fps: a fixed
     # rate is a promise the extractors must keep, so they get the CPU to themselves)
     fill = None
-    if args.offline and not args.rate:
+    if args.offline and not args.fps:
         cache_dir = offline_cache_dir(args, out)
         fill = CacheFill(dataset_paths(ds), offline_extractor_conf(args), cache_dir)
         log(f'{PROG}: offline: filling the feature cache {cache_dir} beside the online run (one worker process)')
@@ -329,11 +333,8 @@ def run(args, argv, log) -> int:
         ]
         advice = f' (last extraction {max(ms):.0f} ms: play at most {800 / max(ms):.1f} Hz)' if max(ms) > 0 else ''
         why = (
-            (
-                f'--rate {args.rate:g} is faster than extraction{advice}, or omit --rate to pace the bags by '
-                'the extractor'
-            )
-            if args.rate
+            (f'--fps {args.fps:g} is faster than extraction{advice}, or omit --fps to pace the bags by the extractor')
+            if args.fps
             else 'this should not happen with paced playback'
         )
         print(f'{PROG}: warning: the extractors dropped {dropped} frames: {why}', file=sys.stderr)

@@ -3,7 +3,7 @@
 message collected by the probe (lln_ros.ros.probe). lln_ros.cli.demo is the pipeline around it.
 
 Playback: paced by the extractor (the probe publishes the next frame once the previous frame's
-landmarks are out), or `lln-bag play` at --rate frames/s; see lln_ros.cli.demo's doc.
+landmarks are out), or `lln-bag play` at --fps frames/s; see lln_ros.cli.demo's doc.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
 
     timing = {}
     t = time.monotonic()
-    hz = args.rate or NOMINAL_HZ
+    hz = args.fps or NOMINAL_HZ
     log(
         f'{PROG}: writing {out / "map_bag"} ({len(ds.ref_paths)} frames) and {out / "query_bag"} '
         f'({len(ds.query_paths)} frames)'
@@ -121,8 +121,8 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
         graph.watch = procs
         graph.collect_answers()
         graph.collect_diagnostics()
-        map_pub = graph.image_publisher(MAP_IMAGE) if not args.rate else None
-        query_pub = graph.image_publisher(QUERY_IMAGE) if not args.rate else None
+        map_pub = graph.image_publisher(MAP_IMAGE) if not args.fps else None
+        query_pub = graph.image_publisher(QUERY_IMAGE) if not args.fps else None
 
         node = graph.node
 
@@ -149,8 +149,8 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
             raise RunError(f'the map {info.get("path")} is not empty ({info["keyframes"]} keyframes)')
         # let the endpoints match: seeing every endpoint in the graph does not mean the extractors' writers
         # have matched the matcher's readers. Paced playback also checks the first frame of each phase;
-        # lln-bag play (--rate) cannot, so it gets a longer head start.
-        graph.spin_for(3.0 if args.rate else 1.0)
+        # lln-bag play (--fps) cannot, so it gets a longer head start.
+        graph.spin_for(3.0 if args.fps else 1.0)
         timing['start_nodes'] = time.monotonic() - t
         model = info['model']
         log(
@@ -158,17 +158,17 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
             f'head {model.get("head", "?")}{"" if model.get("head_trained", True) else " (UNTRAINED)"}'
         )
 
-        mode = 'paced' if not args.rate else f'{args.rate:g} Hz'
+        mode = 'paced' if not args.fps else f'{args.fps:g} Hz'
         tick = 0.1 if sys.stderr.isatty() else 10.0  # progress lines in a log file: one per 10 s
 
         def play(phase: str, stamps: list, topic: str, kind: str, publisher, confirm, backlog=None) -> dict:
-            """One traverse through its extractor: paced by the probe, or `lln-bag play` at --rate."""
+            """One traverse through its extractor: paced by the probe, or `lln-bag play` at --fps."""
             log(f'{PROG}: {phase}: playing {len(stamps)} frames ({mode}) -> lln_extractor_{phase} -> {kind}')
             bar = tqdm(
                 total=len(stamps), desc=phase, unit='frame', disable=args.quiet, file=sys.stderr, mininterval=tick
             )
             try:
-                if args.rate:
+                if args.fps:
                     return graph.play_fixed(
                         exes['lln-bag'],
                         out / f'{phase}_bag',
