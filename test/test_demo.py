@@ -431,3 +431,19 @@ def test_examples_are_spread_along_the_route_and_skip_dark_frames(tmp_path):
         assert [i // 10 for i in queries] == [0, 1, 2, 3], (kind, queries)
     assert all(not wrong[i] for i in picked['success']) and all(wrong[i] for i in picked['failure'])
     assert picked['success'] == [9, 18, 29, 38] and picked['failure'] == [7, 19, 27, 39]
+
+
+def test_backlog_counts_what_the_next_node_has_not_taken_and_gives_up_on_a_stall():
+    from lln_ros.cli.demo_nodes import Backlog
+
+    sent, done = [5], [2]
+    b = Backlog(lambda: sent[0], lambda: done[0], stall=0.3)
+    assert b() == 3
+    done[0] = 5
+    assert b() == 0
+    sent[0] = 9
+    assert b() == 4  # done moved just now: still waiting
+    time.sleep(0.4)
+    assert b() == 0  # done has not moved for the stall time: a lost message must not stop the playback
+    done[0] = 6
+    assert b() == 3

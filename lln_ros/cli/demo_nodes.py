@@ -26,6 +26,29 @@ NOMINAL_HZ = 10.0  # bag stamps in paced mode (the pace itself comes from the ex
 DAY_NS = 86_400 * 1_000_000_000  # the query bag starts a day after the map bag: stamps never collide
 
 
+MATCHER = '/lln_matcher'
+STALL_S = 10.0  # a backlog that has not moved for this long is given up on (its frames count as lost)
+
+
+class Backlog:
+    """What the next node has not taken yet, sent() - done(), for the paced playback to wait on.
+    done() comes from /diagnostics (every diagnostics_period); when it has not moved for STALL_S
+    while frames are outstanding, the backlog reads 0: a message lost on the way must not stop the
+    playback, it is counted as lost afterwards."""
+
+    def __init__(self, sent, done, stall: float = STALL_S):
+        self.sent, self.done, self.stall = sent, done, stall
+        self.last, self.since = None, time.monotonic()
+
+    def __call__(self) -> int:
+        done = self.done()
+        if done != self.last:
+            self.last, self.since = done, time.monotonic()
+        elif time.monotonic() - self.since > self.stall:
+            return 0
+        return max(0, self.sent() - done)
+
+
 def run_online(ds, args, out: Path, exes: dict, log) -> dict:
     """Bags into out/, the nodes up, both traverses played; everything the probe collected (stamps,
     landmarks, candidates, matches, /diagnostics, the map's stamps) and the timing of each step.
@@ -202,7 +225,13 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
                 lambda: graph.matcher_info(args.timeout).get('keyframes', 0) >= 1 or graph.spin_for(0.2), HANDSHAKE_WAIT
             )
 
-        play_map = play('map', ref_stamps, MAP_IMAGE, 'keyframes', map_pub, map_has_it)
+        # keyframes wait too while the matcher has MAX_IN_FLIGHT not yet taken off its queue: storing
+        # one (SQLite, the global and the landmark index) can be slower than extracting it, and a
+        # full subscription queue loses keyframes (434 of 1073 on a loaded machine without this)
+        map_backlog = Backlog(
+            lambda: len(graph.landmarks['keyframes']), lambda: graph.counter(MATCHER, 'keyframes_received')
+        )
+        play_map = play('map', ref_stamps, MAP_IMAGE, 'keyframes', map_pub, map_has_it, backlog=map_backlog)
         expected = len(graph.landmarks['keyframes'])
 
         def stored() -> int:

@@ -282,7 +282,11 @@ def dataset_paths(ds) -> list[str]:
     return list(dict.fromkeys([str(p) for p in ds.ref_paths] + [str(p) for p in ds.query_paths]))
 
 
-FILL_CHUNK = 8  # images per claim and per backbone call: FeatureCache's own batch size
+FILL_CHUNK = 8  # images per claim (a claim is one lock round trip)
+# images per backbone call while filling: one, as the extractor nodes run it. With one thread, a
+# batch is no faster per image on a 2-core machine (slower: the activations of 8 frames leave the
+# caches), and the offline features then come from the same batch size as the online ones
+FILL_BATCH = 1
 
 
 def _claim(lock, front, back, from_back: bool) -> int | None:
@@ -303,7 +307,7 @@ def _fill_worker(paths, conf, cache_dir, lock, front, back, height) -> None:
     from ..core.extractor import Extractor
     from ..io.features import FeatureCache
 
-    cache = FeatureCache(cache_dir, Extractor(conf))
+    cache = FeatureCache(cache_dir, Extractor(conf), batch_size=FILL_BATCH)
     while (c := _claim(lock, front, back, False)) is not None:
         cache.load(paths[c * FILL_CHUNK : (c + 1) * FILL_CHUNK], size=height)
 
@@ -347,7 +351,7 @@ class CacheFill:
         with self._lock:
             worker_before = self._front.value
         t = time.monotonic()
-        cache = FeatureCache(self.cache_dir, extractor)
+        cache = FeatureCache(self.cache_dir, extractor, batch_size=FILL_BATCH)
         mine = 0
         while (c := _claim(self._lock, self._front, self._back, True)) is not None:
             cache.load(self.paths[c * FILL_CHUNK : (c + 1) * FILL_CHUNK], size=self.height)
@@ -358,6 +362,7 @@ class CacheFill:
         return {
             'images': len(self.paths),
             'chunk': FILL_CHUNK,
+            'batch': FILL_BATCH,
             'chunks_by_worker_during_online': worker_before,
             'chunks_by_worker_after': worker - worker_before,
             'chunks_by_main_after': mine,
