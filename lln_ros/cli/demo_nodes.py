@@ -27,26 +27,33 @@ DAY_NS = 86_400 * 1_000_000_000  # the query bag starts a day after the map bag:
 
 
 MATCHER = '/lln_matcher'
-STALL_S = 10.0  # a backlog that has not moved for this long is given up on (its frames count as lost)
+STALL_S = 60.0  # a backlog that has not moved for this long is written off (its frames count as lost)
 
 
 class Backlog:
-    """What the next node has not taken yet, sent() - done(), for the paced playback to wait on.
-    done() comes from /diagnostics (every diagnostics_period); when it has not moved for STALL_S
-    while frames are outstanding, the backlog reads 0: a message lost on the way must not stop the
-    playback, it is counted as lost afterwards."""
+    """What the next node has not taken yet, sent() - done() - written off, for the paced playback
+    to wait on. done() comes from /diagnostics (every diagnostics_period). A node can stall for a
+    while (the matcher trains its IVF-PQ landmark index once, at 20k landmarks: tens of seconds on
+    a loaded machine), so only when done() has not moved for `stall` s is the outstanding count
+    written off: a message lost on the way must not stop the playback, and the frames after it are
+    again limited to MAX_IN_FLIGHT. Written-off frames that arrive after all are taken back."""
 
     def __init__(self, sent, done, stall: float = STALL_S):
         self.sent, self.done, self.stall = sent, done, stall
-        self.last, self.since = None, time.monotonic()
+        self.last, self.since, self.written_off = None, time.monotonic(), 0
 
     def __call__(self) -> int:
-        done = self.done()
+        sent, done = self.sent(), self.done()
+        now = time.monotonic()
         if done != self.last:
-            self.last, self.since = done, time.monotonic()
-        elif time.monotonic() - self.since > self.stall:
+            self.last, self.since = done, now
+        self.written_off = min(self.written_off, max(0, sent - done))  # late arrivals are not lost
+        pending = sent - done - self.written_off
+        if pending > 0 and now - self.since > self.stall:
+            self.written_off += pending
+            self.since = now
             return 0
-        return max(0, self.sent() - done)
+        return max(0, pending)
 
 
 def run_online(ds, args, out: Path, exes: dict, log) -> dict:
