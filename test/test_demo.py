@@ -370,32 +370,60 @@ def test_nordland_slice_through_the_nodes(tmp_path, prefilter):
 # ------------------------------------------------------------------ the offline side's feature cache
 
 
-def test_cache_fill_from_both_ends_gives_the_evaluators_cache(tiny_dataset, tmp_path, extractor):
-    """A worker process fills from the front, this process from the back once asked to finish;
-    together they leave every image's entry, equal to what the evaluator's FeatureCache computes."""
-    from lln_ros.eval.online import FILL_CHUNK, CacheFill
+def offline_args(tmp_path, **kw):
+    import argparse
+
+    base = dict(top_n=50, method='lln', threads=1, runtime=None, weights='', cache=str(tmp_path / 'cache'))
+    base.update(quiet=True, prefilter='landmarks', prefilter_k=100, examples=1)
+    return argparse.Namespace(**{**base, **kw})
+
+
+def test_offline_worker_fills_from_both_ends_the_evaluators_cache(tiny_dataset, tmp_path, extractor):
+    """The worker fills from the front, this process from the back once asked to finish; together
+    they leave every image's entry, equal to what the evaluator's FeatureCache computes."""
+    from lln_ros.eval.demo_offline import CHUNK, OfflineRun
+    from lln_ros.io.datasets import aligned
     from lln_ros.io.features import FeatureCache, file_digest
 
     _, _, rest = tiny_dataset.partition(':')
-    folders = rest.split(',')[:2]
-    paths = sorted(str(p) for folder in folders for p in Path(folder).iterdir())
+    ds = aligned(*rest.split(',')[:2], 0)
+    paths = [str(p) for p in ds.ref_paths] + [str(p) for p in ds.query_paths]
     assert len(paths) == 2 * FRAMES
-    fill = CacheFill(paths, {**extractor.conf, 'num_threads': 1}, str(tmp_path / 'cache'))
-    report = fill.finish(extractor)
-    assert report['worker_exit'] == 0
-    chunks = -(-len(paths) // FILL_CHUNK)
+    job = OfflineRun(ds, tiny_dataset, offline_args(tmp_path), tmp_path / 'out', job=False)
+    report = job.finish(extractor)['cache_fill']
     parts = ('chunks_by_worker_during_online', 'chunks_by_worker_after', 'chunks_by_main_after')
-    assert sum(report[key] for key in parts) == chunks
-    cache = FeatureCache(tmp_path / 'cache', extractor)
-    stored = [cache._path(file_digest(p), extractor.conf['input_height']) for p in paths]
+    assert sum(report[key] for key in parts) == -(-len(paths) // CHUNK)
+    stored = [FeatureCache(tmp_path / 'cache', extractor)._path(file_digest(p), 288) for p in paths]
     assert all(p.is_file() for p in stored)
     fresh = FeatureCache(tmp_path / 'fresh', extractor).load(paths)
     for p, want in zip(stored, fresh):
         np.testing.assert_allclose(np.load(p).astype(np.float32), want.astype(np.float32), atol=2e-2)
-    # a warm cache: the second fill only reads digests, and stop() on a finished worker is harmless
-    again = CacheFill(paths, {**extractor.conf, 'num_threads': 1}, str(tmp_path / 'cache'))
-    assert again.finish(extractor)['worker_exit'] == 0
+    # a warm cache: the second pass only reads digests, and stop() on a finished worker is harmless
+    again = OfflineRun(ds, tiny_dataset, offline_args(tmp_path), tmp_path / 'out', job=False)
+    assert again.finish(extractor)['cache_fill']['images'] == len(paths)
     again.stop()
+
+
+def test_offline_worker_evaluates_as_lln_eval_does(tiny_dataset, tmp_path, extractor):
+    """The worker's evaluation is runner.evaluate's: the same ranking as run here, results.json
+    written; a failing evaluation comes back as the worker's one-line error."""
+    from lln_ros.eval.demo_offline import OfflineRun, run_offline
+    from lln_ros.io.datasets import aligned
+
+    _, _, rest = tiny_dataset.partition(':')
+    ds = aligned(*rest.split(',')[:2], 0)
+    args = offline_args(tmp_path, prefilter='holistic', prefilter_k=5)
+    beside = run_offline(
+        ds, tiny_dataset, args, tmp_path / 'a', lambda m: None, OfflineRun(ds, tiny_dataset, args, tmp_path / 'a')
+    )
+    here = run_offline(ds, tiny_dataset, args, tmp_path / 'b', lambda m: None)
+    np.testing.assert_array_equal(beside['ranked'], here['ranked'])
+    assert beside['summary'] == here['summary'] and (tmp_path / 'a' / 'offline' / 'results.json').is_file()
+    assert beside['cache_fill'] and here['cache_fill'] is None
+    dying = OfflineRun(ds, tiny_dataset, args, tmp_path / 'c')
+    dying.proc.kill()  # long before it has loaded its model
+    with pytest.raises(RuntimeError, match='the offline worker died'):
+        run_offline(ds, tiny_dataset, args, tmp_path / 'c', lambda m: None, dying)
 
 
 def test_examples_are_spread_along_the_route_and_skip_dark_frames(tmp_path):

@@ -28,10 +28,11 @@ What it does:
      DIR/pr_online.png and DIR/matches_online_*.png;
   5. with --offline (the default) runs the offline evaluator (lln-eval's code) on the same dataset with
      the same method, top-n, prefilter and prefilter-k into DIR/offline/, and prints online vs offline.
-     Its backbone features (the feature cache, --cache) are computed by a worker process beside the
-     online run from step 2 on (paced playback only: an --fps run leaves the CPU to the nodes), and
-     what is left when the nodes are done from both ends of the list at once: on two cores the
-     comparison then costs little more time than the online run itself.
+     A worker process does it beside the online run from step 2 on (lln_ros.eval.demo_offline): the
+     backbone features into the feature cache (--cache), then the evaluation; what is left when the
+     nodes are done is shared from both ends of the list. On two cores the comparison then costs
+     little more time than the online run itself. An --fps run leaves the CPU to the nodes and runs
+     the offline side after them.
 
 Why two extractors: the wiring is static, exactly the `-r` remaps a user writes, and each traverse
 is counted by its own extractor's /diagnostics; re-routing one extractor between the phases would mean
@@ -54,8 +55,8 @@ exits 1 with the node logs' tails (DIR/logs/); Ctrl-C exits 130. Every node star
 
 The pieces: lln_ros.cli.demo_nodes (the online run: bags, nodes, playback), lln_ros.ros.supervisor
 (executables, environment, start / stop), lln_ros.ros.probe (collecting, paced playback),
-lln_ros.eval.online (scoring, the offline feature cache filled beside the online run, online vs
-offline), lln_ros.eval.report and lln_ros.eval.figures (the one report stack lln-eval uses too).
+lln_ros.eval.online (scoring, online vs offline), lln_ros.eval.demo_offline (the offline side,
+beside the online run), lln_ros.eval.report and lln_ros.eval.figures (the one report stack lln-eval uses too).
 This module is the pipeline.
 """
 
@@ -70,15 +71,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..eval.online import (
-    CacheFill,
-    compare,
-    dataset_paths,
-    offline_cache_dir,
-    offline_extractor_conf,
-    run_offline,
-    score_online,
-)
+from ..eval.demo_offline import OfflineRun, cache_dir, run_offline
+from ..eval.online import compare, score_online
 from ..eval.report import METRICS, online_console, online_markdown, transport_lines, write_answers, write_json
 from ..ros.probe import HANDSHAKE_TRIES
 from ..ros.supervisor import SupervisorError, find_executables
@@ -309,16 +303,18 @@ def run(args, argv, log) -> int:
 
     # the offline side's backbone features, computed beside the online run (not with --fps: a fixed
     # rate is a promise the extractors must keep, so they get the CPU to themselves)
-    fill = None
+    job = None
     if args.offline and not args.fps:
-        cache_dir = offline_cache_dir(args, out)
-        fill = CacheFill(dataset_paths(ds), offline_extractor_conf(args), cache_dir)
-        log(f'{PROG}: offline: filling the feature cache {cache_dir} beside the online run (one worker process)')
+        job = OfflineRun(ds, spec, args, out)
+        log(
+            f'{PROG}: offline: a worker process computes the features into {cache_dir(args, out)} and then '
+            'evaluates, beside the online run'
+        )
     try:
         online_run = run_online(ds, args, out, exes, log)
     except BaseException:
-        if fill is not None:
-            fill.stop()
+        if job is not None:
+            job.stop()
         raise
     timing.update(online_run['timing'])
     online = score_online(ds, online_run)
@@ -346,14 +342,15 @@ def run(args, argv, log) -> int:
             f'{args.top_n}, prefilter {args.prefilter}, prefilter-k {args.prefilter_k}) into {out / "offline"}'
         )
         try:
-            offline = run_offline(ds, spec, args, out, log, fill)
+            offline = run_offline(ds, spec, args, out, log, job)
         except (KeyboardInterrupt, MemoryError):
             raise
         except Exception as e:  # noqa: BLE001  the online results are still written
             offline_error = f'{type(e).__name__}: {e}'
             print(f'{PROG}: error: the offline evaluation failed: {offline_error}', file=sys.stderr)
         else:
-            timing['offline'] = offline['seconds']
+            timing['offline_after_online'] = offline['seconds']
+            timing['offline_evaluate'] = offline['evaluate_seconds']
             if offline['cache_fill']:
                 timing['offline_features_after_online'] = offline['cache_fill']['tail_seconds']
             comparison = compare(
@@ -363,10 +360,11 @@ def run(args, argv, log) -> int:
                 offline['summary'],
                 tr,
                 models=(online_run['model'], offline['model']),
+                prefilter=args.prefilter,
             )
         finally:
-            if fill is not None:
-                fill.stop()  # the worker is done unless the evaluation failed
+            if job is not None:
+                job.stop()  # the worker is done unless the evaluation failed
 
     from ..eval.figures import online_curves, plot_online_examples, plot_pr
 
@@ -422,6 +420,8 @@ def run(args, argv, log) -> int:
                 'extract_ms': offline['entry'].get('extract_ms'),
                 'match_ms_per_pair': offline['entry'].get('match_ms_per_pair'),
                 'feature_cache_fill': offline['cache_fill'],
+                'evaluate_seconds': offline['evaluate_seconds'],
+                'evaluation_done_before_online_end_s': offline.get('evaluation_done_before_online_end_s'),
             }
             if offline
             else None

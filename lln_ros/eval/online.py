@@ -1,21 +1,12 @@
 """lln-demo's scoring: rankings from the answers the nodes published, transport accounting (what was
 sent, received, dropped, stored, answered), and online against the offline evaluator, metric by
 metric, query by query and candidate by candidate, with the cause of every difference.
-
-The offline evaluator needs every image's backbone feature map (the nodes publish only the selected
-landmarks, not the dense maps its heatmaps and other selections use), so its feature cache is filled
-beside the online run (CacheFill): a worker process takes chunks of images from the front of the list
-while the nodes run, and once they are done this process takes chunks from the back until the two
-meet. On two cores the offline features then cost little more than the online run itself.
+The offline side itself (run beside the online one) is lln_ros.eval.demo_offline.
 """
 
 from __future__ import annotations
 
 import math
-import multiprocessing
-import shlex
-import signal
-import time
 from pathlib import Path
 
 import numpy as np
@@ -126,9 +117,11 @@ def compare(
     off_summary: dict,
     transport: dict,
     models: tuple[dict, dict] = ({}, {}),
+    prefilter: str = 'holistic',
 ) -> dict:
     """Online vs offline: metric by metric, query by query, and candidate by candidate (online k =
-    prefilter_k, so both sides score the same holistic top-K); the cause of every difference.
+    prefilter_k, so both sides rerank a first-stage top-K); the cause of every difference.
+    prefilter: the first stage both sides ran (it names the cause of a candidate set difference).
     models: (the nodes' model_info, the offline extractor's); another descriptor space or head on
     one side is a difference too."""
     on_ranked, on_scores = online['ranked'], online['scores']
@@ -205,7 +198,14 @@ def compare(
                 f'{n_jump} because the landmark similarity S of one contender changed by a whole '
                 'mutual pair (a mutual-nearest-neighbour pair gained or lost)'
             )
-        if n_pre:
+        if n_pre and prefilter == 'landmarks':
+            parts.append(
+                f"{n_pre} at the landmark first stage (one answer is outside the other side's top-K): "
+                'past 20k landmarks both sides search an approximate IVF-PQ index, and the two are not '
+                "the same one: the matcher's was trained on its map when it reached that size (the "
+                "first ~400 keyframes), the evaluator's on every map frame at once"
+            )
+        elif n_pre:
             parts.append(
                 f'{n_pre} at the holistic prefilter boundary (one answer is outside the other '
                 "side's top-K; the global-descriptor cosines there differ in the 5th decimal)"
@@ -216,11 +216,10 @@ def compare(
             f'{len(differ)} of {q} queries have another top-1 online than offline ('
             + '; '.join(parts)
             + '). Not transport: both paths round features and descriptors to float16 at the same '
-            'places, but the backbone itself runs at another batch size online (1 frame) than in '
-            'the offline feature cache (a batch), and its kernels then differ in the last bits; a '
-            'value near a float16 rounding boundary can round the other way, and S is not '
-            'continuous in the descriptors (mutual nearest neighbours, offset mode), so where '
-            'neighbouring cells are almost identical (e.g. tiny upsampled frames) that flips a pair'
+            'places; where the backbone ran at another batch size (lln-eval caches features in '
+            "batches, the nodes and lln-demo's own cache fill one frame at a time) its kernels differ "
+            'in the last bits, a value near a float16 rounding boundary can round the other way, '
+            'and S is not continuous in the descriptors (mutual nearest neighbours, offset mode)'
         )
     if len(rel_all) and jumps:
         notes.append(
@@ -257,173 +256,4 @@ def compare(
         'score_rel_diff_median': float(np.median(rel)) if len(rel) else None,
         'score_rel_diff_max': float(rel.max()) if len(rel) else None,
         'notes': notes,
-    }
-
-
-def offline_extractor_conf(args) -> dict:
-    """The Extractor conf of the offline side: the nodes' method, top-n, runtime, weights, threads."""
-    from ..cli.common import runtime_conf
-
-    return {
-        'top_n': args.top_n,
-        'method': 'lln' if args.method == 'holistic' else args.method,
-        'num_threads': args.threads,
-        **runtime_conf(args),
-        'weights': str(Path(args.weights).expanduser().resolve()) if args.weights else '',
-    }
-
-
-def offline_cache_dir(args, out: Path) -> str:
-    return args.cache or str(out / 'cache' / 'features')
-
-
-def dataset_paths(ds) -> list[str]:
-    """Every distinct image of the dataset, as the evaluator lists them (refs, then queries)."""
-    return list(dict.fromkeys([str(p) for p in ds.ref_paths] + [str(p) for p in ds.query_paths]))
-
-
-FILL_CHUNK = 8  # images per claim (a claim is one lock round trip)
-# images per backbone call while filling: one, as the extractor nodes run it. With one thread, a
-# batch is no faster per image on a 2-core machine (slower: the activations of 8 frames leave the
-# caches), and the offline features then come from the same batch size as the online ones
-FILL_BATCH = 1
-
-
-def _claim(lock, front, back, from_back: bool) -> int | None:
-    """The next unclaimed chunk index from one end, or None when the two ends have met."""
-    with lock:
-        if front.value >= back.value:
-            return None
-        if from_back:
-            back.value -= 1
-            return back.value
-        front.value += 1
-        return front.value - 1
-
-
-def _fill_worker(paths, conf, cache_dir, lock, front, back, height) -> None:
-    """Worker process: chunks from the front into the cache until the ends meet."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle; it terminates us
-    from ..core.extractor import Extractor
-    from ..io.features import FeatureCache
-
-    cache = FeatureCache(cache_dir, Extractor(conf), batch_size=FILL_BATCH)
-    while (c := _claim(lock, front, back, False)) is not None:
-        cache.load(paths[c * FILL_CHUNK : (c + 1) * FILL_CHUNK], size=height)
-
-
-class CacheFill:
-    """The offline feature cache filled by a worker process while the online run goes on.
-
-    fill = CacheFill(paths, conf, cache_dir); ...online run...; fill.finish(extractor) fills what is
-    left from the back in this process (the worker still going from the front) and waits for the
-    worker; fill.stop() ends the worker early (errors, Ctrl-C). Entries already in the cache are
-    only read, so a warm cache costs a pass over the file digests."""
-
-    def __init__(self, paths: list[str], conf: dict, cache_dir: str):
-        from ..core.extractor import default_conf
-
-        ctx = multiprocessing.get_context('spawn')  # no fork of a process that runs DDS threads
-        self.paths, self.cache_dir = paths, cache_dir
-        self.height = int(conf.get('input_height', default_conf['input_height']))
-        self.chunks = -(-len(paths) // FILL_CHUNK)
-        self._lock = ctx.Lock()
-        self._front = ctx.Value('i', 0, lock=False)  # guarded by _lock
-        self._back = ctx.Value('i', self.chunks, lock=False)
-        self.started = time.monotonic()
-        self.proc = ctx.Process(
-            target=_fill_worker,
-            args=(paths, conf, cache_dir, self._lock, self._front, self._back, self.height),
-            name='lln-demo-cache-fill',
-            daemon=True,
-        )
-        self.proc.start()
-
-    def progress(self) -> int:
-        """Chunks claimed so far (worker and this process)."""
-        with self._lock:
-            return self._front.value + self.chunks - self._back.value
-
-    def finish(self, extractor) -> dict:
-        """Fill the rest from the back (here), wait for the worker; what each side did."""
-        from ..io.features import FeatureCache
-
-        with self._lock:
-            worker_before = self._front.value
-        t = time.monotonic()
-        cache = FeatureCache(self.cache_dir, extractor, batch_size=FILL_BATCH)
-        mine = 0
-        while (c := _claim(self._lock, self._front, self._back, True)) is not None:
-            cache.load(self.paths[c * FILL_CHUNK : (c + 1) * FILL_CHUNK], size=self.height)
-            mine += 1
-        self.proc.join()
-        with self._lock:
-            worker = self._front.value
-        return {
-            'images': len(self.paths),
-            'chunk': FILL_CHUNK,
-            'batch': FILL_BATCH,
-            'chunks_by_worker_during_online': worker_before,
-            'chunks_by_worker_after': worker - worker_before,
-            'chunks_by_main_after': mine,
-            'worker_exit': self.proc.exitcode,
-            'tail_seconds': time.monotonic() - t,
-        }
-
-    def stop(self) -> None:
-        if self.proc.is_alive():
-            self.proc.terminate()
-            self.proc.join(5)
-
-
-def run_offline(ds, spec: str, args, out: Path, log, fill: CacheFill | None = None) -> dict:
-    """The same dataset through lln-eval's code (evaluate) with the nodes' method, top-n and
-    prefilter-k, into out/offline; the ranking and summary of its one row. fill: the cache filled
-    beside the online run, finished here before the evaluator reads it."""
-    from ..core.extractor import Extractor
-    from .runner import evaluate
-
-    extractor = Extractor(offline_extractor_conf(args))
-    t = time.monotonic()
-    fill_report = None
-    if fill is not None:
-        done = fill.progress()
-        log(
-            f'lln-demo: offline: {done} of {fill.chunks} feature chunks ({FILL_CHUNK} images each) were '
-            'filled beside the online run; the rest now from both ends'
-        )
-        fill_report = fill.finish(extractor)
-    conf = {
-        'methods': [args.method],
-        'top_n': args.top_n,
-        'prefilter': args.prefilter,
-        'prefilter_k': args.prefilter_k,
-        'timing_images': 3,
-        'timing_queries': 5,
-        'timing_repeats': 1,
-        'examples': args.examples,
-        'heatmap_images': 4,
-        'cache_dir': offline_cache_dir(args, out),
-        'plots': True,
-        'progress': not args.quiet,
-    }
-    command = (
-        f'lln-eval --dataset {shlex.quote(spec)} --methods {args.method} --top-n {args.top_n} '
-        f'--prefilter {args.prefilter} --prefilter-k {args.prefilter_k} --out {shlex.quote(str(out / "offline"))}'
-    )
-    run = evaluate([ds], extractor, conf, None, out / 'offline', specs=[spec], command=command, log=log)
-    name = next(iter(run.datasets))
-    row = next(iter(run.datasets[name].rankings))
-    ranked, scores = run.datasets[name].rankings[row]
-    entry = run.results['datasets'][name]['methods'][row]
-    return {
-        'ranked': ranked,
-        'scores': scores,
-        'row': row,
-        'summary': {key: entry[key] for key, _ in METRICS},
-        'entry': entry,
-        'seconds': time.monotonic() - t,
-        'cache_fill': fill_report,
-        'model': extractor.model_info,
-        'results': str(out / 'offline' / 'results.json'),
     }
