@@ -40,8 +40,13 @@ def plot_matches(
     # the image row as tall as the wider-than-tall panels need (no blank band above the key)
     aspect = max(image_a.shape[0] / image_a.shape[1], image_b.shape[0] / image_b.shape[1])
     image_h = 5.9 * aspect
-    fig = plt.figure(figsize=(12, image_h + 1.7), dpi=110)
-    grid = fig.add_gridspec(3, 2, height_ratios=[image_h, 0.22, 0.22], hspace=0.35 / max(image_h, 1) * 6, wspace=0.04)
+    title_h = 0.25 + 0.2 * (title.count('\n') + 1) if title else 0.1  # inches above the panel titles
+    fig_h = image_h + 1.9 + title_h
+    heights = [image_h, 0.22, 0.22]
+    grid = plt.figure(figsize=(12, fig_h), dpi=110).add_gridspec(
+        3, 2, height_ratios=heights, hspace=0.25 / (sum(heights) / 3), wspace=0.04, top=1 - title_h / fig_h, bottom=0.08
+    )
+    fig = grid.figure
     axes = [fig.add_subplot(grid[0, 0]), fig.add_subplot(grid[0, 1])]
     has_heat = False
     for ax, img, s, label in ((axes[0], image_a, a, labels[0]), (axes[1], image_b, b, labels[1])):
@@ -99,7 +104,7 @@ def plot_matches(
             label='landmark score (LLN activation, 0 .. max of each image; 0 = no tint)',
         )
     if title:
-        fig.suptitle(title, fontsize=10)
+        fig.suptitle(title, fontsize=10, y=1 - 0.1 / fig_h, va='top')
     fig.savefig(path, bbox_inches='tight')
     plt.close(fig)
 

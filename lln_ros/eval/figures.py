@@ -164,7 +164,14 @@ def plot_recall_at_k(run, gt: np.ndarray, prefilter_k: int, path) -> None:
     colours = _colours(list(run.rankings))
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=110)
     ks = np.arange(1, len(run.recall_curve) + 1)
-    ax.plot(ks, run.recall_curve, '-o', ms=2.5, color=colours.get('holistic', 'tab:gray'), label='holistic')
+    ax.plot(
+        ks,
+        run.recall_curve,
+        '-o',
+        ms=2.5,
+        color=colours.get('holistic', 'tab:gray'),
+        label='holistic (global descriptor ranking)',
+    )
     for row, (ranked, _) in run.rankings.items():
         if row == 'holistic':
             continue
@@ -175,11 +182,10 @@ def plot_recall_at_k(run, gt: np.ndarray, prefilter_k: int, path) -> None:
             '--',
             lw=1,
             color=colours[row],
-            label=f'{row} (reranked top-{ranked.shape[1]})',
+            label=f'{row} (its first-stage top-{ranked.shape[1]}, reranked)',
         )
     if prefilter_k:  # 0: exhaustive, no cut-off to mark
-        ax.axvline(prefilter_k, color='k', lw=0.8, ls=':')
-        ax.text(prefilter_k, 0.02, f' K = {prefilter_k}', fontsize=8)
+        ax.axvline(prefilter_k, color='k', lw=0.8, ls=':', label=f'K = {prefilter_k}: candidates reranked')
     ax.set_ylim(0, 1.02)
     ax.set_xlabel('K (candidates)')
     ax.set_ylabel('recall@K')
