@@ -66,7 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument(
         '--glob',
         metavar='PATTERN',
-        help="only the files of DIR matching PATTERN, e.g. '*.jpg' (default: every image file)",
+        help="only the files of DIR matching PATTERN, e.g. '*.jpg' (default: the image files of its most "
+        'common kind; the others are skipped and counted on stderr)',
     )
     f.add_argument('--topic', default=DEFAULT_TOPIC, help=f'image topic (default {DEFAULT_TOPIC})')
     f.add_argument('--fps', type=_positive, default=10.0, metavar='HZ', help='frames per second (default 10)')
