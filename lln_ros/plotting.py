@@ -41,13 +41,14 @@ def plot_matches(
     aspect = max(image_a.shape[0] / image_a.shape[1], image_b.shape[0] / image_b.shape[1])
     image_h = 5.9 * aspect
     title_h = 0.25 + 0.2 * (title.count('\n') + 1) if title else 0.1  # inches above the panel titles
-    fig_h = image_h + 1.9 + title_h
-    heights = [image_h, 0.22, 0.22]
-    grid = plt.figure(figsize=(12, fig_h), dpi=110).add_gridspec(
-        3, 2, height_ratios=heights, hspace=0.25 / (sum(heights) / 3), wspace=0.04, top=1 - title_h / fig_h, bottom=0.08
-    )
-    fig = grid.figure
-    axes = [fig.add_subplot(grid[0, 0]), fig.add_subplot(grid[0, 1])]
+    fig_h = image_h + 1.2 + title_h
+    fig = plt.figure(figsize=(12, fig_h), dpi=110)
+    # the images on top; under them the key, the similarity colour bar and the score colour bar
+    rows = fig.add_gridspec(2, 1, height_ratios=[image_h, 0.3], hspace=0.45 / ((image_h + 0.3) / 2))
+    rows.update(top=1 - title_h / fig_h, bottom=0.1)
+    top = rows[0].subgridspec(1, 2, wspace=0.04)
+    bottom = rows[1].subgridspec(1, 3, width_ratios=[1.15, 1, 1], wspace=0.15)
+    axes = [fig.add_subplot(top[0, 0]), fig.add_subplot(top[0, 1])]
     has_heat = False
     for ax, img, s, label in ((axes[0], image_a, a, labels[0]), (axes[1], image_b, b, labels[1])):
         ax.imshow(img)
@@ -87,21 +88,21 @@ def plot_matches(
         Patch(fill=False, ec=cmap(0.8), lw=1.5, label='a landmark in a mutual pair'),
         Line2D([], [], color=cmap(0.8), lw=1.0, label=f'mutual pair ({shown} strongest; faint = off the offset mode)'),
     ]
-    key = fig.add_subplot(grid[1:, 0])
+    key = fig.add_subplot(bottom[0, 0])
     key.set_axis_off()
     key.legend(handles=handles, loc='center left', fontsize=8, frameon=False)
     fig.colorbar(
         ScalarMappable(Normalize(0, 1), cmap),
-        cax=fig.add_subplot(grid[1, 1]),
+        cax=fig.add_subplot(bottom[0, 1]),
         orientation='horizontal',
-        label='pair similarity (cosine of the two descriptors)',
+        label='pair similarity (descriptor cosine)',
     )
     if has_heat:
         fig.colorbar(
             ScalarMappable(Normalize(0, 1), ACTIVATION_CMAP),
-            cax=fig.add_subplot(grid[2, 1]),
+            cax=fig.add_subplot(bottom[0, 2]),
             orientation='horizontal',
-            label='landmark score (LLN activation, 0 .. max of each image; 0 = no tint)',
+            label='tint: LLN activation / its max per image',
         )
     if title:
         fig.suptitle(title, fontsize=10, y=1 - 0.1 / fig_h, va='top')
