@@ -6,7 +6,8 @@ beside its best keyframe, matched regions outlined and linked, as `lln-match --p
 `matches` is the matcher's `matches` table (lln_ros.msgs.cloud_to_matches): query_u, query_v, map_u,
 map_v, cell_w, cell_h (pixels of each image), similarity, weight. Line colour = similarity
 (viridis, dark = low), thick lines = pairs consistent with the offset mode (weight >= 0.5).
-Images are BGR uint8 (H, W, 3).
+The panels are labelled (query / map keyframe) and a key strip under them gives the similarity
+colour scale and what the thick and thin lines mean. Images are BGR uint8 (H, W, 3).
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ import numpy as np
 
 PANEL_HEIGHT = 360  # each image is scaled to this height on the canvas
 CAPTION_HEIGHT = 22  # pixels per caption line above the images
+LEGEND_HEIGHT = 24  # the key strip under the images
+PANEL_LABELS = ('query', 'map keyframe')
 
 
 def _fit(image: np.ndarray | None, height: int, original_height: int | None) -> tuple[np.ndarray, float]:
@@ -46,7 +49,8 @@ def draw_match_overlay(
     height: int = PANEL_HEIGHT,
     original_heights: tuple = (None, None),
 ) -> np.ndarray:
-    """BGR uint8 canvas (CAPTION_HEIGHT * len(caption) + height, Wq + Wk, 3): query left, keyframe right.
+    """BGR uint8 canvas (CAPTION_HEIGHT * len(caption) + height + LEGEND_HEIGHT, Wq + Wk, 3): query
+    left, keyframe right, each labelled in its top-left corner, the key strip at the bottom.
 
     keyframe None (its image was never seen, e.g. a map built by another run): a grey panel that
     says so, and the query's matched regions are still outlined. At most `max_links` pairs are drawn,
@@ -56,10 +60,11 @@ def draw_match_overlay(
     left, sq = _fit(query, height, original_heights[0])
     right, sk = _fit(keyframe, height, original_heights[1])
     top = CAPTION_HEIGHT * len(caption)
-    canvas = np.zeros((top + height, left.shape[1] + right.shape[1], 3), np.uint8)
-    canvas[top:, : left.shape[1]] = left
-    canvas[top:, left.shape[1] :] = right
+    canvas = np.zeros((top + height + LEGEND_HEIGHT, left.shape[1] + right.shape[1], 3), np.uint8)
+    canvas[top : top + height, : left.shape[1]] = left
+    canvas[top : top + height, left.shape[1] :] = right
     dx = left.shape[1]
+    draw_key(canvas[top + height :])
     if keyframe is None:
         cv2.putText(
             canvas,
@@ -83,6 +88,7 @@ def draw_match_overlay(
             cv2.LINE_AA,
         )
     if len(matches) == 0:
+        label_panels(canvas, top, dx)
         return canvas
     order = np.argsort(-(matches['weight'] * matches['similarity']))[:max_links]
     colours = similarity_colours(matches['similarity'])
@@ -115,4 +121,34 @@ def draw_match_overlay(
         cv2.line(canvas, (round(q[0]), round(q[1])), (round(k[0]), round(k[1])), colour, thickness, cv2.LINE_AA)
         for end in (q, k):
             cv2.circle(canvas, (round(end[0]), round(end[1])), 3, colour, -1, cv2.LINE_AA)
+    label_panels(canvas, top, dx)
     return canvas
+
+
+def _text(canvas: np.ndarray, text: str, origin: tuple, scale: float = 0.45) -> int:
+    """White text on a dark box at origin (left, baseline); returns the x after it."""
+    (w, h), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+    x, y = origin
+    cv2.rectangle(canvas, (x - 2, y - h - 3), (x + w + 2, y + base), (0, 0, 0), -1)
+    cv2.putText(canvas, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
+    return x + w
+
+
+def label_panels(canvas: np.ndarray, top: int, dx: int) -> None:
+    """'query' and 'map keyframe' in the top-left corners of the two panels (drawn last: on top)."""
+    for x, label in zip((4, dx + 4), PANEL_LABELS):
+        _text(canvas, label, (x, top + 16))
+
+
+def draw_key(strip: np.ndarray) -> None:
+    """The key under the images, in place: the similarity colour bar 0..1 and the line styles."""
+    h = strip.shape[0]
+    x = _text(strip, 'similarity 0', (4, h - 8)) + 6
+    bar = similarity_colours(np.linspace(0, 1, 100))
+    for i, colour in enumerate(bar):
+        cv2.line(strip, (x + i, 5), (x + i, h - 6), tuple(int(c) for c in colour), 1)
+    x = _text(strip, '1', (x + len(bar) + 4, h - 8)) + 14
+    cv2.line(strip, (x, h // 2), (x + 20, h // 2), (200, 200, 200), 2, cv2.LINE_AA)
+    x = _text(strip, 'offset-consistent pair', (x + 26, h - 8)) + 14
+    cv2.line(strip, (x, h // 2), (x + 20, h // 2), (200, 200, 200), 1, cv2.LINE_AA)
+    _text(strip, 'other mutual pair (boxes: the matched regions)', (x + 26, h - 8))

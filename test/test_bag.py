@@ -79,7 +79,7 @@ def test_natural_sort_and_list_images(tmp_path):
 def test_from_images_raw_roundtrip(tmp_path, capsys):
     paths = make_images(tmp_path / 'imgs', 12)
     out = tmp_path / 'bag'
-    assert cli('from-images', tmp_path / 'imgs', out, '--rate', 4, '--frame-id', 'cam0') == 0
+    assert cli('from-images', tmp_path / 'imgs', out, '--fps', 4, '--frame-id', 'cam0') == 0
     assert 'wrote 12 images' in capsys.readouterr().out
     # rosbags + rclpy deserialisation
     got = list(bag.read_messages(out))
@@ -173,9 +173,12 @@ def test_write_bag_any_message_type(tmp_path):
 @pytest.mark.parametrize('compressed', [False, True])
 def test_from_images_rtabmap_loop(tmp_path, compressed, capsys):
     out = tmp_path / 'rtabmap'
-    args = ['from-images', RTABMAP, out, '--rate', 2, '--glob', '*.jpg'] + (['--compressed'] if compressed else [])
+    # no --glob: the ground-truth bitmap samples_GT.bmp beside the .jpg frames is skipped and said so
+    args = ['from-images', RTABMAP, out, '--fps', 2] + (['--compressed'] if compressed else [])
     assert cli(*args) == 0
-    assert 'wrote 84 images' in capsys.readouterr().out
+    captured = capsys.readouterr()
+    assert 'wrote 84 images' in captured.out
+    assert '84 frames; skipped' in captured.err and 'samples_GT.bmp' in captured.err
     got = list(bag.read_messages(out))
     assert len(got) == 84
     for i, (_, msg, stamp) in enumerate(got):
@@ -191,11 +194,61 @@ def test_from_images_rtabmap_loop(tmp_path, compressed, capsys):
     assert len(mcap_messages(out)) == 84
 
 
-def test_from_images_without_glob_warns_about_mixed_folder(tmp_path, capsys):
+def test_from_images_skips_other_files_and_counts_them(tmp_path, capsys):
     make_images(tmp_path / 'imgs', 3, suffix='.jpg')
-    cv2.imwrite(str(tmp_path / 'imgs' / 'gt.bmp'), np.zeros((8, 8), np.uint8))
+    cv2.imwrite(str(tmp_path / 'imgs' / 'gt.bmp'), np.zeros((8, 8), np.uint8))  # a ground-truth bitmap
+    (tmp_path / 'imgs' / 'notes.txt').write_text('not an image')
     assert cli('from-images', tmp_path / 'imgs', tmp_path / 'bag') == 0
-    assert 'mixes .bmp, .jpg' in capsys.readouterr().err
+    out, err = capsys.readouterr()
+    assert 'wrote 3 images' in out
+    assert err.strip() == (
+        f'lln-bag: {tmp_path / "imgs"}: 3 frames; skipped 2 files: 1 not an image (notes.txt), '
+        '1 .bmp beside the .jpg frames (gt.bmp; --glob picks the frames explicitly)'
+    )
+    assert [msg.width for _, msg, _ in bag.read_messages(tmp_path / 'bag')] == [64] * 3  # gt.bmp is 8 wide
+    # --glob names the frames: every match is one, other files are not reported as skipped kinds
+    assert cli('from-images', tmp_path / 'imgs', tmp_path / 'bag2', '--glob', '*.bmp') == 0
+    assert 'wrote 1 images' in capsys.readouterr().out
+    paths, skipped = bag.frame_images(tmp_path / 'imgs')
+    assert [p.name for p in paths] == ['1.jpg', '2.jpg', '3.jpg']
+    assert skipped == {'not_image': ['notes.txt'], 'other_kind': ['gt.bmp'], 'kind': '.jpg'}
+
+
+def test_from_images_a_clean_folder_says_nothing_on_stderr(tmp_path, capsys):
+    make_images(tmp_path / 'imgs', 2)
+    assert cli('from-images', tmp_path / 'imgs', tmp_path / 'bag') == 0
+    assert capsys.readouterr().err == ''
+
+
+def test_from_images_rate_is_the_old_name_of_fps(tmp_path, capsys):
+    make_images(tmp_path / 'imgs', 3)
+    assert cli('from-images', tmp_path / 'imgs', tmp_path / 'bag', '--rate', 2) == 0
+    captured = capsys.readouterr()
+    assert 'lln-bag from-images: note: --rate is deprecated here, use --fps' in captured.err
+    assert '2 Hz' in captured.out
+    stamps = [t for _, _, t in bag.read_messages(tmp_path / 'bag')]
+    assert np.diff(stamps).tolist() == [500_000_000] * 2
+
+
+def test_play_speed_and_its_ros2_spelling_are_one_option():
+    from lln_ros.cli.bag import build_parser
+
+    for flag in ('--speed', '-r', '--rate'):
+        assert build_parser().parse_args(['play', 'b', flag, '3']).speed == 3.0
+    assert build_parser().parse_args(['play', 'b']).speed == 1.0
+    assert build_parser().parse_args(['from-images', 'd', 'o']).fps == 10.0
+
+
+def test_a_directory_given_as_an_image_says_so(tmp_path):
+    from lln_ros.io.image import load_image
+
+    (tmp_path / 'frames.png').mkdir()
+    with pytest.raises(ImageError, match='is a directory, not an image file'):
+        bag.write_image_bag([tmp_path / 'frames.png'], tmp_path / 'b')
+    with pytest.raises(ImageError, match='is a directory, not an image file'):
+        load_image(str(tmp_path / 'frames.png'))
+    with pytest.raises(ImageError, match='image file not found'):
+        load_image(str(tmp_path / 'missing.png'))
 
 
 # ---------------------------------------------------------------- errors
@@ -224,8 +277,8 @@ def test_from_images_errors(tmp_path, capsys):
     assert_cli_error(capsys, ['from-images', tmp_path / 'good', tmp_path / 'b4'], 'already exists')
     with pytest.raises(ImageError):
         bag.write_image_bag([tmp_path / 'bad' / '3.png'], tmp_path / 'b5')
-    with pytest.raises(SystemExit):  # argparse: rate must be positive
-        cli('from-images', tmp_path / 'good', tmp_path / 'b6', '--rate', 0)
+    with pytest.raises(SystemExit):  # argparse: fps must be positive
+        cli('from-images', tmp_path / 'good', tmp_path / 'b6', '--fps', 0)
 
 
 def test_bag_errors(tmp_path, capsys):
@@ -340,13 +393,13 @@ def test_play_into_subscriber_in_order(tmp_path):
         '/replayed/image',
         'sensor_msgs/msg/Image',
         10,
-        ['--rate', 10, '--topic-remap', '/camera/image_raw:=/replayed/image'],
+        ['--speed', 10, '--topic-remap', '/camera/image_raw:=/replayed/image'],
     )
     assert time.monotonic() - t0 < 60
     assert [{k: g[k] for k in ('stamp', 'frame_id', 'sha1')} for g in got] == want
     assert all(g['size'] == [160, 120] for g in got)
     span = got[-1]['t'] - got[0]['t']
-    assert span >= 4.5 / 10 * 0.8, span  # recorded timing divided by the rate, never faster
+    assert span >= 4.5 / 10 * 0.8, span  # recorded timing divided by the speed, never faster
     assert span < 4.5 / 2, span  # and clearly faster than real time
     assert 'published 10 messages' in log
 

@@ -181,10 +181,16 @@ def test_bad_input_exits_2_before_anything_runs(tiny_dataset, tmp_path, capsys, 
     assert not out.exists(), 'nothing is written for bad input'
 
 
+def test_rate_is_the_old_name_of_fps(capsys):
+    assert demo.build_parser().parse_args(['--out', 'o', '--rate', '4']).fps == 4.0
+    assert 'lln-demo: note: --rate is deprecated here, use --fps' in capsys.readouterr().err
+    assert demo.build_parser().parse_args(['--out', 'o']).fps is None  # paced
+
+
 @pytest.mark.parametrize(
     'args',
-    [['--rate', '0'], ['--rate', '-3'], ['--method', 'nope'], []],
-    ids=['rate-zero', 'rate-negative', 'method', 'no-out'],
+    [['--fps', '0'], ['--fps', '-3'], ['--rate', '0'], ['--method', 'nope'], []],
+    ids=['fps-zero', 'fps-negative', 'old-rate-zero', 'method', 'no-out'],
 )
 def test_bad_arguments_exit_2(tmp_path, capsys, args):
     argv = args + (['--out', str(tmp_path / 'o')] if args else [])
@@ -308,7 +314,7 @@ def _gone(pid: int) -> bool:
 def test_ctrl_c_stops_every_node(tiny_dataset, tmp_path):
     # played at 1 Hz, so the run lasts long enough for the interrupt to land mid-run on any machine
     proc = subprocess.Popen(
-        [*DEMO, '--dataset', tiny_dataset, '--out', str(tmp_path / 'out'), '--no-offline', '--rate', '1'],
+        [*DEMO, '--dataset', tiny_dataset, '--out', str(tmp_path / 'out'), '--no-offline', '--fps', '1'],
         cwd=REPO,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -359,3 +365,117 @@ def test_nordland_slice_through_the_nodes(tmp_path, prefilter):
     assert r['comparison']['agree'], r['comparison']
     for key, _ in demo.METRICS:
         assert r['online'][key] == r['offline'][key], key
+
+
+# ------------------------------------------------------------------ the offline side's feature cache
+
+
+def offline_args(tmp_path, **kw):
+    import argparse
+
+    base = dict(top_n=50, method='lln', threads=1, runtime=None, weights='', cache=str(tmp_path / 'cache'))
+    base.update(quiet=True, prefilter='landmarks', prefilter_k=100, examples=1)
+    return argparse.Namespace(**{**base, **kw})
+
+
+def test_offline_worker_fills_from_both_ends_the_evaluators_cache(tiny_dataset, tmp_path, extractor):
+    """The worker fills from the front, this process from the back once asked to finish; together
+    they leave every image's entry, equal to what the evaluator's FeatureCache computes."""
+    from lln_ros.eval.demo_offline import CHUNK, OfflineRun
+    from lln_ros.io.datasets import aligned
+    from lln_ros.io.features import FeatureCache, file_digest
+
+    _, _, rest = tiny_dataset.partition(':')
+    ds = aligned(*rest.split(',')[:2], 0)
+    paths = [str(p) for p in ds.ref_paths] + [str(p) for p in ds.query_paths]
+    assert len(paths) == 2 * FRAMES
+    job = OfflineRun(ds, tiny_dataset, offline_args(tmp_path), tmp_path / 'out', job=False)
+    report = job.finish(extractor)['cache_fill']
+    parts = ('chunks_by_worker_during_online', 'chunks_by_worker_after', 'chunks_by_main_after')
+    assert sum(report[key] for key in parts) == -(-len(paths) // CHUNK)
+    stored = [FeatureCache(tmp_path / 'cache', extractor)._path(file_digest(p), 288) for p in paths]
+    assert all(p.is_file() for p in stored)
+    fresh = FeatureCache(tmp_path / 'fresh', extractor).load(paths)
+    for p, want in zip(stored, fresh):
+        np.testing.assert_allclose(np.load(p).astype(np.float32), want.astype(np.float32), atol=2e-2)
+    # a warm cache: the second pass only reads digests, and stop() on a finished worker is harmless
+    again = OfflineRun(ds, tiny_dataset, offline_args(tmp_path), tmp_path / 'out', job=False)
+    assert again.finish(extractor)['cache_fill']['images'] == len(paths)
+    again.stop()
+
+
+def test_offline_worker_evaluates_as_lln_eval_does(tiny_dataset, tmp_path, extractor):
+    """The worker's evaluation is runner.evaluate's: the same ranking as run here, results.json
+    written; a failing evaluation comes back as the worker's one-line error."""
+    from lln_ros.eval.demo_offline import OfflineRun, run_offline
+    from lln_ros.io.datasets import aligned
+
+    _, _, rest = tiny_dataset.partition(':')
+    ds = aligned(*rest.split(',')[:2], 0)
+    args = offline_args(tmp_path, prefilter='holistic', prefilter_k=5)
+    beside = run_offline(
+        ds, tiny_dataset, args, tmp_path / 'a', lambda m: None, OfflineRun(ds, tiny_dataset, args, tmp_path / 'a')
+    )
+    here = run_offline(ds, tiny_dataset, args, tmp_path / 'b', lambda m: None)
+    np.testing.assert_array_equal(beside['ranked'], here['ranked'])
+    assert beside['summary'] == here['summary'] and (tmp_path / 'a' / 'offline' / 'results.json').is_file()
+    assert beside['cache_fill'] and here['cache_fill'] is None
+    dying = OfflineRun(ds, tiny_dataset, args, tmp_path / 'c')
+    dying.proc.kill()  # long before it has loaded its model
+    with pytest.raises(RuntimeError, match='the offline worker died'):
+        run_offline(ds, tiny_dataset, args, tmp_path / 'c', lambda m: None, dying)
+
+
+def test_examples_are_spread_along_the_route_and_skip_dark_frames(tmp_path):
+    """pick_examples: one success per stretch of the route, the most confident informative one;
+    black and flat frames are passed over even when they score highest."""
+    from lln_ros.eval.figures import informative, pick_examples
+
+    rng = np.random.default_rng(1)
+    q = 40
+    paths = []
+    for i in range(q):
+        if i % 10 == 0:  # near-black
+            img = rng.integers(0, 20, (48, 64, 3)).astype(np.uint8)
+        elif i % 10 == 1:  # flat grey
+            img = np.full((48, 64, 3), 128, np.uint8)
+        else:
+            img = rng.integers(0, 256, (48, 64, 3)).astype(np.uint8)
+        paths.append(tmp_path / f'{i}.png')
+        cv2.imwrite(str(paths[-1]), img)
+    assert not informative(paths[0]) and not informative(paths[1]) and informative(paths[2])
+    gt = np.eye(q, dtype=bool)
+    ranked = np.arange(q)[:, None].repeat(3, 1)
+    wrong = np.arange(q) % 4 == 3  # every 4th query answered with another place
+    ranked[wrong, 0] = (np.arange(q)[wrong] + 5) % q
+    scores = np.zeros((q, 3), np.float32)
+    scores[:, 0] = np.linspace(1, 2, q)
+    scores[::10, 0] = 100.0  # the dark frames score highest: they must not win
+    picked = pick_examples(ranked, scores, gt, paths, 4)
+    assert len(picked['success']) == 4 and len(picked['failure']) == 4
+    for kind, queries in picked.items():
+        assert all(informative(paths[i]) for i in queries), (kind, queries)
+        # one per stretch of 10: the most confident informative one is the last of its stretch
+        assert [i // 10 for i in queries] == [0, 1, 2, 3], (kind, queries)
+    assert all(not wrong[i] for i in picked['success']) and all(wrong[i] for i in picked['failure'])
+    assert picked['success'] == [9, 18, 29, 38] and picked['failure'] == [7, 19, 27, 39]
+
+
+def test_backlog_counts_what_the_next_node_has_not_taken_and_writes_off_a_stall():
+    from lln_ros.cli.demo_nodes import Backlog
+
+    sent, done = [5], [2]
+    b = Backlog(lambda: sent[0], lambda: done[0], stall=0.3)
+    assert b() == 3
+    done[0] = 5
+    assert b() == 0
+    sent[0] = 9
+    assert b() == 4  # done moved just now: still waiting
+    time.sleep(0.4)
+    assert b() == 0  # done has not moved for the stall time: the 4 are written off as lost
+    sent[0] = 12
+    assert b() == 3  # and the frames after them are limited again, not waved through
+    done[0] = 12  # the written-off ones arrived after all: they are taken back
+    assert b() == 0
+    sent[0] = 20
+    assert b() == 8  # no write-off left to hide an outstanding frame

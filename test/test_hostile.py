@@ -219,7 +219,7 @@ def test_matcher_map_under_a_regular_file_is_fatal_naming_it(rig, tmp_path):
 
 def test_matcher_bad_model_record_is_fatal_and_explained(rig, places, tmp_path):
     """A model record that a poisoning model_info wrote before (descriptor_dim -5): the matcher exits
-    naming the record; lln-map info and check explain it (exit 1, no traceback)."""
+    naming the record; lln-map info (exit 2) and check (exit 1) explain it, no traceback."""
     map_path = tmp_path / 'map.db'
     with MapStore(map_path, model=places['model']) as store:
         store.add(places['sets'][0], (1, 2))
@@ -233,7 +233,8 @@ def test_matcher_bad_model_record_is_fatal_and_explained(rig, places, tmp_path):
         out = subprocess.run(
             [sys.executable, '-m', 'lln_ros.cli.map', command, str(map_path)], capture_output=True, text=True
         )
-        assert out.returncode == 1 and 'Traceback' not in out.stdout + out.stderr
+        # info: bad input, exit 2; check: its finding, exit 1 (the lln-map exit contract)
+        assert out.returncode == (2 if command == 'info' else 1) and 'Traceback' not in out.stdout + out.stderr
         assert 'bad model record' in out.stdout + out.stderr
 
 

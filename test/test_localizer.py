@@ -337,7 +337,7 @@ def test_map_path_under_a_regular_file_names_the_map(tmp_path):
 
 def test_bad_model_record_is_explained(map_path, rng):
     """A model record that is not a valid model (written by an old version or by hand): opening names
-    the record and the problem, as does lln-map info/check (exit 1, no traceback)."""
+    the record and the problem, as do lln-map info (exit 2) and check (exit 1), no traceback."""
     with MapStore(map_path, model=MODEL) as store:
         store.add(make_set(rng), (1, 2))
     with sqlite3.connect(map_path) as con:
@@ -349,7 +349,8 @@ def test_bad_model_record_is_explained(map_path, rng):
         out = subprocess.run(
             [sys.executable, '-m', 'lln_ros.cli.map', command, str(map_path)], capture_output=True, text=True
         )
-        assert out.returncode == 1 and 'Traceback' not in out.stderr + out.stdout, out
+        # info: bad input, exit 2; check: its finding, exit 1 (the lln-map exit contract)
+        assert out.returncode == (2 if command == 'info' else 1) and 'Traceback' not in out.stderr + out.stdout, out
         assert 'bad model record' in out.stderr + out.stdout and 'descriptor_dim' in out.stderr + out.stdout
 
 

@@ -206,7 +206,7 @@ def test_cli_export_import_between_backends(tmp_path, rng, request, target):
     info = json.loads(run_cli('info', '--json', milvus).stdout)
     assert info['keyframes'] == 14 and info['backend'] == 'milvus'
     assert 'healthy' in run_cli('check', milvus).stdout
-    assert run_cli('export', str(src), milvus, check=False).returncode == 1  # ids taken: refused
+    assert run_cli('export', str(src), milvus, check=False).returncode == 2  # ids taken: refused (bad input)
 
 
 def test_cli_info_check_compact(tmp_path, rng):

@@ -1,7 +1,9 @@
 """The persistent map (lln_ros.mapstore): real SQLite files, landmark sets of realistic shapes
 (n=50, D=320, a 9x12 grid at 384x288) made with numpy."""
 
+import json
 import os
+import re
 import signal
 import sqlite3
 import subprocess
@@ -459,3 +461,69 @@ def test_acknowledged_keyframes_survive_kill_9(map_path, tmp_path):
         assert len(ids) - len(acked) <= 1  # at most the one in flight, committed but not yet printed
         assert store.check() == []
         assert store.get(acked[-1]).descriptors.shape == (50, 320)
+
+
+# ---------------------------------------------------------------- lln-map: the exit contract
+
+
+def lln_map(capsys, *args):
+    from lln_ros.cli.map import main
+
+    status = main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def assert_bad_input(capsys, args, match):
+    status, out, err = lln_map(capsys, *args)
+    assert status == 2, (status, out, err)
+    assert err.startswith('lln-map: error: ') and match in err and err.count('\n') == 1, err
+    assert 'create=False' not in err and 'Traceback' not in err
+
+
+def test_lln_map_bad_input_exits_2_with_one_line(tmp_path, rng, capsys):
+    missing = tmp_path / 'missing.db'
+    for command in ('info', 'check', 'compact'):
+        assert_bad_input(capsys, [command, missing], f'{missing}: no such map file')
+    assert_bad_input(capsys, ['export', missing, tmp_path / 'dest.db'], f'{missing}: no such map file')
+    assert not (tmp_path / 'dest.db').exists()  # nothing created for a copy that cannot start
+    assert_bad_input(capsys, ['import', tmp_path / 'dest.db', missing], f'{missing}: no such map file')
+    (tmp_path / 'folder').mkdir()
+    assert_bad_input(capsys, ['info', tmp_path / 'folder'], 'is a directory, not a map file')
+    (tmp_path / 'notes.db').write_text('not a map')
+    assert_bad_input(capsys, ['info', tmp_path / 'notes.db'], 'is not an lln_ros map')
+    assert_bad_input(capsys, ['info', 'milvus://:bad'], 'Milvus map URI must look like')
+    lite = tmp_path / 'nolite.db'
+    assert_bad_input(capsys, ['info', f'milvus-lite://{lite}'], f'no such Milvus Lite map ({lite} does not exist)')
+    # a copy the destination refuses: another model
+    with MapStore(tmp_path / 'a.db', model=MODEL) as store:
+        store.add(make_set(rng), (1, 0))
+    with MapStore(tmp_path / 'b.db', model=OTHER_MODEL) as store:
+        store.add(make_set(rng, dim=OTHER_MODEL['descriptor_dim'], space=OTHER_MODEL['descriptor_space']), (1, 0))
+    status, _, err = lln_map(capsys, 'export', tmp_path / 'a.db', tmp_path / 'b.db')
+    assert status == 2 and err.startswith('lln-map: error: ') and err.count('\n') == 1, err
+
+
+def test_lln_map_check_exits_1_with_its_findings(tmp_path, capsys):
+    (tmp_path / 'notes.db').write_text('not a map')
+    status, out, _ = lln_map(capsys, 'check', tmp_path / 'notes.db')
+    assert status == 1 and '1 problem(s)' in out and 'is not an lln_ros map' in out
+
+
+def test_lln_map_info_prints_iso_times(tmp_path, rng, capsys):
+    path = tmp_path / 'm.db'
+    before = time.time()
+    with MapStore(path, model=MODEL) as store:
+        store.add(make_set(rng), (1, 0))
+    status, out, _ = lln_map(capsys, 'info', path)
+    assert status == 0
+    created = next(line for line in out.splitlines() if line.startswith('created '))
+    stamp = created.split()[1]
+    assert re.fullmatch(r'\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ', stamp), created
+    from datetime import datetime
+
+    assert abs(datetime.strptime(stamp, '%Y-%m-%dT%H:%M:%S%z').timestamp() - before) < 60
+    assert 'created_unix' not in out
+    status, out, _ = lln_map(capsys, 'info', '--json', path)
+    info = json.loads(out)
+    assert info['created'] == stamp and abs(info['created_unix'] - before) < 60

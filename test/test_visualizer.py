@@ -13,7 +13,7 @@ from visualization_msgs.msg import MarkerArray
 from lln_ros import msgs
 from lln_ros.core.retrieval import pair_regions
 from lln_ros.core.similarity import match_pair
-from lln_ros.drawing import CAPTION_HEIGHT, draw_match_overlay, similarity_colours
+from lln_ros.drawing import CAPTION_HEIGHT, LEGEND_HEIGHT, draw_match_overlay, similarity_colours
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 
 T0 = 1_700_000_000 * 10**9
@@ -37,7 +37,7 @@ def test_overlay_layout_and_regions(pair):
     q, k = cv2.cvtColor(a_img, cv2.COLOR_RGB2BGR), cv2.cvtColor(b_img, cv2.COLOR_RGB2BGR)
     canvas = draw_match_overlay(q, k, rows, caption=['one', 'two'], height=300, max_links=len(rows))
     wq, wk = round(q.shape[1] * 300 / q.shape[0]), round(k.shape[1] * 300 / k.shape[0])
-    assert canvas.shape == (300 + 2 * CAPTION_HEIGHT, wq + wk, 3) and canvas.dtype == np.uint8
+    assert canvas.shape == (300 + 2 * CAPTION_HEIGHT + LEGEND_HEIGHT, wq + wk, 3) and canvas.dtype == np.uint8
     # every linked pair has its ends drawn in its similarity colour, on both sides
     colours = similarity_colours(rows['similarity'])
     sq, sk = 300 / q.shape[0], 300 / k.shape[0]
@@ -54,12 +54,22 @@ def test_overlay_layout_and_regions(pair):
     blind = draw_match_overlay(q, None, rows, height=300)
     right = blind[:, wq:]
     assert right.shape[1] == 400 and (np.median(right.reshape(-1, 3), axis=0) == 64).all()
-    assert (blind[:, :wq] != cv2.resize(q, (wq, 300))).any()
+    assert (blind[30:300, :wq] != cv2.resize(q, (wq, 300))[30:]).any()  # below the panel label
     # thumbnails: coordinates of the original image land at the same canvas place
     thumb = cv2.resize(k, (k.shape[1] // 4, k.shape[0] // 4))
     from_thumb = draw_match_overlay(q, thumb, rows, height=300, original_heights=(None, k.shape[0]))
     assert from_thumb.shape[0] == canvas.shape[0] - 2 * CAPTION_HEIGHT
     assert abs(from_thumb.shape[1] - (wq + wk)) <= 2
+    # the key strip: the similarity colour bar (viridis, dark blue .. yellow) and its words
+    key = canvas[-LEGEND_HEIGHT:]
+    bar_row = key[LEGEND_HEIGHT // 2]
+    for colour in similarity_colours(np.array([0.0, 1.0])):
+        assert (np.abs(bar_row.astype(int) - colour.astype(int)).max(axis=1) <= 10).any()
+    assert (key > 200).all(axis=2).sum() > 200, 'white key text'
+    # the panel labels: white text on a dark box in each panel's top-left corner
+    for x0 in (0, wq):
+        corner = canvas[top : top + 20, x0 : x0 + 40]
+        assert (corner < 30).all(axis=2).mean() > 0.3 and (corner > 200).all(axis=2).any()
 
 
 def test_visualizer_node_overlay_and_markers(pair, colcon_install, tmp_path):
@@ -100,7 +110,7 @@ def test_visualizer_node_overlay_and_markers(pair, colcon_install, tmp_path):
         probe.spin_until(lambda: overlays and markers, 30, 'overlay and markers')
         overlay, order = msgs.image_to_array(overlays[0])
         assert overlays[0].header.stamp == query_header.stamp and overlays[0].encoding == 'bgr8'
-        assert overlay.shape[0] == 240 + 2 * CAPTION_HEIGHT
+        assert overlay.shape[0] == 240 + 2 * CAPTION_HEIGHT + LEGEND_HEIGHT
         right = overlay[2 * CAPTION_HEIGHT :, round(a_img.shape[1] * 240 / a_img.shape[0]) :]
         assert right.std() > 20, 'the keyframe panel should show the keyframe image, not the grey placeholder'
         arcs = [m for m in markers[0].markers if m.ns == 'loop_closures']

@@ -1,11 +1,19 @@
 """lln-bag: make, inspect and play MCAP bags on machines without rosbag2.
 
-lln-bag from-images DIR OUT [--glob '*.jpg'] [--topic /camera/image_raw] [--rate HZ]
+lln-bag from-images DIR OUT [--glob '*.jpg'] [--topic /camera/image_raw] [--fps HZ]
                             [--compressed] [--frame-id camera] [--start SEC]
 lln-bag info BAG [--json]
-lln-bag play BAG [--rate R] [--topic-remap A:=B ...] [--qos reliable|best_effort]
+lln-bag play BAG [--speed X] [--topic-remap A:=B ...] [--qos reliable|best_effort]
                  [--wait-subscribers N --wait-timeout S] [--clock [HZ]]
                  [--pace TOPIC [--pace-timeout S]]
+
+Two quantities, two names: --fps is frames per second (the stamps from-images writes), --speed a
+factor on the recorded timing (play; -r/--rate is ros2 bag play's spelling of it and is accepted).
+from-images --rate, its old name, still works with a deprecation note.
+
+from-images takes the image files of DIR (by suffix); when they are of several kinds, the most
+common one is the frames (rtabmap_loop/ holds samples_GT.bmp beside its .jpg frames); what is
+skipped is counted on stderr. --glob picks the frames explicitly.
 """
 
 from __future__ import annotations
@@ -13,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 from ..dds import exit_if_teardown_hangs
 from .common import run_cli
@@ -20,6 +29,18 @@ from .common import run_cli
 # a player's work is over when every message is acknowledged; a teardown longer than this is the
 # Fast DDS participant-deletion deadlock (exit_if_teardown_hangs), not work
 TEARDOWN_TIMEOUT_S = 10.0
+
+
+class DeprecatedAlias(argparse.Action):
+    """An old option spelling: stores into the new option's dest and says so on stderr."""
+
+    def __init__(self, option_strings, dest, new: str = '', **kwargs):
+        self.new = new
+        super().__init__(option_strings, dest, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f'{parser.prog}: note: {option_string} is deprecated here, use {self.new}', file=sys.stderr)
+        setattr(namespace, self.dest, values)
 
 
 def _positive(text: str) -> float:
@@ -46,10 +67,12 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument(
         '--glob',
         metavar='PATTERN',
-        help="only the files of DIR matching PATTERN, e.g. '*.jpg' (default: every image file)",
+        help="only the files of DIR matching PATTERN, e.g. '*.jpg' (default: the image files of its most "
+        'common kind; the others are skipped and counted on stderr)',
     )
     f.add_argument('--topic', default=DEFAULT_TOPIC, help=f'image topic (default {DEFAULT_TOPIC})')
-    f.add_argument('--rate', type=_positive, default=10.0, help='frames per second (default 10)')
+    f.add_argument('--fps', type=_positive, default=10.0, metavar='HZ', help='frames per second (default 10)')
+    f.add_argument('--rate', dest='fps', type=_positive, action=DeprecatedAlias, new='--fps', help='deprecated: --fps')
     f.add_argument(
         '--compressed', action='store_true', help='sensor_msgs/CompressedImage jpeg instead of sensor_msgs/Image rgb8'
     )
@@ -69,10 +92,18 @@ def build_parser() -> argparse.ArgumentParser:
     pl = sub.add_parser(
         'play',
         help='publish a bag into the ROS graph with rclpy',
-        description='Publish the recorded messages (raw CDR) at the recorded timing divided by --rate.',
+        description='Publish the recorded messages (raw CDR) at the recorded timing divided by --speed.',
     )
     pl.add_argument('bag', metavar='BAG')
-    pl.add_argument('--rate', type=_positive, default=1.0, help='playback speed factor (default 1)')
+    pl.add_argument(
+        '--speed',
+        '-r',
+        '--rate',
+        type=_positive,
+        default=1.0,
+        metavar='X',
+        help='speed factor on the recorded timing, 2 = twice as fast (default 1; -r/--rate as in ros2 bag play)',
+    )
     pl.add_argument(
         '--topic-remap', action='append', default=[], metavar='A:=B', help='publish bag topic A on B (repeatable)'
     )
@@ -134,23 +165,40 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def skipped_note(skipped: dict, shown: int = 3) -> str:
+    """'2 files: 1 not an image (notes.txt), 1 .bmp beside the .jpg frames (samples_GT.bmp; --glob
+    picks other frames)' or '' when nothing was skipped."""
+
+    def names(items):
+        return ', '.join(items[:shown]) + (', ...' if len(items) > shown else '')
+
+    parts = []
+    if skipped['not_image']:
+        n = len(skipped['not_image'])
+        parts.append(f'{n} not {"an image" if n == 1 else "images"} ({names(skipped["not_image"])})')
+    if skipped['other_kind']:
+        kinds = sorted({Path(n).suffix.lower() for n in skipped['other_kind']})
+        parts.append(
+            f'{len(skipped["other_kind"])} {"/".join(kinds)} beside the {skipped["kind"]} frames '
+            f'({names(skipped["other_kind"])}; --glob picks the frames explicitly)'
+        )
+    total = len(skipped['not_image']) + len(skipped['other_kind'])
+    return f'{total} file{"s" if total != 1 else ""}: ' + ', '.join(parts) if parts else ''
+
+
 def run(args) -> int:
     from ..io import bag
 
     if args.command == 'from-images':
-        paths = bag.list_images(args.folder, args.glob)
-        suffixes = sorted({p.suffix.lower() for p in paths})
-        if len(suffixes) > 1:
-            print(
-                f'lln-bag: warning: {args.folder} mixes {", ".join(suffixes)} files; all {len(paths)} become '
-                "frames (use --glob '*.jpg' to pick one kind)",
-                file=sys.stderr,
-            )
+        paths, skipped = bag.frame_images(args.folder, args.glob)
+        note = skipped_note(skipped)
+        if note:
+            print(f'lln-bag: {args.folder}: {len(paths)} frames; skipped {note}', file=sys.stderr)
         stamps = bag.write_image_bag(
             paths,
             args.out,
             topic=args.topic,
-            rate=args.rate,
+            rate=args.fps,
             compressed=args.compressed,
             frame_id=args.frame_id,
             start_ns=int(round(args.start * 1e9)),
@@ -158,7 +206,7 @@ def run(args) -> int:
         )
         kind = 'sensor_msgs/msg/CompressedImage jpeg' if args.compressed else 'sensor_msgs/msg/Image rgb8'
         print(
-            f'wrote {len(stamps)} images to {args.out} on {args.topic} ({kind}, {args.rate:g} Hz, '
+            f'wrote {len(stamps)} images to {args.out} on {args.topic} ({kind}, {args.fps:g} Hz, '
             f'{(stamps[-1] - stamps[0]) / 1e9:.3f} s)'
         )
     elif args.command == 'info':
@@ -175,7 +223,7 @@ def run(args) -> int:
             log(note)
         bag.play_bag(
             args.bag,
-            rate=args.rate,
+            rate=args.speed,
             remaps=bag.parse_remaps(args.topic_remap),
             qos=args.qos,
             qos_depth=args.qos_depth,

@@ -1,6 +1,6 @@
 """lln-demo: build a map from one traverse and query it with another through the ROS 2 nodes.
 
-    lln-demo --out DIR [--dataset SPEC] [--range START:END] [--download] [--rate HZ]
+    lln-demo --out DIR [--dataset SPEC] [--range START:END] [--download] [--fps HZ]
              [--method lln|act|rand|all|holistic] [--top-n 50] [--prefilter landmarks|holistic|exhaustive]
              [--prefilter-k 100]
              [--offline | --no-offline] [--check]
@@ -28,6 +28,11 @@ What it does:
      DIR/pr_online.png and DIR/matches_online_*.png;
   5. with --offline (the default) runs the offline evaluator (lln-eval's code) on the same dataset with
      the same method, top-n, prefilter and prefilter-k into DIR/offline/, and prints online vs offline.
+     A worker process does it beside the online run from step 2 on (lln_ros.eval.demo_offline): the
+     backbone features into the feature cache (--cache), then the evaluation; what is left when the
+     nodes are done is shared from both ends of the list. On two cores the comparison then costs
+     little more time than the online run itself. An --fps run leaves the CPU to the nodes and runs
+     the offline side after them.
 
 Why two extractors: the wiring is static, exactly the `-r` remaps a user writes, and each traverse
 is counted by its own extractor's /diagnostics; re-routing one extractor between the phases would mean
@@ -40,7 +45,7 @@ as the extractor goes), and queries also wait while the matcher has MAX_IN_FLIGH
 it is sent again until it has arrived downstream (a keyframe in the map / an answer), because a frame
 published before the extractor's writer has matched the matcher's reader is lost even when the graph
 already shows both.
---rate HZ instead plays the bags at HZ frames per second with `lln-bag play` (what `ros2 bag play`
+--fps HZ instead plays the bags at HZ frames per second with `lln-bag play` (what `ros2 bag play`
 does); frames the extractor cannot keep up with are dropped by its newest-frame policy, counted and
 reported (the extractors' /diagnostics `received`/`published`/`dropped`, the stamps in the map file,
 the answers).
@@ -48,13 +53,13 @@ the answers).
 Bad input exits 2 with one line on stderr (before anything long runs); a failure while running
 exits 1 with the node logs' tails (DIR/logs/); Ctrl-C exits 130. Every node started is stopped.
 
-The pieces: lln_ros.ros.supervisor (executables, environment, start / stop), lln_ros.ros.probe
-(collecting, paced playback), lln_ros.eval.online (scoring, online vs offline), lln_ros.eval.report
-and lln_ros.eval.figures (the one report stack lln-eval uses too). This module is the pipeline.
+The pieces: lln_ros.cli.demo_nodes (the online run: bags, nodes, playback), lln_ros.ros.supervisor
+(executables, environment, start / stop), lln_ros.ros.probe (collecting, paced playback),
+lln_ros.eval.online (scoring, online vs offline), lln_ros.eval.demo_offline (the offline side,
+beside the online run), lln_ros.eval.report and lln_ros.eval.figures (the one report stack lln-eval uses too).
+This module is the pipeline.
 """
 
-# Why this module is past 500 lines: about 450 lines of pipeline; the rest is the node command lines
-# and report dicts, which the formatter lays out one element per line.
 from __future__ import annotations
 
 import argparse
@@ -66,10 +71,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..eval.online import compare, run_offline, score_online, stored_stamps
+from ..eval.demo_offline import OfflineRun, cache_dir, run_offline
+from ..eval.online import compare, score_online
 from ..eval.report import METRICS, online_console, online_markdown, transport_lines, write_answers, write_json
-from ..ros.probe import HANDSHAKE_TRIES, HANDSHAKE_WAIT, ProbeTimeout, free_domain_probe  # noqa: F401
-from ..ros.supervisor import NodeProcess, SupervisorError, find_executables, localhost_discovery, ros_env, stop_all
+from ..ros.probe import HANDSHAKE_TRIES
+from ..ros.supervisor import SupervisorError, find_executables
+from .bag import DeprecatedAlias
 from .common import (
     DATA_ENV,
     RunError,
@@ -84,14 +91,10 @@ from .common import (
     read_dataset,
     run_cli,
 )
+from .demo_nodes import run_online
 
 PROG = 'lln-demo'
 NORDLAND_RANGE = (0.7, 1.0)
-BAG_TOPIC = '/camera/image_raw'
-MAP_IMAGE = '/lln_demo/map/image_raw'
-QUERY_IMAGE = '/lln_demo/query/image_raw'
-NOMINAL_HZ = 10.0  # bag stamps in paced mode (the pace itself comes from the extractor)
-DAY_NS = 86_400 * 1_000_000_000  # the query bag starts a day after the map bag: stamps never collide
 METHODS = ('lln', 'act', 'rand', 'all', 'holistic')
 # what one run writes into DIR (removed at the start of a run, so a rerun is clean)
 OUTPUTS = (
@@ -109,7 +112,7 @@ OUTPUTS = (
     'logs',
 )
 DEFAULT_DOWNLOAD_DIR = '~/.cache/lln_ros/gardens_point'
-__all__ = ['METRICS', 'HANDSHAKE_TRIES', 'main']
+__all__ = ['METRICS', 'HANDSHAKE_TRIES', 'main']  # test_demo reads both constants
 
 
 # ------------------------------------------------------------------------------------------ inputs
@@ -144,10 +147,13 @@ def build_parser():
     )
     p.add_argument('--download-url', default=None, help='where --download fetches from (default: the public archive)')
     p.add_argument(
-        '--rate',
+        '--fps',
         type=positive_float,
         metavar='HZ',
         help='play the bags at HZ frames/s with lln-bag play (default: paced by the extractor)',
+    )
+    p.add_argument(
+        '--rate', dest='fps', type=positive_float, action=DeprecatedAlias, new='--fps', help='deprecated: --fps'
     )
     p.add_argument(
         '--method',
@@ -254,271 +260,6 @@ def load_dataset(spec: str, frac, args, log):
     return ds
 
 
-# ------------------------------------------------------------------------------------ the online run
-
-
-def run_online(ds, args, out: Path, exes: dict, log) -> dict:
-    from tqdm import tqdm
-
-    from ..io import bag
-    from ..io.bag import DEFAULT_START_NS
-
-    timing = {}
-    t = time.monotonic()
-    hz = args.rate or NOMINAL_HZ
-    log(
-        f'{PROG}: writing {out / "map_bag"} ({len(ds.ref_paths)} frames) and {out / "query_bag"} '
-        f'({len(ds.query_paths)} frames)'
-    )
-    ref_stamps = bag.write_image_bag(ds.ref_paths, out / 'map_bag', BAG_TOPIC, rate=hz, start_ns=DEFAULT_START_NS)
-    query_stamps = bag.write_image_bag(
-        ds.query_paths, out / 'query_bag', BAG_TOPIC, rate=hz, start_ns=DEFAULT_START_NS + DAY_NS
-    )
-    timing['write_bags'] = time.monotonic() - t
-
-    k = min(args.prefilter_k or len(ds.ref_paths), len(ds.ref_paths))
-    ext_method = 'lln' if args.method == 'holistic' else args.method
-    logs = out / 'logs'
-    logs.mkdir(parents=True, exist_ok=True)
-    t = time.monotonic()
-    localhost_discovery()
-    graph = free_domain_probe(args.domain_id, 'lln_demo')
-    procs: list[NodeProcess] = []
-    result: dict = {}
-    try:
-        env = ros_env(graph.domain, out / 'logs' / 'ros', args.threads)
-        log(f'{PROG}: starting the nodes on ROS_DOMAIN_ID={graph.domain} (localhost only); logs in {logs}')
-        common = ['-p', 'diagnostics_period:=0.5']
-        extractor_params = [
-            '-p',
-            'reliability:=reliable',
-            '-p',
-            f'num_threads:={args.threads}',
-            '-p',
-            f'method:={ext_method}',
-            '-p',
-            f'top_n:={args.top_n}',
-            *common,
-        ]
-        if args.weights:
-            extractor_params += ['-p', f'weights:={Path(args.weights).expanduser().resolve()}']
-        if args.runtime:
-            extractor_params += ['-p', f'runtime:={args.runtime}']
-        procs.append(
-            NodeProcess(
-                exes['matcher'],
-                [
-                    '-p',
-                    f'map_path:={(out / "map.db").resolve()}',
-                    '-p',
-                    'mode:=localization',
-                    '-p',
-                    f'prefilter:={args.prefilter}',
-                    '-p',
-                    f'prefilter_k:={args.prefilter_k}',
-                    '-p',
-                    f'k:={k}',
-                    '-p',
-                    f'method:={"holistic" if args.method == "holistic" else "lln"}',
-                    '-p',
-                    'min_score:=-1.0e9',
-                    *common,
-                ],
-                env,
-                logs / 'matcher.log',
-                'matcher',
-                out,
-                new_session=True,
-            )
-        )
-        # one extractor per traverse, wired by remaps as a user would (the matcher stores /keyframes and
-        # answers /query)
-        for role, image, landmarks in (('map', MAP_IMAGE, '/keyframes'), ('query', QUERY_IMAGE, '/query')):
-            remaps = ['-r', f'__node:=lln_extractor_{role}', '-r', f'image:={image}', '-r', f'landmarks:={landmarks}']
-            procs.append(
-                NodeProcess(
-                    exes['extractor'],
-                    [*remaps, *extractor_params],
-                    env,
-                    logs / f'extractor_{role}.log',
-                    f'extractor ({role})',
-                    out,
-                    new_session=True,
-                )
-            )
-        graph.watch = procs
-        graph.collect_answers()
-        graph.collect_diagnostics()
-        map_pub = graph.image_publisher(MAP_IMAGE) if not args.rate else None
-        query_pub = graph.image_publisher(QUERY_IMAGE) if not args.rate else None
-
-        node = graph.node
-
-        def ready() -> bool:
-            return (
-                node.count_subscribers(MAP_IMAGE) >= 1
-                and node.count_subscribers(QUERY_IMAGE) >= 1
-                and node.count_publishers('/keyframes') >= 1
-                and node.count_publishers('/query') >= 1
-                and node.count_subscribers('/keyframes') >= 2
-                and node.count_subscribers('/query') >= 2
-                and node.count_publishers('/candidates') >= 1
-            )
-
-        graph.spin_until(ready, args.timeout, 'the extractors and the matcher to come up')
-        info = {}
-
-        def model_known() -> bool:
-            info.update(graph.matcher_info(args.timeout))
-            return bool(info.get('model')) or graph.spin_for(0.3)
-
-        graph.spin_until(model_known, args.timeout, "the matcher to learn the extractors' model")
-        if info.get('keyframes'):
-            raise RunError(f'the map {info.get("path")} is not empty ({info["keyframes"]} keyframes)')
-        # let the endpoints match: seeing every endpoint in the graph does not mean the extractors' writers
-        # have matched the matcher's readers. Paced playback also checks the first frame of each phase;
-        # lln-bag play (--rate) cannot, so it gets a longer head start.
-        graph.spin_for(3.0 if args.rate else 1.0)
-        timing['start_nodes'] = time.monotonic() - t
-        model = info['model']
-        log(
-            f'{PROG}: nodes up in {timing["start_nodes"]:.1f} s; model {model.get("descriptor_space")}, '
-            f'head {model.get("head", "?")}{"" if model.get("head_trained", True) else " (UNTRAINED)"}'
-        )
-
-        mode = 'paced' if not args.rate else f'{args.rate:g} Hz'
-        tick = 0.1 if sys.stderr.isatty() else 10.0  # progress lines in a log file: one per 10 s
-
-        def play(phase: str, stamps: list, topic: str, kind: str, publisher, confirm, backlog=None) -> dict:
-            """One traverse through its extractor: paced by the probe, or `lln-bag play` at --rate."""
-            log(f'{PROG}: {phase}: playing {len(stamps)} frames ({mode}) -> lln_extractor_{phase} -> {kind}')
-            bar = tqdm(
-                total=len(stamps), desc=phase, unit='frame', disable=args.quiet, file=sys.stderr, mininterval=tick
-            )
-            try:
-                if args.rate:
-                    return graph.play_fixed(
-                        exes['lln-bag'],
-                        out / f'{phase}_bag',
-                        topic,
-                        hz,
-                        kind,
-                        stamps,
-                        env,
-                        out,
-                        args.timeout,
-                        logs / f'play_{phase}.log',
-                        bar,
-                    )
-                return graph.play_paced(
-                    out / f'{phase}_bag',
-                    publisher,
-                    kind,
-                    stamps,
-                    args.timeout,
-                    f'/lln_extractor_{phase}',
-                    confirm,
-                    bar,
-                    backlog,
-                )
-            finally:
-                bar.close()
-
-        # ---- phase 1: the map traverse -> keyframes
-        def map_has_it(_stamp) -> bool:
-            return graph.wait_quietly(
-                lambda: graph.matcher_info(args.timeout).get('keyframes', 0) >= 1 or graph.spin_for(0.2), HANDSHAKE_WAIT
-            )
-
-        play_map = play('map', ref_stamps, MAP_IMAGE, 'keyframes', map_pub, map_has_it)
-        expected = len(graph.landmarks['keyframes'])
-
-        def stored() -> int:
-            info.update(graph.matcher_info(args.timeout))
-            return int(info.get('keyframes', 0))
-
-        try:
-            graph.spin_until(
-                lambda: stored() >= expected or graph.spin_for(0.3),
-                min(args.timeout, 30.0),
-                f'the matcher to store {expected} keyframes',
-                progress=lambda: info.get('keyframes'),
-            )
-        except ProbeTimeout as e:
-            graph.check_nodes()
-            log(f'{PROG}: warning: {str(e).splitlines()[0]}; the missing keyframes are counted as lost')
-        map_info = dict(info)
-        log(f'{PROG}: map: {map_info["keyframes"]} keyframes stored in {play_map["seconds"]:.1f} s')
-
-        # ---- phase 2: the query traverse -> query -> candidates
-        play_query = play(
-            'query',
-            query_stamps,
-            QUERY_IMAGE,
-            'query',
-            query_pub,
-            lambda stamp: graph.wait_quietly(lambda: stamp in graph.candidates, HANDSHAKE_WAIT),
-            backlog=lambda: len(graph.landmarks['query']) - len(graph.candidates),
-        )
-        sent = set(graph.landmarks['query'])
-        try:
-            graph.spin_until(
-                lambda: sent <= set(graph.candidates),
-                min(args.timeout, 30.0),
-                'the answers to every query',
-                progress=lambda: len(graph.candidates),
-            )
-        except ProbeTimeout as e:
-            graph.check_nodes()
-            log(f'{PROG}: warning: {str(e).splitlines()[0]}; the queries without an answer are counted as lost')
-
-        # final counters: wait for a /diagnostics round that has seen everything
-        names = ('/lln_extractor_map', '/lln_extractor_query', '/lln_matcher')
-        try:
-            graph.spin_until(
-                lambda: (
-                    graph.counter('/lln_extractor_map', 'received') >= len(ref_stamps)
-                    and graph.counter('/lln_extractor_query', 'received') >= len(query_stamps)
-                    and graph.counter('/lln_matcher', 'queries_answered') >= len(graph.candidates)
-                ),
-                5.0,
-                'final /diagnostics',
-            )
-        except ProbeTimeout:
-            pass
-        graph.spin_for(1.2)  # one more round (period 0.5 s): counters of the last frame are in
-        final_info = graph.matcher_info(args.timeout)
-        timing['map_phase'] = play_map['seconds']
-        timing['query_phase'] = play_query['seconds']
-        result = {
-            'ref_stamps': ref_stamps,
-            'query_stamps': query_stamps,
-            'landmarks': graph.landmarks,
-            'candidates': dict(graph.candidates),
-            'matches': dict(graph.matches),
-            'diagnostics': {n: dict(graph.diag.get(n, {})) for n in names},
-            'map_info': map_info,
-            'final_info': final_info,
-            'model': model,
-            'duplicates': dict(graph.duplicates),
-            'bad_messages': list(graph.bad_messages),
-            'play': {'map': play_map, 'query': play_query, 'mode': mode},
-            'domain_id': graph.domain,
-            'k': k,
-            'timing': timing,
-            'commands': {p.name: ' '.join(shlex.quote(c) for c in p.command) for p in procs},
-        }
-    finally:
-        t = time.monotonic()
-        try:
-            result['exit_status'] = stop_all(procs)
-        finally:
-            graph.close()
-        timing['stop_nodes'] = time.monotonic() - t
-    result['stored_stamps'] = stored_stamps(out / 'map.db')
-    return result
-
-
 # ------------------------------------------------------------------------------------------- main
 
 
@@ -560,7 +301,21 @@ def run(args, argv, log) -> int:
     prepare_out(out)
     timing = {'read_dataset': time.monotonic() - t0}
 
-    online_run = run_online(ds, args, out, exes, log)
+    # the offline side's backbone features, computed beside the online run (not with --fps: a fixed
+    # rate is a promise the extractors must keep, so they get the CPU to themselves)
+    job = None
+    if args.offline and not args.fps:
+        job = OfflineRun(ds, spec, args, out)
+        log(
+            f'{PROG}: offline: a worker process computes the features into {cache_dir(args, out)} and then '
+            'evaluates, beside the online run'
+        )
+    try:
+        online_run = run_online(ds, args, out, exes, log)
+    except BaseException:
+        if job is not None:
+            job.stop()
+        raise
     timing.update(online_run['timing'])
     online = score_online(ds, online_run)
     tr = online['transport']
@@ -574,11 +329,8 @@ def run(args, argv, log) -> int:
         ]
         advice = f' (last extraction {max(ms):.0f} ms: play at most {800 / max(ms):.1f} Hz)' if max(ms) > 0 else ''
         why = (
-            (
-                f'--rate {args.rate:g} is faster than extraction{advice}, or omit --rate to pace the bags by '
-                'the extractor'
-            )
-            if args.rate
+            (f'--fps {args.fps:g} is faster than extraction{advice}, or omit --fps to pace the bags by the extractor')
+            if args.fps
             else 'this should not happen with paced playback'
         )
         print(f'{PROG}: warning: the extractors dropped {dropped} frames: {why}', file=sys.stderr)
@@ -590,14 +342,17 @@ def run(args, argv, log) -> int:
             f'{args.top_n}, prefilter {args.prefilter}, prefilter-k {args.prefilter_k}) into {out / "offline"}'
         )
         try:
-            offline = run_offline(ds, spec, args, out, log)
+            offline = run_offline(ds, spec, args, out, log, job)
         except (KeyboardInterrupt, MemoryError):
             raise
         except Exception as e:  # noqa: BLE001  the online results are still written
             offline_error = f'{type(e).__name__}: {e}'
             print(f'{PROG}: error: the offline evaluation failed: {offline_error}', file=sys.stderr)
         else:
-            timing['offline'] = offline['seconds']
+            timing['offline_after_online'] = offline['seconds']
+            timing['offline_evaluate'] = offline['evaluate_seconds']
+            if offline['cache_fill']:
+                timing['offline_features_after_online'] = offline['cache_fill']['tail_seconds']
             comparison = compare(
                 online,
                 offline['ranked'],
@@ -605,7 +360,11 @@ def run(args, argv, log) -> int:
                 offline['summary'],
                 tr,
                 models=(online_run['model'], offline['model']),
+                prefilter=args.prefilter,
             )
+        finally:
+            if job is not None:
+                job.stop()  # the worker is done unless the evaluation failed
 
     from ..eval.figures import online_curves, plot_online_examples, plot_pr
 
@@ -660,6 +419,9 @@ def run(args, argv, log) -> int:
                 'results': offline['results'],
                 'extract_ms': offline['entry'].get('extract_ms'),
                 'match_ms_per_pair': offline['entry'].get('match_ms_per_pair'),
+                'feature_cache_fill': offline['cache_fill'],
+                'evaluate_seconds': offline['evaluate_seconds'],
+                'evaluation_done_before_online_end_s': offline.get('evaluation_done_before_online_end_s'),
             }
             if offline
             else None

@@ -7,16 +7,22 @@
     lln-map import MAP SRC             copy every keyframe of SRC into MAP
 
 MAP, DEST, SRC: a path (SQLite), milvus-lite:///path.db or milvus://host:port[/db][?map=name].
+
+Exit status: 0 done (check: healthy); 1 check found problems, or a failure while running; 2 bad
+input, one line naming the map and the problem: no such map, not a map, a damaged model record, a
+copy the destination refuses (ids taken, another model). Times print in ISO 8601 (UTC).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+from datetime import datetime, timezone
 
 from ..errors import MapError
-from .common import run_cli
+from .common import UsageError, run_cli
 
 _BATCH = 256  # keyframes per transaction / insert while copying
 
@@ -81,25 +87,62 @@ def check(uri: str) -> list[str]:
         return store.check()
 
 
+def iso_time(epoch) -> str:
+    """Seconds since the epoch -> '2026-12-01T20:50:00Z'; 0 / None (not recorded) -> 'unknown'."""
+    if not epoch:
+        return 'unknown'
+    return datetime.fromtimestamp(float(epoch), timezone.utc).strftime('%Y-%m-%dT%H:%M:%SZ')
+
+
+def readable(info: dict) -> dict:
+    """info with its times in ISO 8601 (the seconds kept as NAME_unix in JSON)."""
+    out = {}
+    for key, value in info.items():
+        if key in ('created', 'updated', 'modified'):
+            out[key] = iso_time(value)
+            out[f'{key}_unix'] = value
+        else:
+            out[key] = value
+    return out
+
+
+def existing_map(uri: str) -> str:
+    """uri, after checking that a local map is there (UsageError, exit 2, before anything opens)."""
+    from ..mapstore.uri import backend_for
+
+    kind, location = backend_for(uri)
+    if kind == 'sqlite':
+        path = os.path.expanduser(location)
+        if not os.path.exists(path):
+            raise UsageError(f'{uri}: no such map file')
+    elif location.startswith('milvus-lite://'):
+        path = os.path.expanduser(location[len('milvus-lite://') :])
+        if not os.path.exists(path):
+            raise UsageError(f'{uri}: no such Milvus Lite map ({path} does not exist)')
+    return uri
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    # a map that cannot be opened or refuses a copy exits 1, as scripts and tests rely on
-    return run_cli('lln-map', lambda: run(args), error_status=1)
+    # bad input (no map, not a map, a refused copy) exits 2 as every lln-* command; `check` exits 1
+    # when it found problems: that is its answer, not an error
+    return run_cli('lln-map', lambda: run(args))
 
 
 def run(args) -> int:
     from ..mapstore import MapStore
 
     if args.command == 'info':
-        with MapStore.open(args.map, create=False) as store:
-            info = store.info()
+        with MapStore.open(existing_map(args.map), create=False) as store:
+            info = readable(store.info())
         if args.json:
             print(json.dumps(info, default=str))
         else:
             for key, value in info.items():
-                print(f'{key:16s} {value}')
+                if not key.endswith('_unix'):
+                    print(f'{key:16s} {value}')
     elif args.command == 'check':
-        problems = check(args.map)
+        problems = check(existing_map(args.map))
         if problems:
             print(f'{args.map}: {len(problems)} problem(s)')
             for p in problems:
@@ -107,7 +150,7 @@ def run(args) -> int:
             return 1
         print(f'{args.map}: healthy')
     elif args.command == 'compact':
-        with MapStore.open(args.map, create=False) as store:
+        with MapStore.open(existing_map(args.map), create=False) as store:
             result = store.compact()
         sizes = (
             f': {result["bytes_before"]} -> {result["bytes_after"]} bytes'
@@ -117,7 +160,7 @@ def run(args) -> int:
         print(f'compacted {args.map}{sizes}')
     else:
         src, dst = (args.map, args.dest) if args.command == 'export' else (args.src, args.map)
-        n = copy_map(src, dst)
+        n = copy_map(existing_map(src), dst)
         print(f'copied {n} keyframes from {src} to {dst}')
     return 0
 

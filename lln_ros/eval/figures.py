@@ -1,7 +1,13 @@
 """The figures of lln-eval and lln-demo: PR curves (the paper's Fig. 5), holistic recall@K (Fig. 4),
 score-map heatmaps (Fig. 3) and match pictures of successes and failures (Fig. 7).
 
-Legends print every metric as a percentage (report.pct), as the tables do.
+Legends print every metric as a percentage (report.pct), as the tables do; PR legends sit below
+the axes, so they never hide the ends of the curves.
+
+Which match pictures (pick_examples): the route (query order) is cut into as many equal stretches
+as pictures are asked for, and each stretch gives its most confident success (failure) whose query
+frame shows something: grey mean >= DARK_MEAN and grey std >= FLAT_STD. Nordland's winter traverse
+has ~10% near-black or flat frames (tunnels, night); ranked by score alone they filled the pictures.
 """
 
 from __future__ import annotations
@@ -43,6 +49,62 @@ def _colours(rows: list[str]) -> dict:
     return out
 
 
+DARK_MEAN = 40.0  # grey-level mean below which a frame is too dark to teach anything
+FLAT_STD = 12.0  # grey-level standard deviation below which it is too flat (fog, a wall, motion blur)
+
+
+def informative(path) -> bool:
+    """Whether an image file is worth showing: neither near-black nor flat (DARK_MEAN, FLAT_STD)."""
+    import cv2
+
+    grey = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    return grey is not None and float(grey.mean()) >= DARK_MEAN and float(grey.std()) >= FLAT_STD
+
+
+def nearest_informative(paths: list, i: int, reach: int = 50) -> int:
+    """The index nearest to i (within reach) whose image is informative(); i itself when none is."""
+    for d in range(reach + 1):
+        for j in (i - d, i + d):
+            if 0 <= j < len(paths) and informative(paths[j]):
+                return j
+    return i
+
+
+def pick_examples(ranked: np.ndarray, scores: np.ndarray, gt: np.ndarray, query_paths: list, count: int) -> dict:
+    """{'success': [q, ...], 'failure': [q, ...]}: per kind, the route cut into `count` stretches
+    of queries and the most confident query of that kind in each whose frame is informative(); a
+    stretch without one is made up from the others (still informative ones first). ranked,
+    scores: (Q, K); gt: (Q, R) bool. Failures are answered queries with a true match elsewhere."""
+    correct = metrics.top1_correct(ranked, gt)
+    answered = ranked[:, 0] >= 0
+    conf = np.nan_to_num(scores[:, 0].astype(np.float64), nan=-1e30, neginf=-1e30)
+    kinds = {'success': correct, 'failure': answered & gt.any(1) & ~correct}
+    seen: dict = {}
+
+    def shows(q: int) -> bool:
+        if q not in seen:
+            seen[q] = informative(query_paths[q])
+        return seen[q]
+
+    out = {}
+    for kind, mask in kinds.items():
+        chosen: list[int] = []
+        if count > 0 and mask.any():
+            bounds = np.linspace(0, len(ranked), count + 1).astype(int)
+            for a, b in zip(bounds[:-1], bounds[1:]):
+                stretch = [a + int(i) for i in np.argsort(-conf[a:b], kind='stable') if mask[a + int(i)]]
+                q = next((q for q in stretch if shows(q)), None)
+                if q is not None:
+                    chosen.append(q)
+            rest = [int(q) for q in np.argsort(-conf, kind='stable') if mask[q] and int(q) not in chosen]
+            for q in [q for q in rest if shows(q)] + [q for q in rest if not shows(q)]:
+                if len(chosen) >= count:
+                    break
+                chosen.append(q)
+        out[kind] = sorted(chosen[:count])  # route order
+    return out
+
+
 def curve_label(name: str, summary: dict) -> str:
     """The legend entry of one PR curve: the same numbers, in the same unit, as the tables."""
     return f'{name}: P@100%R {pct(summary.get("p_at_100r"))}%, AUC-PR {pct(summary.get("auc_pr"))}%'
@@ -52,7 +114,7 @@ def plot_pr(curves: list[tuple], gt: np.ndarray, path, title: str) -> None:
     """PR curves on one plot (threshold on the top-1 score). curves: (label, ranked (Q, K),
     scores (Q, K), summary (metrics.summary keys), line style, colour)."""
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6.4, 5), dpi=110)
+    fig, ax = plt.subplots(figsize=(6.4, 5.2 + 0.22 * len(curves)), dpi=110)
     for label, ranked, scores, summary, style, colour in curves:
         prec, rec, _ = metrics.pr_curve(ranked, scores[:, 0], gt)
         ax.plot(
@@ -69,9 +131,11 @@ def plot_pr(curves: list[tuple], gt: np.ndarray, path, title: str) -> None:
     ax.set_ylabel('precision')
     ax.grid(alpha=0.3)
     ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=7 if len(curves) > 3 else 8, loc='lower left')
+    # below the axes: a legend inside would sit on the curves' ends (they finish at low precision
+    # bottom right, or start at the top left)
+    ax.legend(fontsize=7 if len(curves) > 3 else 8, loc='upper left', bbox_to_anchor=(0.0, -0.12), frameon=False)
     fig.tight_layout()
-    fig.savefig(path)
+    fig.savefig(path, bbox_inches='tight')
     plt.close(fig)
 
 
@@ -100,7 +164,14 @@ def plot_recall_at_k(run, gt: np.ndarray, prefilter_k: int, path) -> None:
     colours = _colours(list(run.rankings))
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=110)
     ks = np.arange(1, len(run.recall_curve) + 1)
-    ax.plot(ks, run.recall_curve, '-o', ms=2.5, color=colours.get('holistic', 'tab:gray'), label='holistic')
+    ax.plot(
+        ks,
+        run.recall_curve,
+        '-o',
+        ms=2.5,
+        color=colours.get('holistic', 'tab:gray'),
+        label='holistic (global descriptor ranking)',
+    )
     for row, (ranked, _) in run.rankings.items():
         if row == 'holistic':
             continue
@@ -111,11 +182,10 @@ def plot_recall_at_k(run, gt: np.ndarray, prefilter_k: int, path) -> None:
             '--',
             lw=1,
             color=colours[row],
-            label=f'{row} (reranked top-{ranked.shape[1]})',
+            label=f'{row} (its first-stage top-{ranked.shape[1]}, reranked)',
         )
     if prefilter_k:  # 0: exhaustive, no cut-off to mark
-        ax.axvline(prefilter_k, color='k', lw=0.8, ls=':')
-        ax.text(prefilter_k, 0.02, f' K = {prefilter_k}', fontsize=8)
+        ax.axvline(prefilter_k, color='k', lw=0.8, ls=':', label=f'K = {prefilter_k}: candidates reranked')
     ax.set_ylim(0, 1.02)
     ax.set_xlabel('K (candidates)')
     ax.set_ylabel('recall@K')
@@ -127,22 +197,33 @@ def plot_recall_at_k(run, gt: np.ndarray, prefilter_k: int, path) -> None:
     plt.close(fig)
 
 
-def plot_heatmaps(images: list[np.ndarray], rows: list[tuple[str, list, list]], path, title: str = '') -> None:
+def plot_heatmaps(
+    images: list[np.ndarray],
+    rows: list[tuple[str, list, list]],
+    path,
+    title: str = '',
+    columns: list[str] | None = None,
+) -> None:
     """Grid of images (columns) x selectors (rows): score-map heatmap and the selected cells outlined
-    (the paper's Fig. 3). rows: (label, score maps (rows, cols) per image, LandmarkSets per image)."""
-    from matplotlib.patches import Rectangle
+    (the paper's Fig. 3). rows: (label, score maps (rows, cols) per image, LandmarkSets per image);
+    columns: a title per image (e.g. 'query 12'). A colour bar gives the heatmap's scale and a
+    legend the outlined cells."""
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+    from matplotlib.patches import Patch, Rectangle
 
     from ..io.image import heatmap
+    from ..plotting import ACTIVATION_CMAP
 
     plt = _pyplot()
     nr, nc = len(rows), len(images)
-    fig, axes = plt.subplots(nr, nc, figsize=(3.2 * nc, 2.6 * nr + 0.4), dpi=100, squeeze=False)
+    fig, axes = plt.subplots(nr, nc, figsize=(3.2 * nc + 1.0, 2.6 * nr + 1.0), dpi=100, squeeze=False)
     for r, (label, maps, sets) in enumerate(rows):
         for c, img in enumerate(images):
             ax = axes[r][c]
             ax.imshow(img)
             heat = heatmap(maps[c], (img.shape[1], img.shape[0]))
-            ax.imshow(heat, cmap='jet', alpha=0.55 * heat)
+            ax.imshow(heat, cmap=ACTIVATION_CMAP, alpha=0.55 * heat)
             s = sets[c]
             for u, v in s.centers:
                 w, h = s.cell_size
@@ -151,9 +232,21 @@ def plot_heatmaps(images: list[np.ndarray], rows: list[tuple[str, list, list]], 
             ax.set_yticks([])
             if c == 0:
                 ax.set_ylabel(label, fontsize=8)
+            if r == 0 and columns:
+                ax.set_title(columns[c], fontsize=8)
     if title:
         fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.07, 0.93, 1))
+    bar = fig.add_axes((0.94, 0.15, 0.012, 0.7))
+    fig.colorbar(
+        ScalarMappable(Normalize(0, 1), ACTIVATION_CMAP), cax=bar, label='score, 0 .. max of each image (0 = no tint)'
+    )
+    fig.legend(
+        handles=[Patch(fill=False, ec='grey', lw=0.8, label='a selected cell (a landmark of that row)')],
+        loc='lower center',
+        fontsize=8,
+        frameon=False,
+    )
     fig.savefig(path)
     plt.close(fig)
 
@@ -178,7 +271,9 @@ def write_figures(
 
     count = min(int(conf['heatmap_images']), len(ds.query_paths))
     if count:
-        idx = np.unique(np.linspace(0, len(ds.query_paths) - 1, count).astype(int))
+        # evenly along the route, each moved to the nearest informative frame (not a dark / flat one)
+        along = np.linspace(0, len(ds.query_paths) - 1, count).astype(int)
+        idx = np.unique([nearest_informative(ds.query_paths, int(i)) for i in along])
         images = [load_image(str(ds.query_paths[i])) for i in idx]
         rows = []
         show = heads if 'lln' in methods or len(heads) > 1 else heads[:1]
@@ -197,7 +292,8 @@ def write_figures(
             images,
             rows,
             out / figs['heatmaps'],
-            f'{run.name}: score maps and the top-{top_n} cells (queries {", ".join(map(str, idx))})',
+            f'{run.name}: where each selector puts its top-{top_n} landmarks (query frames along the route)',
+            columns=[f'query {i}' for i in idx],
         )
 
     # match pictures: the first lln row (else the first local row), confident successes and failures
@@ -208,20 +304,9 @@ def write_figures(
     row, method, head = local[0]
     v = variant(extractor, method, top_n, head if method == 'lln' else None)
     ranked, scores = run.rankings[row]
-    correct = metrics.top1_correct(ranked, ds.gt)
-    answered = ranked[:, 0] >= 0
-    has = ds.gt.any(1)
-    order = np.argsort(-scores[:, 0], kind='stable')
-    wins = [int(q) for q in order if correct[q]]
-    fails = [int(q) for q in order if answered[q] and has[q] and not correct[q]]
-    n_ex = int(conf['examples'])
-    pick_wins = (
-        [wins[int(i)] for i in np.unique(np.linspace(0, len(wins) - 1, min(n_ex, len(wins))).astype(int))]
-        if wins
-        else []
-    )
+    picked = pick_examples(ranked, scores, ds.gt, ds.query_paths, int(conf['examples']))
     k = ranked.shape[1]
-    for kind, queries in (('success', pick_wins), ('failure', fails[:n_ex])):
+    for kind, queries in picked.items():
         for j, q in enumerate(queries, 1):
             r = int(ranked[q, 0])
             qs = v.from_features(qfeat(q), query_sizes[q])
@@ -243,7 +328,16 @@ def write_figures(
                 + (f' (outside the top-{k}: no rerank can recover it)' if hol_rank and hol_rank > k else '')
             )
             caption = f'{line1}, {line2}'
-            plot_matches(qimg, rimg, qs, rs, res.pairs(0), str(out / name), title=f'{run.name} {row}: {line1}\n{line2}')
+            plot_matches(
+                qimg,
+                rimg,
+                qs,
+                rs,
+                res.pairs(0),
+                str(out / name),
+                title=f'{run.name} {row}: {line1}\n{line2}',
+                labels=(f'query {q}', f'map: ref {r}, the answer ({"right" if kind == "success" else "WRONG"})'),
+            )
             ex = {'kind': kind, 'file': name, 'query': q, 'answer': r, 'score': float(scores[q, 0]), 'caption': caption}
             if kind == 'failure' and len(truth):
                 true_sets = [v.from_features(rfeat(int(t)), ref_sizes[int(t)]) for t in truth]
@@ -261,6 +355,7 @@ def write_figures(
                     title=f'{run.name} {row}: query {q} vs its true match ref {t}\n'
                     f'S = {tres.scores[b]:.2f} (the wrong answer ref {r} scored '
                     f'{scores[q, 0]:.2f})',
+                    labels=(f'query {q}', f'map: ref {t}, the true match (not the answer)'),
                 )
                 ex['truth_file'] = tname
                 ex['truth'] = t
@@ -279,7 +374,7 @@ def figure_files(figs: dict | None) -> list[str]:
 
 def plot_online_examples(ds, run: dict, online: dict, out: Path, count: int) -> list[dict]:
     """Query / keyframe pictures with the `matches` regions of the best candidate drawn (the
-    landmarks outlined come from the extractors' clouds): the most confident successes and failures."""
+    landmarks outlined come from the extractors' clouds): successes and failures across the route (pick_examples)."""
     from types import SimpleNamespace
 
     from ..io.image import load_image
@@ -288,13 +383,9 @@ def plot_online_examples(ds, run: dict, online: dict, out: Path, count: int) -> 
     if count <= 0:
         return []
     ranked, scores = online['ranked'], online['scores']
-    correct = metrics.top1_correct(ranked, ds.gt)
-    order = np.argsort(-np.nan_to_num(scores[:, 0], neginf=-1e30), kind='stable')
-    answered = ranked[:, 0] >= 0
-    wins = [int(i) for i in order if correct[i]][:count]
-    fails = [int(i) for i in order if answered[i] and not correct[i] and ds.gt[i].any()][:count]
+    picked = pick_examples(ranked, scores, ds.gt, ds.query_paths, count)
     out_list = []
-    for kind, queries in (('success', wins), ('failure', fails)):
+    for kind, queries in picked.items():
         for j, q in enumerate(queries, 1):
             r = int(ranked[q, 0])
             qstamp, rstamp = run['query_stamps'][q], run['ref_stamps'][r]
@@ -329,7 +420,7 @@ def plot_online_examples(ds, run: dict, online: dict, out: Path, count: int) -> 
             title = (
                 f'online: query {q} ({Path(ds.query_paths[q]).name}) -> keyframe of ref {r} '
                 f'({Path(ds.ref_paths[r]).name}), {verdict}\nS = {scores[q, 0]:.2f}, {len(m)} matched region '
-                f'pairs from /matches (line opacity = offset weight)'
+                f'pairs from /matches'
             )
             name = f'matches_online_{kind}{j}_q{q}.png'
             plot_matches(
@@ -340,6 +431,10 @@ def plot_online_examples(ds, run: dict, online: dict, out: Path, count: int) -> 
                 pairs,
                 str(out / name),
                 title=title,
+                labels=(
+                    f'query {q}',
+                    f'map: keyframe of ref {r}, the answer ({"right" if kind == "success" else "WRONG"})',
+                ),
             )
             out_list.append(
                 {

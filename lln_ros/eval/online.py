@@ -1,12 +1,12 @@
 """lln-demo's scoring: rankings from the answers the nodes published, transport accounting (what was
 sent, received, dropped, stored, answered), and online against the offline evaluator, metric by
-metric, query by query and candidate by candidate, with the cause of every difference."""
+metric, query by query and candidate by candidate, with the cause of every difference.
+The offline side itself (run beside the online one) is lln_ros.eval.demo_offline.
+"""
 
 from __future__ import annotations
 
 import math
-import shlex
-import time
 from pathlib import Path
 
 import numpy as np
@@ -117,9 +117,11 @@ def compare(
     off_summary: dict,
     transport: dict,
     models: tuple[dict, dict] = ({}, {}),
+    prefilter: str = 'holistic',
 ) -> dict:
     """Online vs offline: metric by metric, query by query, and candidate by candidate (online k =
-    prefilter_k, so both sides score the same holistic top-K); the cause of every difference.
+    prefilter_k, so both sides rerank a first-stage top-K); the cause of every difference.
+    prefilter: the first stage both sides ran (it names the cause of a candidate set difference).
     models: (the nodes' model_info, the offline extractor's); another descriptor space or head on
     one side is a difference too."""
     on_ranked, on_scores = online['ranked'], online['scores']
@@ -196,7 +198,14 @@ def compare(
                 f'{n_jump} because the landmark similarity S of one contender changed by a whole '
                 'mutual pair (a mutual-nearest-neighbour pair gained or lost)'
             )
-        if n_pre:
+        if n_pre and prefilter == 'landmarks':
+            parts.append(
+                f"{n_pre} at the landmark first stage (one answer is outside the other side's top-K): "
+                'past 20k landmarks both sides search an approximate IVF-PQ index, and the two are not '
+                "the same one: the matcher's was trained on its map when it reached that size (the "
+                "first ~400 keyframes), the evaluator's on every map frame at once"
+            )
+        elif n_pre:
             parts.append(
                 f'{n_pre} at the holistic prefilter boundary (one answer is outside the other '
                 "side's top-K; the global-descriptor cosines there differ in the 5th decimal)"
@@ -207,11 +216,10 @@ def compare(
             f'{len(differ)} of {q} queries have another top-1 online than offline ('
             + '; '.join(parts)
             + '). Not transport: both paths round features and descriptors to float16 at the same '
-            'places, but the backbone itself runs at another batch size online (1 frame) than in '
-            'the offline feature cache (a batch), and its kernels then differ in the last bits; a '
-            'value near a float16 rounding boundary can round the other way, and S is not '
-            'continuous in the descriptors (mutual nearest neighbours, offset mode), so where '
-            'neighbouring cells are almost identical (e.g. tiny upsampled frames) that flips a pair'
+            'places; where the backbone ran at another batch size (lln-eval caches features in '
+            "batches, the nodes and lln-demo's own cache fill one frame at a time) its kernels differ "
+            'in the last bits, a value near a float16 rounding boundary can round the other way, '
+            'and S is not continuous in the descriptors (mutual nearest neighbours, offset mode)'
         )
     if len(rel_all) and jumps:
         notes.append(
@@ -248,57 +256,4 @@ def compare(
         'score_rel_diff_median': float(np.median(rel)) if len(rel) else None,
         'score_rel_diff_max': float(rel.max()) if len(rel) else None,
         'notes': notes,
-    }
-
-
-def run_offline(ds, spec: str, args, out: Path, log) -> dict:
-    """The same dataset through lln-eval's code (evaluate) with the nodes' method, top-n and
-    prefilter-k, into out/offline; the ranking and summary of its one row."""
-    from ..cli.common import runtime_conf
-    from ..core.extractor import Extractor
-    from .runner import evaluate
-
-    ext_method = 'lln' if args.method == 'holistic' else args.method
-    extractor = Extractor(
-        {
-            'top_n': args.top_n,
-            'method': ext_method,
-            'num_threads': args.threads,
-            **runtime_conf(args),
-            'weights': str(Path(args.weights).expanduser().resolve()) if args.weights else '',
-        }
-    )
-    conf = {
-        'methods': [args.method],
-        'top_n': args.top_n,
-        'prefilter': args.prefilter,
-        'prefilter_k': args.prefilter_k,
-        'timing_images': 3,
-        'timing_queries': 5,
-        'timing_repeats': 1,
-        'examples': args.examples,
-        'heatmap_images': 4,
-        'cache_dir': args.cache or str(out / 'cache' / 'features'),
-        'plots': True,
-        'progress': not args.quiet,
-    }
-    t = time.monotonic()
-    command = (
-        f'lln-eval --dataset {shlex.quote(spec)} --methods {args.method} --top-n {args.top_n} '
-        f'--prefilter {args.prefilter} --prefilter-k {args.prefilter_k} --out {shlex.quote(str(out / "offline"))}'
-    )
-    run = evaluate([ds], extractor, conf, None, out / 'offline', specs=[spec], command=command, log=log)
-    name = next(iter(run.datasets))
-    row = next(iter(run.datasets[name].rankings))
-    ranked, scores = run.datasets[name].rankings[row]
-    entry = run.results['datasets'][name]['methods'][row]
-    return {
-        'ranked': ranked,
-        'scores': scores,
-        'row': row,
-        'summary': {key: entry[key] for key, _ in METRICS},
-        'entry': entry,
-        'seconds': time.monotonic() - t,
-        'model': extractor.model_info,
-        'results': str(out / 'offline' / 'results.json'),
     }

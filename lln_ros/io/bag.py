@@ -42,8 +42,35 @@ class BagError(DatasetError):
 # image folders
 
 
+def frame_images(folder: str | os.PathLike, pattern: str | None = None) -> tuple[list[Path], dict]:
+    """The frames of an image folder, in natural order, and what was left out: (paths, skipped).
+
+    Files that are not images (by suffix, datasets.IMAGE_SUFFIXES) are skipped. Without `pattern`,
+    when the images are of several kinds, the frames are the most common suffix and the others are
+    skipped too: rtabmap_loop/ holds samples_GT.bmp (its ground truth) beside 1.jpg ... With
+    `pattern` (a glob) every matching image is a frame. skipped: {'not_image': [names],
+    'other_kind': [names], 'kind': the frames' suffix or None}. DatasetError when nothing is left."""
+    from collections import Counter
+
+    from .datasets import IMAGE_SUFFIXES, natural_key
+
+    paths = list_images(folder, pattern)  # DatasetError: missing folder, no image at all
+    files = Path(folder).glob(pattern) if pattern else Path(folder).iterdir()
+    not_image = [f.name for f in files if f.is_file() and f.suffix.lower() not in IMAGE_SUFFIXES]
+    not_image.sort(key=natural_key)
+    kinds = Counter(p.suffix.lower() for p in paths)
+    kind, other = None, []
+    if not pattern and len(kinds) > 1:
+        kind = kinds.most_common(1)[0][0]
+        other = [p.name for p in paths if p.suffix.lower() != kind]
+        paths = [p for p in paths if p.suffix.lower() == kind]
+    return paths, {'not_image': not_image, 'other_kind': other, 'kind': kind}
+
+
 def read_image_bgr(path: str | os.PathLike):
     """BGR uint8 (H, W, 3) of an image file; ImageError when it cannot be decoded."""
+    if Path(path).is_dir():
+        raise ImageError(f'{path} is a directory, not an image file')
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None or image.size == 0:
         raise ImageError(f'cannot decode image {path}')

@@ -66,6 +66,8 @@ def resize_for_network(rgb: np.ndarray, input_height: int) -> np.ndarray:
 
 def load_image(path: str) -> np.ndarray:
     """Read an image file as RGB uint8 (H, W, 3)."""
+    if os.path.isdir(path):
+        raise ImageError(f'{path!r} is a directory, not an image file')
     if not os.path.isfile(path):
         raise ImageError(f'image file not found: {path!r}')
     bgr = cv2.imread(path, cv2.IMREAD_COLOR)
