@@ -174,12 +174,10 @@ def grow(real: np.ndarray, total: int, noise: float, rng) -> np.ndarray:
 
 
 def exact_knn(x: np.ndarray, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Brute-force top k by inner product: sims (Q, k), rows of x (Q, k); x is not copied."""
     import faiss
 
-    flat = faiss.IndexFlatIP(x.shape[1])
-    for start in range(0, len(x), 500_000):
-        flat.add(x[start : start + 500_000])
-    return flat.search(q, k)
+    return faiss.knn(q, x, k, metric=faiss.METRIC_INNER_PRODUCT)
 
 
 def index_recall(args, data: dict) -> list[dict]:
@@ -206,7 +204,8 @@ def index_recall(args, data: dict) -> list[dict]:
     )
     rows = []
     for kind in args.kinds.split(','):
-        index = LandmarkIndex(x.shape[1], {'landmark_compressed': kind, 'landmark_index_threshold': 0})
+        conf = {'landmark_compressed': kind, 'landmark_index_threshold': 0, 'landmark_pq_m': args.pq_m}
+        index = LandmarkIndex(x.shape[1], conf)
         t = time.perf_counter()
         index.build(x, ids)
         build_s = time.perf_counter() - t
@@ -266,14 +265,14 @@ def nordland_first_stage(args, data: dict) -> list[dict]:
         )
         for i in range(n_q)
     ]
-    configs = [('exact', 0)] + [
+    configs = ([('exact', 0)] if args.exact else []) + [
         (kind, npb) for kind in args.kinds.split(',') for npb in map(int, args.nprobe.split(','))
     ]
     rows = []
     for kind, nprobe in configs:
         conf = {'landmark_index_threshold': len(x) if kind == 'exact' else 0, 'landmark_nprobe': nprobe or 1}
         if kind != 'exact':
-            conf['landmark_compressed'] = kind
+            conf.update({'landmark_compressed': kind, 'landmark_pq_m': args.pq_m})
         index = LandmarkIndex(d, conf)
         index.build(x, ids)
         ranked = np.full((n_q, 100), -1, np.int64)
@@ -300,6 +299,8 @@ def main(argv=None) -> int:
     ap.add_argument('--knn', type=int, default=20)
     ap.add_argument('--kinds', default='ivfpq-fs,ivfpq')
     ap.add_argument('--nprobe', default='8,16,32')
+    ap.add_argument('--pq-m', type=int, default=0, help='PQ sub-quantisers (0 = the default of the kind)')
+    ap.add_argument('--no-exact', dest='exact', action='store_false', help='--nordland: skip the exact row')
     ap.add_argument('--nordland', action='store_true', help='the first stage on the Nordland test split instead')
     args = ap.parse_args(argv)
     data = extract(Path(args.cache), args.augment, args.limit)

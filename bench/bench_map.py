@@ -42,6 +42,8 @@ structure worth measuring).
 from __future__ import annotations
 
 import argparse
+import builtins
+import functools
 import json
 import os
 import platform
@@ -344,6 +346,9 @@ def run(args, backend: str) -> dict:
                 'landmark_index_mb': store.info().get('landmark_index_bytes', 0) / 2**20,
             }
         )
+        # the table so far, on stderr: a run stopped before the largest size still reports the rest
+        partial = {'uri': uri, 'cpus': os.cpu_count(), 'load': os.getloadavg()}
+        print_table(args, backend, {'info': partial, 'rows': rows}, file=sys.stderr)
     store.close()
     if backend == 'milvus':  # an idle server's CPU climbs with every collection left loaded
         from pymilvus import MilvusClient
@@ -373,8 +378,9 @@ def urlpath(uri: str) -> str:
     return uri.split('://', 1)[-1].split('?')[0].partition('/')[2].strip('/')
 
 
-def print_table(args, backend: str, result: dict) -> None:
+def print_table(args, backend: str, result: dict, file=None) -> None:
     info, rows = result['info'], result['rows']
+    print = functools.partial(builtins.print, file=file or sys.stdout, flush=True)
     print(
         f'backend {backend} ({info["uri"]}), n={N_LANDMARKS}, D={DIM}, {info["cpus"]} CPUs, '
         f'load after it {", ".join(f"{v:.2f}" for v in info["load"])}'

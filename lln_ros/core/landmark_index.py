@@ -27,14 +27,19 @@ is unique within a keyframe (a landmark is one grid cell), so a hit says where i
 side table, a keyframe's landmarks are one id range (delete = IDSelectorRange) and "older than
 keyframe c" is ids < c << 24 (exclude_recent). Grids up to 4096 x 4096 cells, keyframe ids < 2^39.
 
-Index type: exact (IndexIDMap2(IndexFlatIP)) up to conf['landmark_index_threshold'] landmarks;
-above it IVF-PQ (IndexIVFPQ, conf['landmark_pq_m'] sub-quantisers of 8 bits = D/4 bytes per
-landmark, trained on a sample of the map's own descriptors, conf['landmark_nprobe'] cells probed).
-Exact inner products are ~130 ms of CPU per query (50 query landmarks) at 50k landmarks on this
-machine, so only small maps stay exact; IVF-PQ keeps a 100k-keyframe map (5M landmarks) at ~280 MB
-and scans nprobe/lists of it. An IVF-PQ grown past conf['landmark_retrain_factor'] x the landmarks
-it was trained on is rebuilt by its owner (the map store) from the stored descriptors. Recall against exact search is
-measured by bench/bench_landmark_index.py on real descriptors.
+Index type: exact (IndexIDMap2(IndexFlatIP)) up to conf['landmark_index_threshold'] landmarks
+(the switch-over rule, commented in default_conf); above it conf['landmark_compressed']:
+'ivfpq-fs' (the default: IndexIVFPQFastScan, D sub-quantisers of 4 bits = D/2 bytes per
+landmark, scanned with SIMD register look-ups) or 'ivfpq' (IndexIVFPQ, D/4 sub-quantisers of 8
+bits = D/4 bytes, the format of older maps, still read). Both are trained on a sample of the
+map's own descriptors and probe conf['landmark_nprobe'] of their IVF cells; all 50 query landmarks
+go to FAISS in one search call. Exact inner products grow with the map (one core: ~120 ms per
+query at 20k landmarks under load 14 on this 2-core machine), so only small maps stay exact; the
+fast-scan index keeps a 100k-keyframe map (5M landmarks) at ~520 MB with ids. A compressed index
+grown past conf['landmark_retrain_factor'] x the landmarks it was trained on is rebuilt by its
+owner (the map store) from the stored descriptors. Recall against exact search on descriptors of
+real images, and the first stage on the Nordland test split per index type:
+bench/bench_landmark_index.py.
 """
 
 from __future__ import annotations
@@ -63,16 +68,18 @@ default_conf = {
     # Switch-over rule: exact search (IndexFlatIP: recall 1, D multiply-adds per query landmark and
     # map landmark) while the index holds at most this many landmarks (~400 keyframes at n=50),
     # compressed (landmark_compressed) above it. Exact cost grows with the map: 50 query landmarks
-    # against 20k landmarks is ~10 ms of one core, against 500k (10k keyframes) ~250 ms.
+    # against 20k landmarks took 118 ms of one core under load 14 on this 2-core machine, 100k 1.1 s.
     'landmark_index_threshold': 20_000,
     # above the threshold: 'ivfpq-fs' (IVF + 4-bit PQ fast-scan, SIMD look-ups in registers; the
-    # default: ~5x faster than 'ivfpq' at 10k keyframes for the same bytes, recall in
-    # bench/bench_landmark_index.py) or 'ivfpq' (IVF + 8-bit PQ, the older format, still read)
+    # default: faster than 'ivfpq' and on the Nordland test split at or above it at every R@K,
+    # bench/bench_landmark_index.py --nordland) or 'ivfpq' (IVF + 8-bit PQ, the older format, still read)
     'landmark_compressed': 'ivfpq-fs',
     'landmark_retrain_factor': 8,  # a compressed index grown past this x its training size is rebuilt
     'landmark_ivf_lists': 0,  # 0 = sqrt(landmarks x sqrt(retrain factor)), in [64, 4096], <= landmarks / 39
     'landmark_nprobe': 16,  # IVF cells visited per query landmark
-    'landmark_pq_m': 0,  # PQ sub-quantisers; 0 = D / 2 at 4 bits (ivfpq-fs), D / 4 at 8 bits (ivfpq): D/4 bytes
+    # PQ sub-quantisers; 0 = D at 4 bits (ivfpq-fs: D/2 bytes per landmark; D/2 of them lost 2 points
+    # of Nordland R@10 against 'ivfpq', D kept every R@K at or above it), D / 4 at 8 bits (ivfpq)
+    'landmark_pq_m': 0,
     'landmark_pq_bits': 8,  # bits per sub-quantiser code of 'ivfpq' (fast-scan codes are always 4 bits)
     'landmark_train_points': 100_000,  # sample the compressed index is trained on
 }
@@ -216,7 +223,7 @@ class LandmarkIndex:
         if kind not in COMPRESSED:
             raise ValueError(f'landmark_compressed must be one of {"|".join(COMPRESSED)}, got {kind!r}')
         fast = kind == 'ivfpq-fs'
-        m = int(self.conf['landmark_pq_m']) or max(1, self.dim // (2 if fast else 4))
+        m = int(self.conf['landmark_pq_m']) or max(1, self.dim if fast else self.dim // 4)
         if self.dim % m:
             raise ValueError(f'landmark_pq_m {m} must divide the descriptor size {self.dim}')
         if fast:
