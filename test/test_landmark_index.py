@@ -21,6 +21,7 @@ from lln_ros.mapstore import MapStore
 from lln_ros.metrics import recall_at_k
 
 SMALL_IVF = {'landmark_index_threshold': 500, 'landmark_ivf_lists': 8, 'landmark_nprobe': 8, 'landmark_pq_bits': 4}
+KINDS = ('ivfpq-fs', 'ivfpq')  # the compressed index types (landmark_index.COMPRESSED)
 
 
 @pytest.fixture
@@ -72,16 +73,55 @@ def test_index_add_search_remove_and_below(rng):
     assert index.remove_keyframes([12, 99]) == 50 and 12 not in index.keyframe_counts()
 
 
+@pytest.mark.parametrize('compressed', KINDS)
+def test_index_type_switch_remove_reset_and_file(compressed, tmp_path, rng):
+    """Exact up to landmark_index_threshold, the configured compressed type once add() crosses it
+    (re-trained from what it held); a range remove (<= 4 keyframes) and a batch remove (more) both
+    leave exactly the other keyframes; reset is exact and empty; write / read keeps type, nprobe and
+    contents; growth past landmark_retrain_factor x the training size asks the owner to rebuild."""
+    conf = {**SMALL_IVF, 'landmark_compressed': compressed, 'landmark_retrain_factor': 2}
+    index = LandmarkIndex(320, conf)
+    sets = [make_set(rng) for _ in range(24)]
+    index.add_sets(range(8), sets[:8])
+    assert index.kind == 'exact' and index.ntotal == 400  # 400 <= 500: still exact
+    index.add_sets(range(8, 12), sets[8:12])
+    assert index.kind == compressed and index.trained_on == 600 and not index.needs_rebuild()
+    assert index.keyframe_counts() == {i: 50 for i in range(12)}
+    ids, _ = index.shortlist(make_set(rng, base=sets[9], noise=0.05), k=3)
+    assert ids[0] == 9
+    assert index.remove_keyframes([3]) == 50 and index.remove_keyframes([0, 1, 2, 4, 5]) == 250
+    assert sorted(index.keyframe_counts()) == [6, 7, 8, 9, 10, 11]
+    assert 3 not in index.shortlist(sets[3], k=6)[0]
+    index.write(str(tmp_path / 'x.landmarks'), {'map_uuid': 'u'})
+    back, header = LandmarkIndex.read(str(tmp_path / 'x.landmarks'), 320, conf)
+    assert back.kind == compressed and back.index.nprobe == 8 and header['map_uuid'] == 'u'
+    assert back.keyframe_counts() == index.keyframe_counts() and back.trained_on == 600
+    index.add_sets(range(12, 24), sets[12:24])  # 900 landmarks: 1.5 x 600
+    assert not index.needs_rebuild()
+    index.add_sets(range(24, 31), [make_set(rng) for _ in range(7)])  # 1250 > 2 x 600
+    assert index.needs_rebuild()
+    index.reset()
+    assert index.kind == 'exact' and index.ntotal == 0
+    with pytest.raises(ValueError, match='landmark_compressed must be one of'):
+        LandmarkIndex(320, {**conf, 'landmark_compressed': 'hnsw'}).build(
+            np.zeros((600, 320), np.float32), np.arange(600)
+        )
+
+
+@pytest.mark.parametrize('index', ['exact', 'ivfpq-fs'])
 @pytest.mark.parametrize('kind', BACKENDS)
-def test_map_keeps_landmark_index_consistent(kind, tmp_path, rng):
+def test_map_keeps_landmark_index_consistent(kind, index, tmp_path, rng):
     """add / delete / clear / reopen: the landmark index always holds exactly the stored landmarks,
-    and the landmark first stage answers with the right keyframe."""
+    and the landmark first stage answers with the right keyframe -- exact, and compressed (the
+    threshold lowered to 300 landmarks, so the map crosses it while growing and at reopen)."""
     uri = uri_for(kind, tmp_path)
     sets = [make_set(rng, n=int(n)) for n in rng.integers(20, 51, 12)]
-    with MapStore.open(uri, model=MODEL) as store:
+    conf = {} if index == 'exact' else {**SMALL_IVF, 'landmark_index_threshold': 300, 'landmark_compressed': index}
+    with MapStore.open(uri, model=MODEL, conf=conf) as store:
         ids = store.add_many(sets[:8], [(i, 0) for i in range(8)])
         ids += [store.add(s, (100 + i, 0)) for i, s in enumerate(sets[8:])]
         assert store.info()['landmarks'] == sum(len(s) for s in sets) and store.check() == []
+        assert store.info()['landmark_index'] == index
         assert (
             store.query(make_set(rng, n=len(sets[5]), base=sets[5], noise=0.1), prefilter='landmarks')[0].keyframe_id
             == ids[5]
@@ -90,23 +130,26 @@ def test_map_keeps_landmark_index_consistent(kind, tmp_path, rng):
         assert store.info()['landmarks'] == sum(len(s) for i, s in enumerate(sets) if i not in (5, 9))
         assert all(c.keyframe_id not in (ids[5], ids[9]) for c in store.query(sets[5], prefilter_k=12, k=12))
         assert store.check() == []
-    with MapStore.open(uri) as store:  # restart: rebuilt from the stored keyframes
+    with MapStore.open(uri, conf=conf) as store:  # restart: rebuilt (or loaded) and checked
         assert store.info()['landmarks'] == sum(len(s) for i, s in enumerate(sets) if i not in (5, 9))
-        assert store.check() == []
+        assert store.check() == [] and store.info()['landmark_index'] == index
         assert store.query(sets[3])[0].keyframe_id == ids[3]
         assert store.clear() == 10 and store.info()['landmarks'] == 0 and store.query(sets[3]) == []
+        assert store.info()['landmark_index'] == 'exact'  # cleared: exact again until it regrows
         new = store.add(sets[3])
         assert store.query(sets[3])[0].keyframe_id == new and store.check() == []
 
 
-def test_compressed_index_persisted_stale_corrupt_missing_foreign(tmp_path, rng, caplog):
-    """IVF-PQ maps (threshold lowered to 500 landmarks) persist their index next to the map; a stale
-    file is caught up, a corrupt / missing / foreign one rebuilt with a warning, never silently empty."""
+@pytest.mark.parametrize('compressed', KINDS)
+def test_compressed_index_persisted_stale_corrupt_missing_foreign(compressed, tmp_path, rng, caplog):
+    """Compressed maps (threshold lowered to 500 landmarks) persist their index next to the map; a
+    stale file is caught up, a corrupt / missing / foreign one rebuilt with a warning, never silently empty."""
+    SMALL_IVF = {**globals()['SMALL_IVF'], 'landmark_compressed': compressed}
     path = str(tmp_path / 'map.db')
     sets = [make_set(rng) for _ in range(30)]
     with MapStore.open(path, model=MODEL, conf=SMALL_IVF) as store:
         ids = store.add_many(sets[:25], [(i, 0) for i in range(25)])
-        assert store.info()['landmark_index'] == 'ivfpq'
+        assert store.info()['landmark_index'] == compressed
         store.save()
         stale = tmp_path / 'stale.landmarks'
         shutil.copy(store.landmark_path, stale)

@@ -27,14 +27,19 @@ is unique within a keyframe (a landmark is one grid cell), so a hit says where i
 side table, a keyframe's landmarks are one id range (delete = IDSelectorRange) and "older than
 keyframe c" is ids < c << 24 (exclude_recent). Grids up to 4096 x 4096 cells, keyframe ids < 2^39.
 
-Index type: exact (IndexIDMap2(IndexFlatIP)) up to conf['landmark_index_threshold'] landmarks;
-above it IVF-PQ (IndexIVFPQ, conf['landmark_pq_m'] sub-quantisers of 8 bits = D/4 bytes per
-landmark, trained on a sample of the map's own descriptors, conf['landmark_nprobe'] cells probed).
-Exact inner products are ~130 ms of CPU per query (50 query landmarks) at 50k landmarks on this
-machine, so only small maps stay exact; IVF-PQ keeps a 100k-keyframe map (5M landmarks) at ~280 MB
-and scans nprobe/lists of it. An IVF-PQ grown past conf['landmark_retrain_factor'] x the landmarks
-it was trained on is rebuilt by its owner (the map store) from the stored descriptors. Recall against exact search is
-measured by bench/bench_landmark_index.py on real descriptors.
+Index type: exact (IndexIDMap2(IndexFlatIP)) up to conf['landmark_index_threshold'] landmarks
+(the switch-over rule, commented in default_conf); above it conf['landmark_compressed']:
+'ivfpq-fs' (the default: IndexIVFPQFastScan, D sub-quantisers of 4 bits = D/2 bytes per
+landmark, scanned with SIMD register look-ups) or 'ivfpq' (IndexIVFPQ, D/4 sub-quantisers of 8
+bits = D/4 bytes, the format of older maps, still read). Both are trained on a sample of the
+map's own descriptors and probe conf['landmark_nprobe'] of their IVF cells; all 50 query landmarks
+go to FAISS in one search call. Exact inner products grow with the map (one core: ~120 ms per
+query at 20k landmarks under load 14 on this 2-core machine), so only small maps stay exact; the
+fast-scan index keeps a 100k-keyframe map (5M landmarks) at ~520 MB with ids. A compressed index
+grown past conf['landmark_retrain_factor'] x the landmarks it was trained on is rebuilt by its
+owner (the map store) from the stored descriptors. Recall against exact search on descriptors of
+real images, and the first stage on the Nordland test split per index type:
+bench/bench_landmark_index.py.
 """
 
 from __future__ import annotations
@@ -60,14 +65,25 @@ default_conf = {
     'landmark_knn': 20,  # map landmarks each query landmark retrieves
     'landmark_tau': 0.35,  # cosine below which a hit does not vote
     'landmark_alpha': 3.0,  # selectivity exponent of a hit's vote
-    'landmark_index_threshold': 20_000,  # landmarks (~400 keyframes at n=50); IVF-PQ above
-    'landmark_retrain_factor': 8,  # an IVF-PQ grown past this x its training size is rebuilt
-    'landmark_ivf_lists': 0,  # 0 = sqrt(landmarks), between 64 and 4096 (<= landmarks / 39)
+    # Switch-over rule: exact search (IndexFlatIP: recall 1, D multiply-adds per query landmark and
+    # map landmark) while the index holds at most this many landmarks (~400 keyframes at n=50),
+    # compressed (landmark_compressed) above it. Exact cost grows with the map: 50 query landmarks
+    # against 20k landmarks took 118 ms of one core under load 14 on this 2-core machine, 100k 1.1 s.
+    'landmark_index_threshold': 20_000,
+    # above the threshold: 'ivfpq-fs' (IVF + 4-bit PQ fast-scan, SIMD look-ups in registers; the
+    # default: faster than 'ivfpq' and on the Nordland test split at or above it at every R@K,
+    # bench/bench_landmark_index.py --nordland) or 'ivfpq' (IVF + 8-bit PQ, the older format, still read)
+    'landmark_compressed': 'ivfpq-fs',
+    'landmark_retrain_factor': 8,  # a compressed index grown past this x its training size is rebuilt
+    'landmark_ivf_lists': 0,  # 0 = sqrt(landmarks x sqrt(retrain factor)), in [64, 4096], <= landmarks / 39
     'landmark_nprobe': 16,  # IVF cells visited per query landmark
-    'landmark_pq_m': 0,  # PQ sub-quantisers; 0 = D / 4 (8 bits each: D/4 bytes)
-    'landmark_pq_bits': 8,  # bits per sub-quantiser code
-    'landmark_train_points': 100_000,  # sample the IVF-PQ is trained on
+    # PQ sub-quantisers; 0 = D at 4 bits (ivfpq-fs: D/2 bytes per landmark; D/2 of them lost 2 points
+    # of Nordland R@10 against 'ivfpq', D kept every R@K at or above it), D / 4 at 8 bits (ivfpq)
+    'landmark_pq_m': 0,
+    'landmark_pq_bits': 8,  # bits per sub-quantiser code of 'ivfpq' (fast-scan codes are always 4 bits)
+    'landmark_train_points': 100_000,  # sample the compressed index is trained on
 }
+COMPRESSED = ('ivfpq-fs', 'ivfpq')
 
 _CELL_BITS = 12
 _KF_SHIFT = 2 * _CELL_BITS
@@ -182,6 +198,9 @@ class LandmarkIndex:
 
     @property
     def kind(self) -> str:
+        """'exact', 'ivfpq-fs' or 'ivfpq' (module doc)."""
+        if isinstance(self.index, faiss.IndexIVFPQFastScan):
+            return 'ivfpq-fs'
         return 'ivfpq' if isinstance(self.index, faiss.IndexIVF) else 'exact'
 
     @property
@@ -193,20 +212,33 @@ class LandmarkIndex:
 
     # ------------------------------------------------------------------ building
     def _compressed(self, x: np.ndarray, total: int | None = None):
-        """An empty IVF-PQ trained on x (N, D) (a sample of it), sized for `total` landmarks (N)."""
+        """An empty compressed index (conf['landmark_compressed']) trained on x (N, D) (a sample of
+        it), sized for `total` landmarks (N)."""
         n = int(total or len(x))
-        lists = int(self.conf['landmark_ivf_lists']) or int(max(1, min(np.clip(np.sqrt(n), 64, 4096), n // 39)))
-        m = int(self.conf['landmark_pq_m']) or max(1, self.dim // 4)
+        # sized for the geometric middle of the sizes it holds before its retrain (n .. factor x n),
+        # not for n: a map that grows 8x on 8x fewer lists scans 8x more codes per probe at the end
+        middle = n * np.sqrt(max(1.0, float(self.conf['landmark_retrain_factor'])))
+        lists = int(self.conf['landmark_ivf_lists']) or int(max(1, min(np.clip(np.sqrt(middle), 64, 4096), n // 39)))
+        kind = self.conf['landmark_compressed']
+        if kind not in COMPRESSED:
+            raise ValueError(f'landmark_compressed must be one of {"|".join(COMPRESSED)}, got {kind!r}')
+        fast = kind == 'ivfpq-fs'
+        m = int(self.conf['landmark_pq_m']) or max(1, self.dim if fast else self.dim // 4)
         if self.dim % m:
             raise ValueError(f'landmark_pq_m {m} must divide the descriptor size {self.dim}')
-        index = faiss.IndexIVFPQ(
-            faiss.IndexFlatIP(self.dim),
-            self.dim,
-            lists,
-            m,
-            int(self.conf['landmark_pq_bits']),
-            faiss.METRIC_INNER_PRODUCT,
-        )
+        if fast:
+            index = faiss.IndexIVFPQFastScan(
+                faiss.IndexFlatIP(self.dim), self.dim, lists, m, 4, faiss.METRIC_INNER_PRODUCT
+            )
+        else:
+            index = faiss.IndexIVFPQ(
+                faiss.IndexFlatIP(self.dim),
+                self.dim,
+                lists,
+                m,
+                int(self.conf['landmark_pq_bits']),
+                faiss.METRIC_INNER_PRODUCT,
+            )
         index.cp.max_points_per_centroid = 64
         rng = np.random.default_rng(0)
         sample = (
@@ -222,7 +254,7 @@ class LandmarkIndex:
     def needs_rebuild(self) -> bool:
         """An IVF-PQ trained on far fewer landmarks than it now holds (its cells are overfull and
         every query scans more): the owner rebuilds it from the stored descriptors."""
-        return self.kind == 'ivfpq' and self.ntotal > self.conf['landmark_retrain_factor'] * max(self.trained_on, 1)
+        return self.kind != 'exact' and self.ntotal > self.conf['landmark_retrain_factor'] * max(self.trained_on, 1)
 
     def build(self, x: np.ndarray, ids: np.ndarray) -> None:
         """Replace the contents with x (N, D) float32 under landmark ids (N,), choosing the type."""
@@ -240,7 +272,11 @@ class LandmarkIndex:
         if self.kind == 'exact' and self.ntotal + len(ids) > self.conf['landmark_index_threshold']:
             old = self.index.index.reconstruct_n(0, self.ntotal) if self.ntotal else np.zeros((0, self.dim), np.float32)
             old_ids = faiss.vector_to_array(self.index.id_map).astype(np.int64)
-            log.info('landmark index passed %d landmarks: training IVF-PQ', self.conf['landmark_index_threshold'])
+            log.info(
+                'landmark index passed %d landmarks: training %s',
+                self.conf['landmark_index_threshold'],
+                self.conf['landmark_compressed'],
+            )
             self.build(np.concatenate([old, x]), np.concatenate([old_ids, ids]))
             return
         self.index.add_with_ids(x, ids)
@@ -296,7 +332,7 @@ class LandmarkIndex:
             sel = faiss.IDSelectorRange(0, int(below) << _KF_SHIFT)
             params = (
                 faiss.SearchParametersIVF(sel=sel, nprobe=self.index.nprobe)
-                if self.kind == 'ivfpq'
+                if self.kind != 'exact'
                 else faiss.SearchParameters(sel=sel)
             )
         sims, ids = self.index.search(q, int(k), params=params)
@@ -362,7 +398,7 @@ class LandmarkIndex:
             raise MapError(f'landmark index {path} is unusable: {str(e).splitlines()[0][:200]}') from None
         if (
             index.d != int(dim)
-            or not isinstance(index, (faiss.IndexIVFPQ, faiss.IndexIDMap2))
+            or not isinstance(index, (faiss.IndexIVFPQ, faiss.IndexIVFPQFastScan, faiss.IndexIDMap2))
             or index.ntotal != header.get('landmarks')
         ):
             raise MapError(
