@@ -1,7 +1,8 @@
 """docs/results.md from lln-eval output folders: the issues' targets checked against the measured
 figures (computed here, never typed in), then lln-eval's own tables with links to its figures.
 
-    python scripts/results_md.py docs/results.md docs/results [docs/results/exhaustive [docs/results/landmarks]]
+    python scripts/results_md.py docs/results.md docs/results [docs/results/exhaustive [docs/results/landmarks
+        [docs/results/filtered]]]
 
 The first folder is the paper's protocol (holistic top-30 prefilter, Nordland test split and
 rtabmap_loop); the optional second is Nordland with every reference scored (--prefilter-k 0).
@@ -156,7 +157,13 @@ def body_of(src: Path, dst: str, title: str) -> str:
     return re.sub(r'^# lln-eval results\n', f'## {title}\n', body, flags=re.M)
 
 
-def main(dst: str, src: str, exhaustive_src: str | None = None, default_src: str | None = None) -> None:
+def main(
+    dst: str,
+    src: str,
+    exhaustive_src: str | None = None,
+    default_src: str | None = None,
+    filtered_src: str | None = None,
+) -> None:
     src = Path(src)
     res = json.loads((src / 'results.json').read_text())
     body = body_of(src, dst, "lln-eval output: the paper's protocol (holistic top-30 prefilter)")
@@ -171,6 +178,13 @@ def main(dst: str, src: str, exhaustive_src: str | None = None, default_src: str
             Path(default_src),
             dst,
             'lln-eval output: the shipped defaults (landmark first stage, `--prefilter landmarks`)',
+        )
+    if filtered_src:
+        body += '\n' + body_of(
+            Path(filtered_src),
+            dst,
+            'lln-eval output: the shipped defaults on the Nordland test split without its blank and frozen '
+            'queries (`drop=blank+frozen`)',
         )
     k = int(res['parameters']['prefilter_k'])
     cpu = (
@@ -216,4 +230,4 @@ def main(dst: str, src: str, exhaustive_src: str | None = None, default_src: str
 
 
 if __name__ == '__main__':
-    main(*sys.argv[1:5])
+    main(*sys.argv[1:6])
