@@ -146,6 +146,7 @@ def test_real_layouts():
     clean = datasets.parse_spec(f'aligned:{nordland / "summer"},{nordland / "winter"},1,drop=blank+frozen', (0.7, 1.0))
     assert clean.info['blank_queries_dropped'] == 10 and clean.info['frozen_queries_dropped'] == 14
     assert len(clean.query_paths) == 1049 and len(clean.ref_paths) == 1073 and clean.gt.shape == (1049, 1073)
+    assert ds.info['blank_refs'] == 0 and clean.info['blank_refs'] == 77  # summer tunnels: black, kept in the map
     assert clean.query_paths[-1].name == 'images-35620.png' and clean.gt[-1, -3:].tolist() == [False, False, False]
     rt = shared_data('rtabmap_loop')
     loop = datasets.parse_spec(f'loop:{rt},{rt / "samples_GT.bmp"}')

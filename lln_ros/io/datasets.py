@@ -148,7 +148,7 @@ def aligned(
     (start, end) in [0, 1] keeps that contiguous part of the route. Query frames with no
     recognisable place are dropped by `drop` (DROP_MODES, '+'-joined or a tuple; 'none' keeps
     every frame); the counts are in info: blank_queries_dropped (flat or blank), frozen_queries_dropped.
-    References are never dropped (blank_refs counts the flat ones): a map keeps every frame."""
+    References are never dropped: blank_refs counts them by the same rule (blank with drop=blank, else flat)."""
     modes = parse_drop(drop)
     refs, queries = list_images(dir_ref), list_images(dir_query)
     if len(refs) != len(queries):
@@ -159,7 +159,7 @@ def aligned(
     refs, queries = refs[part], queries[part]
     if not refs:
         raise DatasetError(f'range {frac} selects no frames of {len(list_images(dir_ref))}')
-    ref_stats, query_stats = read_checked(refs), read_checked(queries, content=True)
+    ref_stats, query_stats = read_checked(refs, content=True), read_checked(queries, content=True)
     idx = np.arange(len(refs))
     drops = dropped_frames(query_stats, modes)
     keep = ~np.any(list(drops.values()), axis=0) if drops else np.ones(len(refs), bool)
@@ -172,7 +172,8 @@ def aligned(
         'drop': '+'.join(modes) or 'none',
         'blank_queries_dropped': int(blank.sum()),
         'frozen_queries_dropped': int(drops['frozen'].sum()) if 'frozen' in drops else 0,
-        'blank_refs': int(sum(s[2] < BLANK_STD for s in ref_stats)),
+        # kept (a map keeps every frame), counted by the blank rule in use (flat without drop=blank)
+        'blank_refs': int(dropped_frames(ref_stats, ('blank',) if 'blank' in modes else ('flat',)).popitem()[1].sum()),
         'ref_sizes': [s[:2] for s in ref_stats],
         'query_sizes': [s[:2] for s, k in zip(query_stats, keep) if k],
     }
