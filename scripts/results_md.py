@@ -40,7 +40,21 @@ def exhaustive_cost(exhaustive: dict) -> str:
     )
 
 
-def targets(res: dict, exhaustive: dict | None = None) -> list[str]:
+def default_targets(default: dict) -> list[tuple]:
+    """Issue 14's targets on the shipped defaults (landmark first stage), from its results.json."""
+    nord = nordland(default)['methods']
+    loop = next(v for v in default['datasets'].values() if v['spec'].startswith('loop:'))['methods']
+    lln, seq = nord['lln[trained]']['p_at_100r'], nord['lln[trained]+seq']['p_at_100r']
+    lp, lr = loop['lln[trained]']['p_at_100r'], loop['lln[trained]+seq']['r_at_100p']
+    return [
+        ('14', 'Nordland test, shipped defaults: single-frame LLN P@100%R >= 31%', pct(lln), lln >= 0.31),
+        ('14', 'Nordland test, shipped defaults: lln+seq P@100%R >= 80%', pct(seq), seq >= 0.80),
+        ('14', 'rtabmap_loop, shipped defaults: LLN P@100%R not below 93.2%', pct(lp), round(100 * lp, 1) >= 93.2),
+        ('14', 'rtabmap_loop, shipped defaults: lln+seq R@100%P not below 86.4%', pct(lr), round(100 * lr, 1) >= 86.4),
+    ]
+
+
+def targets(res: dict, exhaustive: dict | None = None, default: dict | None = None) -> list[str]:
     ds = res['datasets']
     nord = nordland(res)
     loop = next(v for v in ds.values() if v['spec'].startswith('loop:'))
@@ -142,6 +156,8 @@ def targets(res: dict, exhaustive: dict | None = None) -> list[str]:
                     reg['ms_per_query'] < al['ms_per_query'],
                 )
             )
+    if default:
+        rows += default_targets(default)
     out = ['| issue | target | measured | |', '|---|---|---|---|']
     out += [f'| {i} | {t} | {v} | {verdict(ok)} |' for i, t, v, ok in rows]
     return out
@@ -223,7 +239,9 @@ def main(
         ),
         '## Targets',
         '',
-        *targets(res, exhaustive),
+        *targets(
+            res, exhaustive, json.loads((Path(default_src) / 'results.json').read_text()) if default_src else None
+        ),
         '',
     ]
     Path(dst).write_text('\n'.join(head) + '\n' + body)
