@@ -1,7 +1,8 @@
 """docs/results.md from lln-eval output folders: the issues' targets checked against the measured
 figures (computed here, never typed in), then lln-eval's own tables with links to its figures.
 
-    python scripts/results_md.py docs/results.md docs/results [docs/results/exhaustive [docs/results/landmarks]]
+    python scripts/results_md.py docs/results.md docs/results [docs/results/exhaustive [docs/results/landmarks
+        [docs/results/filtered]]]
 
 The first folder is the paper's protocol (holistic top-30 prefilter, Nordland test split and
 rtabmap_loop); the optional second is Nordland with every reference scored (--prefilter-k 0).
@@ -39,7 +40,21 @@ def exhaustive_cost(exhaustive: dict) -> str:
     )
 
 
-def targets(res: dict, exhaustive: dict | None = None) -> list[str]:
+def default_targets(default: dict) -> list[tuple]:
+    """Issue 14's targets on the shipped defaults (landmark first stage), from its results.json."""
+    nord = nordland(default)['methods']
+    loop = next(v for v in default['datasets'].values() if v['spec'].startswith('loop:'))['methods']
+    lln, seq = nord['lln[trained]']['p_at_100r'], nord['lln[trained]+seq']['p_at_100r']
+    lp, lr = loop['lln[trained]']['p_at_100r'], loop['lln[trained]+seq']['r_at_100p']
+    return [
+        ('14', 'Nordland test, shipped defaults: single-frame LLN P@100%R >= 31%', pct(lln), lln >= 0.31),
+        ('14', 'Nordland test, shipped defaults: lln+seq P@100%R >= 80%', pct(seq), seq >= 0.80),
+        ('14', 'rtabmap_loop, shipped defaults: LLN P@100%R not below 93.2%', pct(lp), round(100 * lp, 1) >= 93.2),
+        ('14', 'rtabmap_loop, shipped defaults: lln+seq R@100%P not below 86.4%', pct(lr), round(100 * lr, 1) >= 86.4),
+    ]
+
+
+def targets(res: dict, exhaustive: dict | None = None, default: dict | None = None) -> list[str]:
     ds = res['datasets']
     nord = nordland(res)
     loop = next(v for v in ds.values() if v['spec'].startswith('loop:'))
@@ -141,6 +156,8 @@ def targets(res: dict, exhaustive: dict | None = None) -> list[str]:
                     reg['ms_per_query'] < al['ms_per_query'],
                 )
             )
+    if default:
+        rows += default_targets(default)
     out = ['| issue | target | measured | |', '|---|---|---|---|']
     out += [f'| {i} | {t} | {v} | {verdict(ok)} |' for i, t, v, ok in rows]
     return out
@@ -156,7 +173,13 @@ def body_of(src: Path, dst: str, title: str) -> str:
     return re.sub(r'^# lln-eval results\n', f'## {title}\n', body, flags=re.M)
 
 
-def main(dst: str, src: str, exhaustive_src: str | None = None, default_src: str | None = None) -> None:
+def main(
+    dst: str,
+    src: str,
+    exhaustive_src: str | None = None,
+    default_src: str | None = None,
+    filtered_src: str | None = None,
+) -> None:
     src = Path(src)
     res = json.loads((src / 'results.json').read_text())
     body = body_of(src, dst, "lln-eval output: the paper's protocol (holistic top-30 prefilter)")
@@ -171,6 +194,13 @@ def main(dst: str, src: str, exhaustive_src: str | None = None, default_src: str
             Path(default_src),
             dst,
             'lln-eval output: the shipped defaults (landmark first stage, `--prefilter landmarks`)',
+        )
+    if filtered_src:
+        body += '\n' + body_of(
+            Path(filtered_src),
+            dst,
+            'lln-eval output: the shipped defaults on the Nordland test split without its blank and frozen '
+            'queries (`drop=blank+frozen`)',
         )
     k = int(res['parameters']['prefilter_k'])
     cpu = (
@@ -209,11 +239,13 @@ def main(dst: str, src: str, exhaustive_src: str | None = None, default_src: str
         ),
         '## Targets',
         '',
-        *targets(res, exhaustive),
+        *targets(
+            res, exhaustive, json.loads((Path(default_src) / 'results.json').read_text()) if default_src else None
+        ),
         '',
     ]
     Path(dst).write_text('\n'.join(head) + '\n' + body)
 
 
 if __name__ == '__main__':
-    main(*sys.argv[1:5])
+    main(*sys.argv[1:6])

@@ -36,6 +36,57 @@ def test_aligned_tolerance_range_and_blank_frames(tmp_path):
         datasets.aligned(ref, qry, frac=(0.8, 0.2))
 
 
+def test_drop_modes_blank_with_a_logo_and_frozen_runs(tmp_path):
+    """drop=blank catches a dark frame with a small bright overlay (std above BLANK_STD, so `flat`
+    misses it); drop=frozen drops the repeats of a stalled frame but keeps its first; refs stay."""
+    ref = write_images(tmp_path / 'summer', 12)
+    qry = write_images(tmp_path / 'winter', 12)
+    tunnel = np.full((30, 40), 6, np.uint8)
+    tunnel[2:5, 30:38] = 200  # a channel logo: 2% of the pixels
+    assert tunnel.std() > datasets.BLANK_STD
+    assert cv2.imwrite(str(qry / 'images-00030.png'), tunnel)
+    stalled = cv2.imread(str(qry / 'images-00070.png'), cv2.IMREAD_UNCHANGED)
+    for i in (8, 9, 10):
+        assert cv2.imwrite(str(qry / f'images-{i * 10:05d}.png'), stalled)
+    default = datasets.aligned(ref, qry, tol=0)
+    assert len(default.query_paths) == 12 and default.info['drop'] == 'flat'
+    assert default.info['blank_queries_dropped'] == 0 and default.info['frozen_queries_dropped'] == 0
+    both = datasets.parse_spec(f'aligned:{ref},{qry},0,drop=blank+frozen')
+    assert [p.name for p in both.query_paths] == [f'images-{i * 10:05d}.png' for i in (0, 1, 2, 4, 5, 6, 7, 11)]
+    assert both.info['blank_queries_dropped'] == 1 and both.info['frozen_queries_dropped'] == 3
+    assert len(both.ref_paths) == 12 and both.gt.shape == (8, 12)
+    assert both.gt[3].tolist() == [i == 4 for i in range(12)]  # the truth follows the file index
+    only_frozen = datasets.parse_spec(f'aligned:{ref},{qry},0,drop=frozen')
+    assert len(only_frozen.query_paths) == 9 and only_frozen.info['blank_queries_dropped'] == 0
+    assert len(datasets.parse_spec(f'aligned:{ref},{qry},0,drop=none').query_paths) == 12
+    with pytest.raises(DatasetError, match='drop= takes none or'):
+        datasets.parse_spec(f'aligned:{ref},{qry},0,drop=dark')
+
+
+def test_sequence_flag_per_reader_and_spec_option(tmp_path):
+    """Aligned traverses and loops are routes; a VPR-Bench folder is not unless the spec says so."""
+    ref = write_images(tmp_path / 'a', 4)
+    qry = write_images(tmp_path / 'b', 4)
+    assert datasets.parse_spec(f'aligned:{ref},{qry}').sequence is True
+    assert datasets.parse_spec(f'aligned:{ref},{qry},1,sequence=0').sequence is False
+    vpr = tmp_path / 'vpr'
+    write_images(vpr / 'query', 3)
+    write_images(vpr / 'ref', 3)
+    rows = np.empty((3, 2), object)
+    for q in range(3):
+        rows[q] = [q, [q]]
+    np.save(vpr / 'ground_truth_new.npy', rows, allow_pickle=True)
+    assert datasets.parse_spec(f'vprbench:{vpr}').sequence is False
+    assert datasets.parse_spec(f'vprbench:{vpr},sequence=1').sequence is True
+    seq = write_images(tmp_path / 'seq', 12)
+    np.save(tmp_path / 'gt.npy', np.zeros((12, 12)))
+    assert datasets.parse_spec(f'loop:{seq},{tmp_path / "gt.npy"}').sequence is True
+    with pytest.raises(DatasetError, match="unknown option 'drop' for vprbench"):
+        datasets.parse_spec(f'vprbench:{vpr},drop=blank')
+    with pytest.raises(DatasetError, match='sequence= takes 0 or 1'):
+        datasets.parse_spec(f'vprbench:{vpr},sequence=true')
+
+
 def test_natural_order():
     names = ['10.jpg', '2.jpg', '1.jpg']
     assert sorted(names, key=datasets.natural_key) == ['1.jpg', '2.jpg', '10.jpg']
@@ -88,8 +139,15 @@ def test_loop_protocol(tmp_path):
 def test_real_layouts():
     nordland = shared_data('nordland_trimmed')
     ds = datasets.parse_spec(f'aligned:{nordland / "summer"},{nordland / "winter"},1', (0.7, 1.0))
-    assert len(ds.ref_paths) == 1073 and ds.info['blank_queries_dropped'] < 20
-    assert ds.ref_paths[0].name == ds.query_paths[0].name or ds.info['blank_queries_dropped']
+    assert len(ds.ref_paths) == len(ds.query_paths) == 1073 and ds.info['blank_queries_dropped'] == 0
+    assert ds.ref_paths[0].name == ds.query_paths[0].name and ds.sequence
+    # the Nordland filter: 10 tunnel queries (logo on black) and the last 14 repeats of the frozen
+    # final winter frame go; the references stay
+    clean = datasets.parse_spec(f'aligned:{nordland / "summer"},{nordland / "winter"},1,drop=blank+frozen', (0.7, 1.0))
+    assert clean.info['blank_queries_dropped'] == 10 and clean.info['frozen_queries_dropped'] == 14
+    assert len(clean.query_paths) == 1049 and len(clean.ref_paths) == 1073 and clean.gt.shape == (1049, 1073)
+    assert ds.info['blank_refs'] == 0 and clean.info['blank_refs'] == 77  # summer tunnels: black, kept in the map
+    assert clean.query_paths[-1].name == 'images-35620.png' and clean.gt[-1, -3:].tolist() == [False, False, False]
     rt = shared_data('rtabmap_loop')
     loop = datasets.parse_spec(f'loop:{rt},{rt / "samples_GT.bmp"}')
     assert len(loop.ref_paths) == 84 and loop.ref_paths[9].name == '10.jpg'

@@ -385,6 +385,63 @@ def test_cli_exhaustive_prefilter_scores_every_reference(tiny, tiny_run, extract
     assert '--prefilter-k at least 0' in capsys.readouterr().err
 
 
+def test_sequence_rows_only_where_the_dataset_is_a_sequence(tiny, tiny_run, tmp_path, capsys):
+    """A VPR-Bench folder is not a route by default: --sequence rows and seqslam are skipped with a
+    note (in results.json and results.md); sequence=1 in the spec brings them back. The same images
+    as an aligned spec (a sequence by default) get them, and sequence=0 takes them away."""
+    import shutil
+
+    _, results_dir, _ = tiny_run
+    vpr = tmp_path / 'vpr'
+    shutil.copytree(tiny, vpr)
+    rows = np.empty((12, 2), object)
+    for q in range(12):
+        rows[q] = [q, [q]]
+    np.save(vpr / 'ground_truth_new.npy', rows, allow_pickle=True)
+
+    def rows_of(spec, out):
+        rc = run_cli(
+            '--dataset',
+            spec,
+            '--methods',
+            'holistic,act,seqslam',
+            '--top-n',
+            20,
+            '--prefilter-k',
+            5,
+            '--sequence',
+            3,
+            '--out',
+            tmp_path / out,
+            '--cache',
+            results_dir.parent / 'cache',
+            '--timing-images',
+            1,
+            '--timing-queries',
+            1,
+            '--timing-repeats',
+            1,
+            '--no-plots',
+            '--quiet',
+        )
+        assert rc == 0, capsys.readouterr().err
+        entry = next(iter(json.loads((tmp_path / out / 'results.json').read_text())['datasets'].values()))
+        return entry, (tmp_path / out / 'results.md').read_text()
+
+    entry, md = rows_of(f'vprbench:{vpr}', 'a')
+    assert list(entry['methods']) == ['holistic', 'act'] and entry['sequence'] is False
+    assert len(entry['notes']) == 1 and 'not a sequence' in entry['notes'][0]
+    assert '--sequence 3 rows and seqslam skipped' in entry['notes'][0]
+    assert 'Note: --sequence 3 rows and seqslam skipped' in md and '+seq' not in md.split('## Parameters')[0]
+    entry, _ = rows_of(f'vprbench:{vpr},sequence=1', 'b')
+    assert list(entry['methods']) == ['holistic', 'act', 'seqslam', 'holistic+seq', 'act+seq']
+    assert entry['sequence'] is True and entry['notes'] == []
+    entry, _ = rows_of(f'aligned:{vpr / "ref"},{vpr / "query"},0', 'c')
+    assert list(entry['methods']) == ['holistic', 'act', 'seqslam', 'holistic+seq', 'act+seq']
+    entry, _ = rows_of(f'aligned:{vpr / "ref"},{vpr / "query"},0,sequence=0', 'd')
+    assert list(entry['methods']) == ['holistic', 'act'] and entry['notes']
+
+
 def make_bad_inputs(root: Path, photo) -> dict:
     good = crops(photo, 3)
     for i, im in enumerate(good):
@@ -404,6 +461,9 @@ def make_bad_inputs(root: Path, photo) -> dict:
         'unreadable image': (f'aligned:{a},{root / "broken"}', 'cannot read image'),
         'missing vprbench gt': (f'vprbench:{root}', 'does not exist'),
         'unknown kind': ('nordland:x', 'cannot parse dataset'),
+        'unknown option': (f'loop:{root / "seq"},{root / "gt4.npy"},drop=blank', "unknown option 'drop' for loop"),
+        'bad sequence option': (f'aligned:{a},{root / "b"},sequence=yes', 'sequence= takes 0 or 1'),
+        'bad drop mode': (f'aligned:{a},{root / "b"},drop=dark', 'drop= takes none or'),
         'gardens point layout': (f'gardenspoint:{root / "gp"}', 'add --download'),
     }
 
@@ -423,6 +483,9 @@ def bad_inputs(tmp_path_factory, photo):
         'unreadable image',
         'missing vprbench gt',
         'unknown kind',
+        'unknown option',
+        'bad sequence option',
+        'bad drop mode',
         'gardens point layout',
     ],
 )

@@ -198,8 +198,70 @@ def test_eval_peers_and_sequence_rows_on_rtabmap_loop(tmp_path, capsys):
         assert 0.0 <= m['p_at_100r'] <= 1.0 and m['extract_ms'] > 0, (row, m)
     assert rows['lln+seq']['sequence_ms_per_query'] > 0
     assert rows['lln+seq']['match_ms_per_pair'] == rows['lln']['match_ms_per_pair']
+    # the sequence search reranks sequence_prefilter_k (500 > the map) candidates: every allowed frame
+    assert results['parameters']['sequence_prefilter_k'] == 500 and rows['lln+seq']['sequence_candidates'] == 84
     md = (out / 'results.md').read_text()
     assert '| lln+seq |' in md and '| seqslam |' in md
+    # the same frames declared not a sequence: no X+seq rows, no seqslam, and a note saying why
+    rc = run_cli(
+        '--dataset',
+        f'loop:{root},{root / "samples_GT.bmp"},sequence=0',
+        '--out',
+        tmp_path / 'flat',
+        '--methods',
+        'holistic,lln,sad,seqslam',
+        '--sequence',
+        5,
+        '--cache',
+        tmp_path / 'cache',
+        '--timing-images',
+        1,
+        '--timing-queries',
+        1,
+        '--timing-repeats',
+        1,
+        '--no-plots',
+        '--quiet',
+    )
+    assert rc == 0, capsys.readouterr().err
+    entry = json.loads((tmp_path / 'flat' / 'results.json').read_text())['datasets']['rtabmap_loop']
+    assert list(entry['methods']) == ['holistic', 'lln', 'sad'] and entry['sequence'] is False
+    assert entry['notes'] == [
+        '--sequence 5 rows and seqslam skipped: the dataset is not a sequence (its files are not ordered '
+        'along one route; add sequence=1 to the spec if they are)'
+    ]
+    assert entry['methods']['lln'] == {**rows['lln'], **{k: entry['methods']['lln'][k] for k in TIMED}}
+    assert 'Note: --sequence 5 rows and seqslam skipped' in (tmp_path / 'flat' / 'results.md').read_text()
+
+
+TIMED = ('extract_ms', 'match_ms_per_pair')
+
+
+def test_sequence_candidates_are_the_single_frame_first_stage_extended(extractor):
+    """rank_all_at: one first stage and one rerank serve the single-frame row (its first K) and the
+    sequence row (the first K_seq); each equals rank_all with that K, on rtabmap_loop's real frames."""
+    from lln_ros.core.landmarks import stack_landmarks
+    from lln_ros.core.retrieval import candidates_k, rank_all, rank_all_at
+    from lln_ros.io import datasets
+    from lln_ros.io.image import load_image
+
+    root = shared_data('rtabmap_loop')
+    ds = datasets.parse_spec(f'loop:{root},{root / "samples_GT.bmp"}')
+    sets = extractor.extract_batch([load_image(str(p)) for p in ds.ref_paths])
+    batch = stack_landmarks(sets)
+    for prefilter in ('landmarks', 'holistic'):
+        (r5, s5), (r30, s30) = rank_all_at(sets, batch, (5, 30), ds.candidates, prefilter=prefilter)
+        for k, (r, s) in ((5, (r5, s5)), (30, (r30, s30))):
+            want_r, want_s = rank_all(sets, batch, k, ds.candidates, prefilter=prefilter)
+            assert np.array_equal(r, want_r) and np.allclose(s, want_s, equal_nan=True), (prefilter, k)
+        # the single-frame top 5 is among the sequence's 30, every row: a prefix of one first stage
+        assert all(set(a[a >= 0]) <= set(b[b >= 0]) for a, b in zip(r5, r30))
+        assert (r30 >= 0).sum() > (r5 >= 0).sum()
+    assert candidates_k(100, 500, False) == 100 and candidates_k(100, 500, True) == 500
+    assert candidates_k(600, 500, True) == 600 and candidates_k(0, 500, True) == 0
+    assert candidates_k(100, 0, True) == 0
+    with pytest.raises(ValueError, match='sequence_prefilter_k'):
+        candidates_k(100, -1, True)
 
 
 def test_eval_sequence_longer_than_the_map_is_one_line(tmp_path, capsys):

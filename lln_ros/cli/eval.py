@@ -2,11 +2,14 @@
 
     lln-eval --dataset SPEC [--dataset SPEC ...] --out DIR [--methods holistic,lln,act,rand,all]
              [--top-n 50] [--prefilter landmarks|holistic|exhaustive] [--prefilter-k 30|0]
-             [--range START:END] [--sequence L]
+             [--range START:END] [--sequence L [--sequence-prefilter-k 500]]
              [--weights [LABEL=]CKPT ...] [--label NAME ...] [--heads LABEL=CKPT,LABEL=,...]
              [--backbone NAME] [--layer LAYER] [--cache DIR] [--download [--download-url URL]]
 
-SPEC: vprbench:DIR | aligned:DIR_REF,DIR_QUERY[,TOL] | loop:DIR,GT_FILE | gardenspoint:DIR[,REF,QUERY].
+SPEC: vprbench:DIR | aligned:DIR_REF,DIR_QUERY[,TOL] | loop:DIR,GT_FILE | gardenspoint:DIR[,REF,QUERY],
+each optionally followed by ,KEY=VALUE options: sequence=0|1 (is it one route? default 1, vprbench 0;
+sequence rows and seqslam are skipped with a note where it is 0) and, for aligned, drop=MODES (query
+frames to drop: flat (the default), blank, frozen, '+'-joined, or none; Nordland: drop=blank+frozen).
 --range START:END (fractions) selects that part of every `aligned:` dataset (e.g. 0.7:1 = the last 30%
 of the route); other kinds are used whole. Each head named by --weights / --heads is its own row
 `lln[LABEL]`: `--heads trained=best.pt,untrained=` compares a trained head with the untrained
@@ -14,7 +17,8 @@ of the route); other kinds are used whole. Each head named by --weights / --head
 shipped with the package; without any, the row `lln` uses the shipped head (untrained if none ships).
 act / rand / all / holistic do not depend on the head and get one row each. The classic peers
 `sad` and `seqslam` (SeqSLAM, Milford and Wyeth 2012) are methods too; --sequence L adds an `X+seq`
-row per holistic/local row: its scores through the matcher's online sequence search (L queries).
+row per holistic/local row: its scores through the matcher's online sequence search (L queries),
+local rows over the rerank of --sequence-prefilter-k first-stage candidates (the matcher's default).
 
 Every dataset is read and checked, and every head loaded, before any feature is computed. Bad input
 exits 2 with one line on stderr. Writes DIR/results.json, DIR/results.md and PNGs.
@@ -65,6 +69,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar='L',
         help='add an X+seq row per holistic/local method: sequence search over L queries '
         f'(0 = off; seqslam uses L, or {conf["seqslam_length"]})',
+    )
+    p.add_argument(
+        '--sequence-prefilter-k',
+        type=int,
+        default=conf['sequence_prefilter_k'],
+        metavar='K',
+        help='first-stage candidates the X+seq rows of local methods rerank, at least --prefilter-k '
+        f'(default {conf["sequence_prefilter_k"]}, as the matcher with sequence_length; 0 = every reference)',
     )
     p.add_argument('--out', required=True, metavar='DIR', help='output folder (results.json, results.md, PNGs)')
     p.add_argument('--range', help='START:END fractions of every aligned dataset (e.g. 0.7:1)')
@@ -188,6 +200,8 @@ def run(args, argv) -> dict:
         raise UsageError('--reloc ranks candidates with lln: add lln to --methods')
     if args.reloc and (args.reloc_top < 1 or args.reloc_min_inliers < 1):
         raise UsageError('--reloc-top and --reloc-min-inliers must be at least 1')
+    if args.sequence_prefilter_k < 0:
+        raise UsageError(f'--sequence-prefilter-k must be at least 0 (0 = every ref), got {args.sequence_prefilter_k}')
     if args.sequence < 0:
         raise UsageError(f'--sequence must be 0 (off) or a length of at least 1, got {args.sequence}')
     from ..io.datasets import parse_range
@@ -223,6 +237,7 @@ def run(args, argv) -> dict:
         'prefilter_k': args.prefilter_k,
         'scale': args.scale,
         'sequence': args.sequence,
+        'sequence_prefilter_k': args.sequence_prefilter_k,
         'timing_images': args.timing_images,
         'timing_queries': args.timing_queries,
         'timing_repeats': args.timing_repeats,

@@ -34,6 +34,7 @@ from .. import limits as limits_mod
 from ..errors import DescriptorError, LLNError, MapError
 from ..limits import LimitError, check_landmark_set, validate_model
 from .landmark_index import check_prefilter
+from .retrieval import candidates_k
 from .retrieval import default_conf as retrieval_conf
 from .sequence import KeyframeSequence
 
@@ -41,6 +42,8 @@ default_conf = {
     'mode': 'localization',  # localization: answer queries only | mapping: answer, then store each query
     'prefilter': retrieval_conf['prefilter'],  # first stage: landmarks | holistic | exhaustive
     'prefilter_k': retrieval_conf['prefilter_k'],  # first-stage candidates reranked by S; 0 = every keyframe
+    # with sequence_length > 0: max(prefilter_k, this) candidates (retrieval.candidates_k); 0 = every keyframe
+    'sequence_prefilter_k': retrieval_conf['sequence_prefilter_k'],
     'k': 5,  # candidates answered per query
     'min_score': 0.0,  # candidates below this are not answered
     'exclude_recent': 10,  # mapping mode: the newest N keyframes are never answers
@@ -165,6 +168,7 @@ class Localizer:
         if conf['prefilter_k'] < 0:
             raise ValueError(f'prefilter_k must be 0 (every keyframe) or positive, got {conf["prefilter_k"]}')
         check_prefilter(conf['prefilter'], conf['prefilter_k'])
+        candidates_k(conf['prefilter_k'], conf['sequence_prefilter_k'], True)  # ValueError when negative
         if conf['sequence_length'] < 0:
             raise ValueError(f'sequence_length must be 0 (off) or positive, got {conf["sequence_length"]}')
         return conf
@@ -334,11 +338,12 @@ class Localizer:
         c = self.conf
         kps = self._take_keypoints(stamp_ns, lset)
         sequence = self.sequence is not None  # the sequence search needs every reranked candidate
+        prefilter_k = candidates_k(c['prefilter_k'], c['sequence_prefilter_k'], sequence)
         found = self.store.query(
             lset,
             prefilter=c['prefilter'],
-            prefilter_k=c['prefilter_k'],
-            k=(c['prefilter_k'] or max(len(self.store), 1)) if sequence else c['k'],
+            prefilter_k=prefilter_k,
+            k=(prefilter_k or max(len(self.store), 1)) if sequence else c['k'],
             min_score=None if sequence else c['min_score'],
             exclude_recent=c['exclude_recent'] if self.mapping else 0,
             method_rerank=c['method'] == 'lln',

@@ -115,6 +115,7 @@ def markdown(results: dict) -> str:
         if d.get('grid'):
             facts.append(f'feature grid {d["grid"][1]}x{d["grid"][0]} (cols x rows) of the first query')
         lines += ['; '.join(facts) + '.', '']
+        lines += [f'Note: {n}.' for n in d.get('notes') or []] + [''] * bool(d.get('notes'))
         lines += [
             '| method | n | P@100%R | R@100%P | AUC-PR | R@1 | R@5 | R@10 | extract ms/img | match ms/pair |',
             '|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|',
@@ -200,6 +201,7 @@ def markdown(results: dict) -> str:
             'top_n',
             'prefilter',
             'prefilter_k',
+            'sequence_prefilter_k',
             'scale',
             'rand_seed',
             'timing_images',

@@ -18,9 +18,13 @@ only in which cells become landmarks). Rows:
     X+seq          with conf['sequence'] = L > 0: row X's ranking made sequence-consistent
                    (lln_ros.core.sequence, the search the matcher node runs online)
 
-Every local method reranks the SAME holistic top-K (prefilter_k, the paper's 30) by the landmark
-similarity S (retrieval.rank_all); loop datasets restrict answers with `allowed=ds.candidates`.
-prefilter_k 0 scores every reference (exhaustive): no holistic ceiling, K = R.
+Every local method reranks the SAME first-stage top-K (prefilter, prefilter_k; the paper's: holistic,
+30) by the landmark similarity S (retrieval.rank_all); loop datasets restrict answers with
+`allowed=ds.candidates`. prefilter_k 0 scores every reference (exhaustive): no ceiling, K = R.
+X+seq rows of local methods search the rerank of max(prefilter_k, sequence_prefilter_k) candidates
+(retrieval.candidates_k), as the matcher does with sequence_length > 0. A dataset that is not a
+sequence (Dataset.sequence False: a VPR-Bench folder of unrelated places) gets no X+seq and no
+seqslam rows, and a note in its entry saying so.
 Per method the metrics.summary numbers are reported, plus
 
     extract_ms         median per image of the full extraction (resize, backbone, head, selection;
@@ -53,7 +57,7 @@ from ..core.extractor import default_conf as extractor_defaults
 from ..core.landmark_index import check_prefilter
 from ..core.landmarks import LandmarkSet, l2_normalize, stack_landmarks
 from ..core.lln import head_fingerprint
-from ..core.retrieval import batch_index, first_stage, rank_all
+from ..core.retrieval import batch_index, candidates_k, first_stage, rank_all, rank_all_at
 from ..core.retrieval import default_conf as retrieval_defaults
 from ..core.sequence import check_conf as sequence_conf
 from ..core.sequence import default_conf as sequence_defaults
@@ -85,6 +89,8 @@ default_conf = {
     # holistic candidates every local method reranks (the paper's 30; 0 = all)
     'prefilter': retrieval_defaults['prefilter'],  # first stage: landmarks | holistic | exhaustive
     'prefilter_k': retrieval_defaults['prefilter_k'],
+    # X+seq rows of local methods rerank this many first-stage candidates (retrieval.candidates_k)
+    'sequence_prefilter_k': retrieval_defaults['sequence_prefilter_k'],
     'scale': retrieval_defaults['scale'],  # offset-weight width in grid cells (similarity)
     'sequence': 0,  # L > 0: an `X+seq` row per holistic/local row (sequence length L)
     'seqslam_length': sequence_defaults['length'],  # seqslam's L when 'sequence' is 0
@@ -172,6 +178,19 @@ def evaluate_dataset(
     heads = heads or load_heads(extractor, None)
     log = log or (lambda msg: None)
     methods = parse_methods(conf['methods'])
+    notes = []
+    if not getattr(ds, 'sequence', True) and (int(conf['sequence']) or 'seqslam' in methods):
+        # a sequence search over files that are not one route rewards file order, not places
+        skipped = ([f'--sequence {int(conf["sequence"])} rows'] if int(conf['sequence']) else []) + (
+            ['seqslam'] if 'seqslam' in methods else []
+        )
+        notes.append(
+            f'{" and ".join(skipped)} skipped: the dataset is not a sequence (its files are not ordered '
+            'along one route; add sequence=1 to the spec if they are)'
+        )
+        log(f'{ds.name}: {notes[-1]}')
+        methods = [m for m in methods if m != 'seqslam']
+        conf = {**conf, 'sequence': 0}
     top_n, scale = int(conf['top_n']), float(conf['scale'])
     k = int(conf['prefilter_k']) or len(ds.ref_paths)  # 0: every reference
     prefilter, _ = check_prefilter(conf['prefilter'], conf['prefilter_k'])
@@ -179,6 +198,7 @@ def evaluate_dataset(
     space = extractor.descriptor_space
     seq_len = int(conf['sequence'])
     seq_conf = sequence_conf({**sequence_defaults, 'length': seq_len or int(conf['seqslam_length'])})
+    k_seq = candidates_k(conf['prefilter_k'], conf['sequence_prefilter_k'], bool(seq_len))
     if (seq_len or 'seqslam' in methods) and seq_conf['length'] > len(ds.ref_paths):
         raise DatasetError(
             f'{ds.name}: sequence length {seq_conf["length"]} is longer than its map ({len(ds.ref_paths)} references)'
@@ -222,6 +242,7 @@ def evaluate_dataset(
     front = SadFrontEnd(ds) if any(m in PEER_METHODS for m in methods) else None
 
     rankings, rows_out, reloc, stages = {}, {}, None, None
+    seq_bases = {}  # row -> the single-frame ranking of its k_seq candidates, what X+seq searches
     extract_jobs, match_jobs = {}, {}
     for row, method, head in row_names(methods, heads):
         t0 = time.perf_counter()
@@ -243,7 +264,13 @@ def evaluate_dataset(
             qs = [v.from_features(f, s) for f, s in zip(query_feats, query_sizes)]
             rs = qs if same_images else [v.from_features(f, s) for f, s in zip(ref_feats, ref_sizes)]
             batch = stack_landmarks(rs)
-            ranked, scores = rank_all(qs, batch, k, allowed=ds.candidates, scale=scale, prefilter=prefilter)
+            if seq_len and k_seq != int(conf['prefilter_k']):
+                # one first stage of k_seq candidates, one rerank: the single-frame row is its first K
+                (ranked, scores), seq_bases[row] = rank_all_at(
+                    qs, batch, (int(conf['prefilter_k']), k_seq), ds.candidates, scale, prefilter
+                )
+            else:
+                ranked, scores = rank_all(qs, batch, k, allowed=ds.candidates, scale=scale, prefilter=prefilter)
             # the paper's protocol: the same holistic top-K for every local method, only reordered
             same = prefilter != 'holistic' or all(
                 set(a[a >= 0]) == set(b[b >= 0]) for a, b in zip(ranked, prefilter_rows)
@@ -291,13 +318,15 @@ def evaluate_dataset(
     for row, method, _ in row_names(methods, heads) if seq_len else []:
         if method in PEER_METHODS:
             continue
-        base = (full, full_scores) if method == 'holistic' else rankings[row]
+        base = (full, full_scores) if method == 'holistic' else seq_bases.pop(row, rankings[row])
+        cands = len(ds.ref_paths) if method == 'holistic' else min(k_seq or len(ds.ref_paths), len(ds.ref_paths))
         ranked, scores, seq_ms = sequence_row(*base, len(ds.ref_paths), seq_conf, ds.candidates, k)
         summary = metrics.summary(ranked, scores[:, 0], ds.gt)
         rows_out[f'{row}+seq'] = {
             **{key: finite(float(summary[key])) for key in METRIC_KEYS},
             'n': rows_out[row]['n'],
             'sequence_of': row,
+            'sequence_candidates': cands,
             'sequence_ms_per_query': finite(seq_ms),
         }
         rankings[f'{row}+seq'] = (ranked, scores)
@@ -328,6 +357,8 @@ def evaluate_dataset(
         if ds.candidates is not None
         else 'two traverses',
         'info': info,
+        'sequence': bool(getattr(ds, 'sequence', True)),
+        'notes': notes,
         'grid': list(hq[0].grid) if hq else None,
         'timing': {
             'images': len(timing_images),
@@ -415,6 +446,7 @@ def evaluate(
             'seqslam': {'length': int(conf['sequence']) or int(conf['seqslam_length']), **sad_conf},
             'top_n': int(conf['top_n']),
             'prefilter_k': int(conf['prefilter_k']),
+            'sequence_prefilter_k': candidates_k(conf['prefilter_k'], conf['sequence_prefilter_k'], True),
             'scale': float(conf['scale']),
             'prefilter': check_prefilter(conf['prefilter'], conf['prefilter_k'])[0],
             'input_height': int(extractor.conf['input_height']),

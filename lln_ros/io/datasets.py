@@ -5,6 +5,9 @@ Every reader returns a `Dataset`:
     ref_paths, query_paths   image files (natural sort order: 2.jpg before 10.jpg)
     gt          (Q, R) bool  ref r is a correct answer for query q
     candidates  (Q, R) bool or None   which refs query q may be answered with (loop protocol)
+    sequence    bool         queries and references are each ordered along one route, so a sequence
+                             search (lln-eval --sequence, seqslam) means something; False for
+                             collections of unrelated places (VPR-Bench webcams, photo pairs)
     info        dict         what was dropped or clipped, and why
 
 Formats: aligned traverses (two folders, same index = same place, +-tol), VPR-Bench
@@ -16,6 +19,7 @@ ground-truth shape, every image decodes) before any long computation starts.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 from dataclasses import dataclass, field
@@ -27,7 +31,15 @@ import numpy as np
 from ..errors import DatasetError
 
 IMAGE_SUFFIXES = ('.jpg', '.jpeg', '.png', '.bmp', '.tif', '.tiff', '.ppm', '.pgm', '.webp')
-BLANK_STD = 2.0  # grey-level standard deviation below which a frame is blank (tunnels, stops)
+BLANK_STD = 2.0  # grey-level standard deviation below which a frame is flat (drop=flat)
+# drop=blank: at most this many grey levels between the 5th and 95th percentile. Robust to a small
+# overlay (Nordland's channel logo covers ~1% of a tunnel frame and lifts its std to ~2.9)
+BLANK_SPREAD = 2.0
+DROP_MODES = {
+    'flat': f'grey std below {BLANK_STD:g}',
+    'blank': f'5-95 percentile grey spread at most {BLANK_SPREAD:g}, or flat',
+    'frozen': 'pixel-identical to the query frame before it (a stalled camera; the first of a run stays)',
+}
 
 
 @dataclass
@@ -38,6 +50,7 @@ class Dataset:
     gt: np.ndarray
     candidates: np.ndarray | None = None
     info: dict = field(default_factory=dict)
+    sequence: bool = True
 
     @property
     def queries_with_match(self) -> int:
@@ -68,15 +81,42 @@ def list_images(folder: str | os.PathLike, pattern: str | None = None) -> list[P
     return paths
 
 
-def read_checked(paths: list) -> list[tuple[int, int, float]]:
-    """(width, height, grey std) of every image; DatasetError naming the first that does not decode."""
+def read_checked(paths: list, content: bool = False) -> list[tuple]:
+    """(width, height, grey std) of every image; DatasetError naming the first that does not decode.
+    content: also the 5-95 percentile grey spread and a digest of the pixels (drop=blank, frozen)."""
     out = []
     for p in paths:
         im = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
         if im is None or im.size == 0:
             raise DatasetError(f'cannot read image {p} (not an image, or truncated)')
-        out.append((im.shape[1], im.shape[0], float(im.std())))
+        stats = (im.shape[1], im.shape[0], float(im.std()))
+        if content:
+            lo, hi = np.percentile(im, (5, 95))
+            stats += (float(hi - lo), hashlib.blake2b(im.tobytes() + bytes(im.shape), digest_size=16).digest())
+        out.append(stats)
     return out
+
+
+def parse_drop(drop) -> tuple[str, ...]:
+    """'blank+frozen' | 'none' | ('blank', 'frozen') -> the drop modes, checked against DROP_MODES."""
+    modes = drop.split('+') if isinstance(drop, str) else list(drop)
+    modes = tuple(m.strip() for m in modes if m.strip() and m.strip() != 'none')
+    bad = [m for m in modes if m not in DROP_MODES]
+    if bad:
+        raise DatasetError(f'drop= takes none or a +-joined subset of {"+".join(DROP_MODES)}, got {bad[0]!r}')
+    return modes
+
+
+def dropped_frames(stats: list[tuple], modes: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """{mode: (N,) bool} the frames each drop mode removes, from read_checked(..., content=True)."""
+    std = np.array([s[2] for s in stats])
+    out = {'flat': std < BLANK_STD}
+    if 'blank' in modes:
+        out['blank'] = out['flat'] | (np.array([s[3] for s in stats]) <= BLANK_SPREAD)
+    if 'frozen' in modes:
+        same = np.array([i > 0 and stats[i][4] == stats[i - 1][4] for i in range(len(stats))], bool)
+        out['frozen'] = same & ~out.get('blank', out['flat'])  # a repeated blank frame counts as blank
+    return {m: out[m] for m in modes}
 
 
 def parse_range(text: str | None):
@@ -101,10 +141,15 @@ def _select(n: int, frac) -> slice:
     return slice(int(round(start * n)), int(round(end * n)))
 
 
-def aligned(dir_ref, dir_query, tol: int = 2, frac=None, name: str | None = None, drop_blank: bool = True) -> Dataset:
+def aligned(
+    dir_ref, dir_query, tol: int = 2, frac=None, name: str | None = None, drop='flat', sequence: bool = True
+) -> Dataset:
     """Two traverses, same index = same place; a ref within +-tol frames is correct. `frac`
-    (start, end) in [0, 1] keeps that contiguous part of the route. Blank query frames (grey std
-    below BLANK_STD: tunnels, stops) have no recognisable place and are dropped; the count is in info."""
+    (start, end) in [0, 1] keeps that contiguous part of the route. Query frames with no
+    recognisable place are dropped by `drop` (DROP_MODES, '+'-joined or a tuple; 'none' keeps
+    every frame); the counts are in info: blank_queries_dropped (flat or blank), frozen_queries_dropped.
+    References are never dropped: blank_refs counts them by the same rule (blank with drop=blank, else flat)."""
+    modes = parse_drop(drop)
     refs, queries = list_images(dir_ref), list_images(dir_query)
     if len(refs) != len(queries):
         raise DatasetError(
@@ -114,16 +159,21 @@ def aligned(dir_ref, dir_query, tol: int = 2, frac=None, name: str | None = None
     refs, queries = refs[part], queries[part]
     if not refs:
         raise DatasetError(f'range {frac} selects no frames of {len(list_images(dir_ref))}')
-    ref_stats, query_stats = read_checked(refs), read_checked(queries)
+    ref_stats, query_stats = read_checked(refs, content=True), read_checked(queries, content=True)
     idx = np.arange(len(refs))
-    keep = np.array([s[2] >= BLANK_STD for s in query_stats]) if drop_blank else np.ones(len(refs), bool)
+    drops = dropped_frames(query_stats, modes)
+    keep = ~np.any(list(drops.values()), axis=0) if drops else np.ones(len(refs), bool)
     gt = np.abs(idx[keep][:, None] - idx[None, :]) <= int(tol)
+    blank = drops.get('blank', drops.get('flat', np.zeros(len(refs), bool)))
     info = {
         'tol': int(tol),
         'range': list(frac) if frac else [0.0, 1.0],
         'first_index': part.start,
-        'blank_queries_dropped': int((~keep).sum()),
-        'blank_refs': int(sum(s[2] < BLANK_STD for s in ref_stats)),
+        'drop': '+'.join(modes) or 'none',
+        'blank_queries_dropped': int(blank.sum()),
+        'frozen_queries_dropped': int(drops['frozen'].sum()) if 'frozen' in drops else 0,
+        # kept (a map keeps every frame), counted by the blank rule in use (flat without drop=blank)
+        'blank_refs': int(dropped_frames(ref_stats, ('blank',) if 'blank' in modes else ('flat',)).popitem()[1].sum()),
         'ref_sizes': [s[:2] for s in ref_stats],
         'query_sizes': [s[:2] for s, k in zip(query_stats, keep) if k],
     }
@@ -134,12 +184,15 @@ def aligned(dir_ref, dir_query, tol: int = 2, frac=None, name: str | None = None
         gt,
         None,
         info,
+        bool(sequence),
     )
 
 
-def vprbench(root, name: str | None = None) -> Dataset:
+def vprbench(root, name: str | None = None, sequence: bool = False) -> Dataset:
     """DIR/query/*, DIR/ref/*, DIR/ground_truth_new.npy (rows [query_index, [ref indices]]).
-    Ref indices past the end (the public Gardens Point file names 200 and 201) are clipped."""
+    Ref indices past the end (the public Gardens Point file names 200 and 201) are clipped.
+    Not a sequence by default: the layout holds webcams and photo pairs as well as routes (say
+    sequence=True for a folder that is one route in file order)."""
     root = Path(root)
     refs, queries = list_images(root / 'ref'), list_images(root / 'query')
     gt = vprbench_gt(root / 'ground_truth_new.npy', len(queries), len(refs))
@@ -151,6 +204,7 @@ def vprbench(root, name: str | None = None) -> Dataset:
         gt[0],
         None,
         {'clipped_refs': gt[1], 'ref_sizes': [s[:2] for s in ref_stats], 'query_sizes': [s[:2] for s in query_stats]},
+        bool(sequence),
     )
 
 
@@ -179,7 +233,7 @@ def vprbench_gt(path, n_queries: int, n_refs: int) -> tuple[np.ndarray, int]:
     return gt, clipped
 
 
-def loop(folder, gt_file, min_gap: int = 10, name: str | None = None) -> Dataset:
+def loop(folder, gt_file, min_gap: int = 10, name: str | None = None, sequence: bool = True) -> Dataset:
     """One ordered sequence and an NxN ground-truth matrix (image or .npy; nonzero at (r, c) = frame r
     revisits frame c). Query r may be answered only with frames at least min_gap older."""
     frames = list_images(folder)
@@ -214,6 +268,7 @@ def loop(folder, gt_file, min_gap: int = 10, name: str | None = None) -> Dataset
         (matrix > 0) & candidates,
         candidates,
         {'min_gap': int(min_gap), 'ref_sizes': [s[:2] for s in stats], 'query_sizes': [s[:2] for s in stats]},
+        bool(sequence),
     )
 
 
@@ -238,7 +293,13 @@ def _read_rows(path: Path, width: int, what: str) -> list[list[str]]:
 
 
 def poses(
-    root, max_deg: float = 15.0, max_m: float = 0.3, min_gap_s: float = 2.0, step: int = 1, name: str | None = None
+    root,
+    max_deg: float = 15.0,
+    max_m: float = 0.3,
+    min_gap_s: float = 2.0,
+    step: int = 1,
+    name: str | None = None,
+    sequence: bool = True,
 ) -> Dataset:
     """A sequence with camera poses (the TUM RGB-D layout): DIR/rgb.txt (`timestamp file`),
     DIR/groundtruth.txt (`timestamp tx ty tz qx qy qz qw`, metres, any rate). Each frame takes the
@@ -299,43 +360,77 @@ def poses(
             'ref_sizes': [s[:2] for s in stats],
             'query_sizes': [s[:2] for s in stats],
         },
+        bool(sequence),
     )
 
 
-def gardenspoint(root, ref: str = 'day_right', query: str = 'night_right', tol: int = 2) -> Dataset:
+def gardenspoint(
+    root, ref: str = 'day_right', query: str = 'night_right', tol: int = 2, drop='none', sequence: bool = True
+) -> Dataset:
     """The public Gardens Point Walking archive (day_left/, day_right/, night_right/) as an aligned pair."""
     root = Path(root)
     for sub in (ref, query):
         if not (root / sub).is_dir():
             raise DatasetError(f'{root} is not the Gardens Point Walking layout: {sub}/ is missing')
-    return aligned(root / ref, root / query, tol, name=f'gardenspoint-{ref}-vs-{query}', drop_blank=False)
+    return aligned(root / ref, root / query, tol, name=f'gardenspoint-{ref}-vs-{query}', drop=drop, sequence=sequence)
+
+
+SPEC_OPTIONS = {
+    'aligned': ('drop', 'sequence'),
+    'gardenspoint': ('drop', 'sequence'),
+    'vprbench': ('sequence',),
+    'loop': ('sequence',),
+    'poses': ('sequence',),
+}
+
+
+def _options(spec: str, kind: str, parts: list[str]) -> tuple[list[str], dict]:
+    """Positional parts and KEY=VALUE options (module doc) of a spec, options checked for `kind`."""
+    args = [a for a in parts if '=' not in a]
+    opts = {}
+    for item in (a for a in parts if '=' in a):
+        key, _, value = item.partition('=')
+        key, value = key.strip(), value.strip()
+        allowed = SPEC_OPTIONS.get(kind, ())
+        if key not in allowed:
+            raise DatasetError(f'{spec!r}: unknown option {key!r} for {kind} (options: {", ".join(allowed) or "none"})')
+        if key == 'sequence':
+            if value not in ('0', '1'):
+                raise DatasetError(f'{spec!r}: sequence= takes 0 or 1, got {value!r}')
+            opts['sequence'] = value == '1'
+        else:
+            opts['drop'] = parse_drop(value)
+    return args, opts
 
 
 def parse_spec(spec: str, frac=None) -> Dataset:
     """A dataset from a command-line SPEC: vprbench:DIR | aligned:DIR_REF,DIR_QUERY[,TOL] |
     loop:DIR,GT_FILE | gardenspoint:DIR[,REF,QUERY] | poses:DIR[,MAX_DEG,MAX_M,MIN_GAP_S[,STEP]] (TUM RGB-D
-    layout, defaults 15 deg, 0.3 m, 2 s, every frame). frac (start, end) applies to aligned data."""
+    layout, defaults 15 deg, 0.3 m, 2 s, every frame), each optionally followed by KEY=VALUE options
+    (module doc: sequence=0|1; drop=... for aligned and gardenspoint). frac (start, end) applies to
+    aligned data."""
     kind, _, rest = spec.partition(':')
-    args = [a for a in rest.split(',') if a] if rest else []
+    args, opts = _options(spec, kind, [a for a in rest.split(',') if a] if rest else [])
     if kind == 'aligned' and len(args) == 3 and not args[2].strip().isdigit():
         raise DatasetError(f'{spec!r}: the tolerance TOL must be a whole number of frames, got {args[2]!r}')
     if kind == 'aligned' and len(args) in (2, 3):
-        return aligned(args[0], args[1], int(args[2]) if len(args) == 3 else 2, frac)
+        return aligned(args[0], args[1], int(args[2]) if len(args) == 3 else 2, frac, **opts)
     if frac is not None and kind != 'aligned':
         raise DatasetError(f'--range applies to aligned datasets only, not {kind!r}')
     if kind == 'vprbench' and len(args) == 1:
-        return vprbench(args[0])
+        return vprbench(args[0], **opts)
     if kind == 'loop' and len(args) == 2:
-        return loop(args[0], args[1])
+        return loop(args[0], args[1], **opts)
     if kind == 'gardenspoint' and len(args) in (1, 3):
-        return gardenspoint(*args)
+        return gardenspoint(*args, **opts)
     if kind == 'poses' and 1 <= len(args) <= 5:
         try:
             tolerances = [float(a) for a in args[1:]]
         except ValueError:
             raise DatasetError(f'{spec!r}: MAX_DEG, MAX_M, MIN_GAP_S and STEP must be numbers') from None
-        return poses(args[0], *tolerances)
+        return poses(args[0], *tolerances, **opts)
     raise DatasetError(
         f'cannot parse dataset {spec!r}; use vprbench:DIR, aligned:DIR_REF,DIR_QUERY[,TOL], '
-        'loop:DIR,GT_FILE, gardenspoint:DIR[,REF,QUERY] or poses:DIR[,MAX_DEG,MAX_M,MIN_GAP_S[,STEP]]'
+        'loop:DIR,GT_FILE, gardenspoint:DIR[,REF,QUERY] or poses:DIR[,MAX_DEG,MAX_M,MIN_GAP_S[,STEP]], '
+        'optionally followed by ,sequence=0|1 (and ,drop=MODES for aligned)'
     )

@@ -76,6 +76,13 @@ PARAMETERS = {
         dynamic=True,
         range=(0, 1_000_000),
     ),
+    'sequence_prefilter_k': Param(
+        LOC['sequence_prefilter_k'],
+        'with sequence_length > 0: first-stage candidates reranked, at least prefilter_k (the '
+        'sequence search needs a score wherever the route may be); 0 = every keyframe',
+        dynamic=True,
+        range=(0, 1_000_000),
+    ),
     'k': Param(LOC['k'], 'candidates published per query', dynamic=True, range=(1, 10_000_000)),
     # no range: any threshold is meaningful (lln-demo passes -1e9 for "publish every candidate")
     'min_score': Param(LOC['min_score'], 'candidates scoring below this are not published', dynamic=True),
@@ -150,6 +157,7 @@ LOCALIZER_KEYS = (
     'mode',
     'prefilter',
     'prefilter_k',
+    'sequence_prefilter_k',
     'k',
     'min_score',
     'exclude_recent',
