@@ -92,7 +92,10 @@ def read_checked(paths: list, content: bool = False) -> list[tuple]:
         stats = (im.shape[1], im.shape[0], float(im.std()))
         if content:
             lo, hi = np.percentile(im, (5, 95))
-            stats += (float(hi - lo), hashlib.blake2b(im.tobytes() + bytes(im.shape), digest_size=16).digest())
+            stats += (
+                float(hi - lo),
+                hashlib.blake2b(im.tobytes() + np.asarray(im.shape, np.int64).tobytes(), digest_size=16).digest(),
+            )
         out.append(stats)
     return out
 
