@@ -23,6 +23,7 @@ import pytest
 from milvus_loopback import milvus_version, only_loopback
 from test_mapstore import MODEL, make_set
 
+from lln_ros.core import landmark_index
 from lln_ros.errors import MapError
 from lln_ros.mapstore import MapStore
 
@@ -511,7 +512,7 @@ def test_trained_landmark_index_is_kept_between_opens(milvus_uri, tmp_path, capl
     sets = [make_set(rng) for _ in range(40)]  # 2,000 landmarks: IVF-PQ
     with MapStore.open(milvus_uri, model=MODEL, conf=conf) as store:
         ids = store.add_many(sets, [(i, 0) for i in range(40)])
-        assert store.info()['landmark_index'] == 'ivfpq'
+        assert store.info()['landmark_index'] in landmark_index.COMPRESSED
     files = list((tmp_path / 'lm').iterdir())
     assert len(files) == 1 and files[0].suffix == '.landmarks'
     with MapStore.open(milvus_uri, create=False, conf={**conf, 'landmark_dir': ''}) as other:

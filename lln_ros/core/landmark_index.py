@@ -246,7 +246,14 @@ class LandmarkIndex:
             if len(x) <= self.conf['landmark_train_points']
             else x[np.sort(rng.choice(len(x), int(self.conf['landmark_train_points']), replace=False))]
         )
-        index.train(np.ascontiguousarray(sample, np.float32))
+        # one OpenMP thread for the k-means: on a shared 2-core machine FAISS's threads wait for each
+        # other at every barrier, and a 2,000-landmark training under load took over 10 minutes
+        threads = faiss.omp_get_max_threads()
+        faiss.omp_set_num_threads(1)
+        try:
+            index.train(np.ascontiguousarray(sample, np.float32))
+        finally:
+            faiss.omp_set_num_threads(threads)
         index.nprobe = int(self.conf['landmark_nprobe'])
         self.trained_on = n
         return index
