@@ -92,7 +92,7 @@ def pick_examples(ranked: np.ndarray, scores: np.ndarray, gt: np.ndarray, query_
         if count > 0 and mask.any():
             bounds = np.linspace(0, len(ranked), count + 1).astype(int)
             for a, b in zip(bounds[:-1], bounds[1:]):
-                stretch = [a + int(i) for i in np.argsort(-conf[a:b], kind='stable') if mask[a + int(i)]]
+                stretch = [int(a) + int(i) for i in np.argsort(-conf[a:b], kind='stable') if mask[a + int(i)]]
                 q = next((q for q in stretch if shows(q)), None)
                 if q is not None:
                     chosen.append(q)
@@ -338,7 +338,14 @@ def write_figures(
                 title=f'{run.name} {row}: {line1}\n{line2}',
                 labels=(f'query {q}', f'map: ref {r}, the answer ({"right" if kind == "success" else "WRONG"})'),
             )
-            ex = {'kind': kind, 'file': name, 'query': q, 'answer': r, 'score': float(scores[q, 0]), 'caption': caption}
+            ex = {
+                'kind': kind,
+                'file': name,
+                'query': int(q),
+                'answer': int(r),
+                'score': float(scores[q, 0]),
+                'caption': caption,
+            }
             if kind == 'failure' and len(truth):
                 true_sets = [v.from_features(rfeat(int(t)), ref_sizes[int(t)]) for t in truth]
                 tres = match_batch(qs, stack_landmarks(true_sets), scale)
