@@ -169,26 +169,15 @@ def test_eval_peers_and_sequence_rows_on_rtabmap_loop(tmp_path, capsys):
     """sad, seqslam and X+seq rows in one lln-eval run on the real loop sequence."""
     root = shared_data('rtabmap_loop')
     out = tmp_path / 'out'
-    rc = run_cli(
-        '--dataset',
-        f'loop:{root},{root / "samples_GT.bmp"}',
-        '--out',
-        out,
-        '--methods',
-        'holistic,lln,sad,seqslam',
-        '--sequence',
-        5,
-        '--cache',
-        tmp_path / 'cache',
-        '--timing-images',
-        1,
-        '--timing-queries',
-        2,
-        '--timing-repeats',
-        1,
-        '--no-plots',
-        '--quiet',
-    )
+
+    def lln_eval(spec, out, timing_queries):
+        return run_cli(
+            *('--dataset', spec, '--out', out, '--methods', 'holistic,lln,sad,seqslam', '--sequence', 5),
+            *('--cache', tmp_path / 'cache', '--timing-images', 1, '--timing-queries', timing_queries),
+            *('--timing-repeats', 1, '--no-plots', '--quiet'),
+        )
+
+    rc = lln_eval(f'loop:{root},{root / "samples_GT.bmp"}', out, 2)
     assert rc == 0, capsys.readouterr().err
     results = json.loads((out / 'results.json').read_text())
     rows = results['datasets']['rtabmap_loop']['methods']
@@ -203,26 +192,7 @@ def test_eval_peers_and_sequence_rows_on_rtabmap_loop(tmp_path, capsys):
     md = (out / 'results.md').read_text()
     assert '| lln+seq |' in md and '| seqslam |' in md
     # the same frames declared not a sequence: no X+seq rows, no seqslam, and a note saying why
-    rc = run_cli(
-        '--dataset',
-        f'loop:{root},{root / "samples_GT.bmp"},sequence=0',
-        '--out',
-        tmp_path / 'flat',
-        '--methods',
-        'holistic,lln,sad,seqslam',
-        '--sequence',
-        5,
-        '--cache',
-        tmp_path / 'cache',
-        '--timing-images',
-        1,
-        '--timing-queries',
-        1,
-        '--timing-repeats',
-        1,
-        '--no-plots',
-        '--quiet',
-    )
+    rc = lln_eval(f'loop:{root},{root / "samples_GT.bmp"},sequence=0', tmp_path / 'flat', 1)
     assert rc == 0, capsys.readouterr().err
     entry = json.loads((tmp_path / 'flat' / 'results.json').read_text())['datasets']['rtabmap_loop']
     assert list(entry['methods']) == ['holistic', 'lln', 'sad'] and entry['sequence'] is False
