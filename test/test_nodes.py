@@ -752,8 +752,10 @@ def test_launch_file_is_installed_and_consistent(colcon_install):
     assert {'image', 'mode', 'image_transport', 'map_path'} <= declared
     used = {n.args[0].value for n in calls if n.func.id == 'LaunchConfiguration'}
     assert used <= declared, f'undeclared launch arguments: {used - declared}'
+    from test_launch import keywords  # a call's keywords with `**ours` expanded
+
     nodes = [
-        {kw.arg: kw.value.value for kw in n.keywords if isinstance(kw.value, ast.Constant)}
+        {k: v.value for k, v in keywords(n, tree).items() if isinstance(v, ast.Constant)}
         for n in calls
         if n.func.id == 'Node'
     ]
