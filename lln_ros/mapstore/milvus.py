@@ -89,6 +89,7 @@ from .milvus_rows import (  # noqa: F401  (pack, unpack, parse_uri, RowCache: th
     pack,
     parse_uri,
     row_problem,
+    scan_ids,
     unpack,
 )
 from .milvus_schema1 import MIGRATIONS
@@ -302,14 +303,7 @@ class MilvusMapStore(MilvusLandmarks, MilvusKeypoints, MapStore):
         return {r['key']: r['value'] for r in rows}
 
     def _scan_ids(self) -> list[int]:
-        it = self._client.query_iterator(self._fr_c, batch_size=4096, filter='id >= 0', output_fields=['id'])
-        ids = []
-        try:
-            while rows := it.next():
-                ids.extend(int(r['id']) for r in rows)
-        finally:
-            it.close()
-        return sorted(ids)
+        return scan_ids(self._client, self._fr_c)
 
     def _load(self) -> None:
         for name in (self._meta_c, self._fr_c, self._kp_c):

@@ -144,3 +144,16 @@ def _is_milvus_error(e: BaseException) -> bool:
         or isinstance(e, (ConnectionError, TimeoutError))
         or any(c.__module__.startswith(('grpc', 'pymilvus')) for c in type(e).__mro__)
     )
+
+
+def scan_ids(client, collection: str, **query) -> list[int]:
+    """Every row id of a collection, sorted (a query iterator: one query returns at most 16,384 rows).
+    query: extra query_iterator arguments, e.g. consistency_level='Strong'."""
+    it = client.query_iterator(collection, batch_size=4096, filter='id >= 0', output_fields=['id'], **query)
+    ids = []
+    try:
+        while rows := it.next():
+            ids.extend(int(r['id']) for r in rows)
+    finally:
+        it.close()
+    return sorted(ids)

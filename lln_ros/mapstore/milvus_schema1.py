@@ -10,6 +10,7 @@ import numpy as np
 
 from ..core.landmarks import LandmarkSet
 from ..errors import MapError
+from .milvus_rows import scan_ids
 
 if TYPE_CHECKING:
     from .milvus import MilvusMapStore
@@ -65,14 +66,7 @@ def _migrate_1_to_2(store: MilvusMapStore, meta: dict) -> None:
     store._create_frames(int(store._model['descriptor_dim']))
     for name in (kf_c, lm_c):
         c.load_collection(name)
-    it = c.query_iterator(kf_c, batch_size=4096, filter='id >= 0', output_fields=['id'], consistency_level='Strong')
-    ids = []
-    try:
-        while rows := it.next():
-            ids.extend(int(r['id']) for r in rows)
-    finally:
-        it.close()
-    ids.sort()
+    ids = scan_ids(c, kf_c, consistency_level='Strong')
     for start in range(0, len(ids), _FETCH_IDS):
         chunk = ids[start : start + _FETCH_IDS]
         kf_rows = c.query(kf_c, filter=f'id in {chunk}', output_fields=['*'], limit=len(chunk))
