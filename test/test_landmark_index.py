@@ -84,8 +84,8 @@ def test_index_type_switch_remove_reset_and_file(compressed, tmp_path, rng):
     sets = [make_set(rng) for _ in range(24)]
     index.add_sets(range(8), sets[:8])
     assert index.kind == 'exact' and index.ntotal == 400  # 400 <= 500: still exact
-    index.add_sets(range(8, 12), sets[8:12])
-    assert index.kind == compressed and index.trained_on == 600 and not index.needs_rebuild()
+    index.add_sets(range(8, 12), sets[8:12])  # trained on keyframes 0-10 (550 > 500), then 11 added
+    assert index.kind == compressed and index.trained_on == 550 and not index.needs_rebuild()
     assert index.keyframe_counts() == {i: 50 for i in range(12)}
     ids, _ = index.shortlist(make_set(rng, base=sets[9], noise=0.05), k=3)
     assert ids[0] == 9
@@ -95,10 +95,10 @@ def test_index_type_switch_remove_reset_and_file(compressed, tmp_path, rng):
     index.write(str(tmp_path / 'x.landmarks'), {'map_uuid': 'u'})
     back, header = LandmarkIndex.read(str(tmp_path / 'x.landmarks'), 320, conf)
     assert back.kind == compressed and back.index.nprobe == 8 and header['map_uuid'] == 'u'
-    assert back.keyframe_counts() == index.keyframe_counts() and back.trained_on == 600
-    index.add_sets(range(12, 24), sets[12:24])  # 900 landmarks: 1.5 x 600
+    assert back.keyframe_counts() == index.keyframe_counts() and back.trained_on == 550
+    index.add_sets(range(12, 24), sets[12:24])  # 900 landmarks: 1.6 x 550
     assert not index.needs_rebuild()
-    index.add_sets(range(24, 31), [make_set(rng) for _ in range(7)])  # 1250 > 2 x 600
+    index.add_sets(range(24, 31), [make_set(rng) for _ in range(7)])  # 1250 > 2 x 550
     assert index.needs_rebuild()
     index.reset()
     assert index.kind == 'exact' and index.ntotal == 0
@@ -106,6 +106,23 @@ def test_index_type_switch_remove_reset_and_file(compressed, tmp_path, rng):
         LandmarkIndex(320, {**conf, 'landmark_compressed': 'hnsw'}).build(
             np.zeros((600, 320), np.float32), np.arange(600)
         )
+
+
+@pytest.mark.parametrize('compressed', KINDS)
+def test_compressed_index_does_not_depend_on_batching(compressed, rng):
+    """One add of a whole map (lln-eval) and one add per keyframe (a matcher growing its map) train
+    the compressed index on the same landmarks, so both answer every query alike."""
+    conf = {**SMALL_IVF, 'landmark_compressed': compressed}
+    sets = [make_set(rng, n=int(n)) for n in rng.integers(20, 51, 30)]
+    whole, grown = LandmarkIndex(320, conf), LandmarkIndex(320, conf)
+    whole.add_sets(range(30), sets)
+    for i, s in enumerate(sets):
+        grown.add_sets([i], [s])
+    assert whole.kind == grown.kind == compressed and whole.trained_on == grown.trained_on
+    assert whole.trained_on == next(t for t in np.cumsum([len(s) for s in sets]) if t > 500)
+    for s in sets[::3]:
+        q = make_set(rng, n=len(s), base=s, noise=0.1)
+        assert np.array_equal(whole.shortlist(q, k=5)[0], grown.shortlist(q, k=5)[0])
 
 
 @pytest.mark.parametrize('index', ['exact', 'ivfpq-fs'])

@@ -275,17 +275,23 @@ class LandmarkIndex:
     def add(self, descriptors: np.ndarray, keyframe_ids: np.ndarray, cells: np.ndarray) -> None:
         """Add landmarks: descriptors (N, D), their keyframe ids (N,) and cells (N, 2)."""
         x = np.ascontiguousarray(descriptors, np.float32).reshape(-1, self.dim)
+        keyframe_ids = np.asarray(keyframe_ids, np.int64).reshape(-1)
         ids = encode_ids(keyframe_ids, cells)
-        if self.kind == 'exact' and self.ntotal + len(ids) > self.conf['landmark_index_threshold']:
+        threshold = int(self.conf['landmark_index_threshold'])
+        if self.kind == 'exact' and self.ntotal + len(ids) > threshold:
+            # Train on the landmarks up to the end of the keyframe that crosses the threshold, not on
+            # the whole call: the index then depends only on the order of the keyframes, never on
+            # how they were batched, so lln-eval's one add of a whole map gives the index a matcher
+            # grew keyframe by keyframe (the main job's online == offline comparison).
+            ends = np.append(np.flatnonzero(np.diff(keyframe_ids)) + 1, len(ids))
+            p = int(ends[np.searchsorted(ends, threshold - self.ntotal + 1)])
             old = self.index.index.reconstruct_n(0, self.ntotal) if self.ntotal else np.zeros((0, self.dim), np.float32)
             old_ids = faiss.vector_to_array(self.index.id_map).astype(np.int64)
-            log.info(
-                'landmark index passed %d landmarks: training %s',
-                self.conf['landmark_index_threshold'],
-                self.conf['landmark_compressed'],
-            )
-            self.build(np.concatenate([old, x]), np.concatenate([old_ids, ids]))
-            return
+            log.info('landmark index passed %d landmarks: training %s', threshold, self.conf['landmark_compressed'])
+            self.build(np.concatenate([old, x[:p]]), np.concatenate([old_ids, ids[:p]]))
+            x, ids = x[p:], ids[p:]
+            if not len(ids):
+                return
         self.index.add_with_ids(x, ids)
 
     def add_sets(self, keyframe_ids, sets) -> None:
