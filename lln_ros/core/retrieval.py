@@ -96,10 +96,13 @@ def first_stage(
     allowed: np.ndarray | None = None,
     conf: dict | None = None,
     scale: float = 1.0,
+    index: LandmarkIndex | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The K candidates of each query before the rerank: ranked (Q, K) ref indices, best first, and
     their first-stage scores (Q, K) (holistic cosine, or landmark_index.score_hits); rows with
-    fewer candidates are padded with -1 / -inf. 'exhaustive' = every allowed ref in holistic order."""
+    fewer candidates are padded with -1 / -inf. 'exhaustive' = every allowed ref in holistic order.
+    index: batch_index(refs, conf) when the caller already built it (building trains a compressed
+    index on a large map, which an evaluation would otherwise pay once per call)."""
     conf = {**default_conf, **(conf or {})}
     n_q, r = len(queries), len(refs)
     k = min(int(k), r)
@@ -116,7 +119,7 @@ def first_stage(
         return ranked, scores
     if prefilter != 'landmarks':
         raise ValueError(f'unknown prefilter {prefilter!r}')
-    index = batch_index(refs, conf)
+    index = index if index is not None else batch_index(refs, conf)
     hol_rank, _ = first_stage(queries, refs, k, 'holistic', allowed)  # tops up short landmark lists
     for i, q in enumerate(queries):
         below = None
@@ -152,6 +155,7 @@ def rank_all_at(
     scale: float = 1.0,
     prefilter: str = default_conf['prefilter'],
     conf: dict | None = None,
+    index: LandmarkIndex | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """rank_all for several K at once: one first stage of max(ks) candidates, one rerank of them,
     and for each K in ks the rerank of the first K first-stage candidates (the same as rank_all
@@ -160,7 +164,7 @@ def rank_all_at(
     r = len(refs)
     sizes = [min(int(k), r) if int(k) else r for k in ks]
     prefilter, _ = check_prefilter(prefilter, ks[0])  # the first K decides (0: exhaustive)
-    top, _ = first_stage(queries, refs, max(sizes), prefilter, allowed, conf, scale)
+    top, _ = first_stage(queries, refs, max(sizes), prefilter, allowed, conf, scale, index)
     s_top = np.full(top.shape, -np.inf, np.float32)
     for i, q in enumerate(queries):
         ok = top[i] >= 0
@@ -184,6 +188,7 @@ def rank_all(
     scale: float = 1.0,
     prefilter: str = default_conf['prefilter'],
     conf: dict | None = None,
+    index: LandmarkIndex | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Offline retrieval of many queries against a stacked map (evaluation and validation).
 
@@ -195,7 +200,7 @@ def rank_all(
     """
     prefilter, prefilter_k = check_prefilter(prefilter, prefilter_k)
     k = min(prefilter_k, len(refs)) if prefilter_k else len(refs)
-    top, top_s = first_stage(queries, refs, k, prefilter, allowed, conf, scale)
+    top, top_s = first_stage(queries, refs, k, prefilter, allowed, conf, scale, index)
     if not rerank_local:
         return top, top_s
     ranked = np.full_like(top, -1)

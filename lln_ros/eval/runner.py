@@ -264,13 +264,17 @@ def evaluate_dataset(
             qs = [v.from_features(f, s) for f, s in zip(query_feats, query_sizes)]
             rs = qs if same_images else [v.from_features(f, s) for f, s in zip(ref_feats, ref_sizes)]
             batch = stack_landmarks(rs)
+            # one landmark index per row, shared by its rerank and (lln) its first-stage report
+            index = batch_index(batch) if method == 'lln' or prefilter == 'landmarks' else None
             if seq_len and k_seq != int(conf['prefilter_k']):
                 # one first stage of k_seq candidates, one rerank: the single-frame row is its first K
                 (ranked, scores), seq_bases[row] = rank_all_at(
-                    qs, batch, (int(conf['prefilter_k']), k_seq), ds.candidates, scale, prefilter
+                    qs, batch, (int(conf['prefilter_k']), k_seq), ds.candidates, scale, prefilter, index=index
                 )
             else:
-                ranked, scores = rank_all(qs, batch, k, allowed=ds.candidates, scale=scale, prefilter=prefilter)
+                ranked, scores = rank_all(
+                    qs, batch, k, allowed=ds.candidates, scale=scale, prefilter=prefilter, index=index
+                )
             # the paper's protocol: the same holistic top-K for every local method, only reordered
             same = prefilter != 'holistic' or all(
                 set(a[a >= 0]) == set(b[b >= 0]) for a, b in zip(ranked, prefilter_rows)
@@ -279,7 +283,7 @@ def evaluate_dataset(
                 raise AssertionError(f'{row}: reranked candidates differ from the holistic top-{k}')
             if method == 'lln' and stages is None:
                 stages = first_stage_report(
-                    qs, batch, ds, full, ranked if prefilter == 'exhaustive' else None, scale, reps
+                    qs, batch, ds, full, ranked if prefilter == 'exhaustive' else None, scale, reps, index
                 )
             extract_jobs[row] = [(extraction_job(v, im), 1) for im in timing_images]
             # keep only what the timed reranks need (the candidates of a few queries), not the map
@@ -296,7 +300,7 @@ def evaluate_dataset(
                     f'{ds.name}: reloc success {reloc["regions"]["success_rate"]} (regions) vs '
                     f'{reloc["all"]["success_rate"]} (all) ({time.perf_counter() - t1:.1f} s)'
                 )
-            del qs, rs, batch
+            del qs, rs, batch, index
         summary = metrics.summary(ranked, scores[:, 0], ds.gt)
         rows_out[row] = {**{key: finite(float(summary[key])) for key in METRIC_KEYS}, 'n': n}
         if method == 'lln':
@@ -382,14 +386,22 @@ FIRST_STAGE_KS = (1, 5, 10, 30, 100)
 
 
 def first_stage_report(
-    qs: list, batch, ds, holistic_full: np.ndarray, exhaustive: np.ndarray | None, scale: float, repeats: int
+    qs: list,
+    batch,
+    ds,
+    holistic_full: np.ndarray,
+    exhaustive: np.ndarray | None,
+    scale: float,
+    repeats: int,
+    index=None,
 ) -> dict:
     """Recall@K (FIRST_STAGE_KS) of each first stage's own ranking, i.e. the ceiling of a rerank of
     its top K, and its cost per query (ms, best of `repeats` over the timed queries): holistic
     (global cosine over every ref), landmarks (landmark_index search + score_hits) and, when the
     run is exhaustive, S over every ref (its ranking `exhaustive`)."""
     kmax = min(max(FIRST_STAGE_KS), len(batch))
-    lm, _ = first_stage(qs, batch, kmax, 'landmarks', ds.candidates, scale=scale)
+    index = index if index is not None else batch_index(batch)
+    lm, _ = first_stage(qs, batch, kmax, 'landmarks', ds.candidates, scale=scale, index=index)
     out = {'holistic': holistic_full, 'landmarks': lm}
     if exhaustive is not None:
         out['exhaustive'] = exhaustive
@@ -402,7 +414,6 @@ def first_stage_report(
         for name, r in out.items()
     }
     pick = np.unique(np.linspace(0, len(qs) - 1, min(10, len(qs))).astype(int))
-    index = batch_index(batch)
 
     def holistic_top(q):
         return np.argsort(-(batch.globals @ q.global_descriptor))[:kmax]
