@@ -138,11 +138,12 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
             self._identify()  # read-only: never modify a file that is not ours
             self._configure()
             self._migrate()
-            if verify:
-                rows = [r[0] for r in self._conn.execute('PRAGMA quick_check(20)')]
-                if rows != ['ok']:
-                    raise MapError(f'map {self.path} is corrupt (SQLite quick_check): ' + '; '.join(rows))
-            self._load()
+            checked = self._start_quick_check() if verify else None
+            try:
+                self._load()
+            finally:
+                if checked is not None:
+                    checked()  # its MapError, when the file is damaged, replaces whatever _load raised
             if model is not None:
                 self._adopt_model(model)
         except sqlite3.OperationalError as e:  # locked, read-only, I/O error

@@ -7,6 +7,7 @@ import logging
 import os
 import sqlite3
 import struct
+import threading
 import time
 import uuid
 
@@ -206,6 +207,37 @@ class SQLiteFile:
                 raise
             log.info('migrated map %s from schema %d to %d', self.path, version, version + 1)
             version += 1
+
+    def _start_quick_check(self):
+        """Run SQLite's quick_check (it reads every page of the file) on a second connection in a
+        thread, and return a function that waits for it and raises MapError if it found damage.
+
+        SQLite releases the GIL while it works, so the check overlaps _load's index building: at
+        100k keyframes (2.7 GB) the check alone took ~6 s and the load ~4 s on this 2-core machine.
+        The caller hands the store out only after the check passed."""
+        verdict: dict = {}
+
+        def check() -> None:
+            try:
+                conn = sqlite3.connect(self.path, timeout=10.0, isolation_level=None)
+                try:
+                    verdict['rows'] = [r[0] for r in conn.execute('PRAGMA quick_check(20)')]
+                finally:
+                    conn.close()
+            except sqlite3.Error as e:
+                verdict['error'] = e
+
+        worker = threading.Thread(target=check, name='lln-map-quick-check', daemon=True)
+        worker.start()
+
+        def wait() -> None:
+            worker.join()
+            if 'error' in verdict:
+                raise MapError(f'map {self.path} is corrupt or truncated: {verdict["error"]}')
+            if verdict['rows'] != ['ok']:
+                raise MapError(f'map {self.path} is corrupt (SQLite quick_check): ' + '; '.join(verdict['rows']))
+
+        return wait
 
     def _meta(self) -> dict:
         return {k: v for k, v in self._conn.execute('SELECT key, value FROM meta')}
