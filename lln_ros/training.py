@@ -48,7 +48,7 @@ from tqdm import tqdm
 
 from . import metrics
 from .core.landmarks import l2_normalize, stack_landmarks
-from .core.lln import LLNHead, save_checkpoint
+from .core.lln import LLNHead, embed, save_checkpoint
 from .core.retrieval import rank_all
 from .core.similarity import cross_match, offset_mode, offset_weights
 from .errors import DatasetError
@@ -193,13 +193,6 @@ def pad_stack(feats: list, grid: tuple | None = None) -> tuple[torch.Tensor, np.
         out[i, :, : f.shape[1], : f.shape[2]] = f
         valid[i, : f.shape[1], : f.shape[2]] = True
     return torch.from_numpy(out), valid.reshape(len(feats), h * w)
-
-
-def embed(head: LLNHead, feats: torch.Tensor) -> torch.Tensor:
-    """feats (B, D, h, w) -> F (B, D): LLN-weighted sum of L2-normalised local features, L2-normalised."""
-    w = head(feats)  # (B, h, w)
-    f = torch.nn.functional.normalize(feats, dim=1)
-    return torch.nn.functional.normalize((f * w[:, None]).sum((2, 3)) + 1e-8, dim=1)
 
 
 def soft_selection(logits: torch.Tensor, n: int, temp: float) -> torch.Tensor:

@@ -128,13 +128,36 @@ def test_landmark_first_stage_reported_for_every_prefilter(tiny_run, extractor):
     entry = run.results['datasets']['ref-vs-query']
     assert run.results['parameters']['prefilter'] == 'landmarks'
     stages = entry['first_stage']
-    assert set(stages) == {'holistic', 'landmarks'}
+    assert set(stages) == {'holistic', 'landmarks', 'lln-weighted sum'}
     for st in stages.values():
         assert set(st['recall_at']) == {'1', '5', '10'} and st['ms_per_query'] > 0  # 12 refs: K <= 12
         assert 0 <= st['recall_at']['1'] <= st['recall_at']['5'] <= st['recall_at']['10'] <= 1
     ranked, _ = run.datasets['ref-vs-query'].rankings['lln']
     assert ranked.shape == (12, 5) and (ranked >= 0).all()
     assert 'First stage (lln landmarks)' in markdown(run.results)
+    assert '| lln-weighted sum |' in markdown(run.results)
+
+
+def test_weighted_sum_is_the_papers_embedding_of_the_head():
+    """The learned holistic first stage ranks by lln.embed of each image's own feature map: unit
+    vectors, one per image, whatever its grid; a head that weights every cell alike gives the
+    normalised mean of the normalised features."""
+    import torch
+
+    from lln_ros.eval.runner import weighted_sums
+
+    rng = np.random.default_rng(0)
+    feats = [rng.normal(size=(8, 3, 4)).astype(np.float16), rng.normal(size=(8, 2, 5)).astype(np.float16)]
+
+    class Flat(torch.nn.Module):
+        def forward(self, f):
+            return torch.ones(f.shape[0], *f.shape[2:])
+
+    out = weighted_sums(Flat(), feats)
+    assert out.shape == (2, 8) and np.allclose(np.linalg.norm(out, axis=1), 1, atol=1e-6)
+    f = feats[1].astype(np.float32)
+    mean = (f / np.linalg.norm(f, axis=0, keepdims=True)).sum((1, 2))
+    assert np.allclose(out[1], mean / np.linalg.norm(mean), atol=1e-5)
 
 
 def test_results_json_has_the_required_structure(tiny_run):

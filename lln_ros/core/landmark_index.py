@@ -31,8 +31,10 @@ Index type: exact (IndexIDMap2(IndexFlatIP)) up to conf['landmark_index_threshol
 (the switch-over rule, commented in default_conf); above it conf['landmark_compressed']:
 'ivfpq-fs' (the default: IndexIVFPQFastScan, D sub-quantisers of 4 bits = D/2 bytes per
 landmark, scanned with SIMD register look-ups) or 'ivfpq' (IndexIVFPQ, D/4 sub-quantisers of 8
-bits = D/4 bytes, the format of older maps, still read). Both are trained on a sample of the
-map's own descriptors and probe conf['landmark_nprobe'] of their IVF cells; all 50 query landmarks
+bits = D/4 bytes, the format of older maps, still read). Both are trained on (a sample of) the
+map's own descriptors, those of the keyframes up to the one that crossed the threshold (so the index
+depends on the keyframe order only, not on how adds were batched), and probe conf['landmark_nprobe']
+of their IVF cells; all 50 query landmarks
 go to FAISS in one search call. Exact inner products grow with the map (one core: ~120 ms per
 query at 20k landmarks under load 14 on this 2-core machine), so only small maps stay exact; the
 fast-scan index keeps a 100k-keyframe map (5M landmarks) at ~520 MB with ids. A compressed index

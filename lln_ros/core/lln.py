@@ -70,6 +70,14 @@ class LLNHead(nn.Module):
         return torch.relu(self.logits(features))
 
 
+def embed(head: LLNHead, feats: torch.Tensor) -> torch.Tensor:
+    """The paper's holistic embedding, what its triplet loss trains: feats (B, D, h, w) -> F (B, D),
+    the LLN-weighted sum of the L2-normalised local features, L2-normalised."""
+    w = head(feats)  # (B, h, w)
+    f = torch.nn.functional.normalize(feats, dim=1)
+    return torch.nn.functional.normalize((f * w[:, None]).sum((2, 3)) + 1e-8, dim=1)
+
+
 def state_fingerprint(module: nn.Module) -> str:
     """Short content hash of a module's state (parameter and buffer names and values)."""
     h = hashlib.sha256()

@@ -88,6 +88,25 @@ def _prefix(row: np.ndarray) -> int | None:
     return m if row[:m].all() else None
 
 
+def cosine_top(
+    query_vectors: np.ndarray, ref_vectors: np.ndarray, k: int, allowed: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Top k refs by inner product of unit vectors (holistic descriptors): query_vectors (Q, D),
+    ref_vectors (R, D), allowed (Q, R) bool -> ranked (Q, k) ref indices and scores (Q, k), padded
+    with -1 / -inf where fewer refs are allowed."""
+    k = min(int(k), len(ref_vectors))
+    sims = np.asarray(query_vectors, np.float32) @ np.asarray(ref_vectors, np.float32).T  # (Q, R)
+    if allowed is not None:
+        sims = np.where(allowed, sims, -np.inf)
+    top = np.argsort(-sims, axis=1, kind='stable')[:, :k]  # (Q, k)
+    top_s = np.take_along_axis(sims, top, axis=1)
+    ok = np.isfinite(top_s)
+    ranked = np.full(top.shape, -1, np.int64)
+    scores = np.full(top.shape, -np.inf, np.float32)
+    ranked[ok], scores[ok] = top[ok], top_s[ok]
+    return ranked, scores
+
+
 def first_stage(
     queries: list[LandmarkSet],
     refs: LandmarkBatch,
@@ -106,17 +125,10 @@ def first_stage(
     conf = {**default_conf, **(conf or {})}
     n_q, r = len(queries), len(refs)
     k = min(int(k), r)
+    if prefilter in ('holistic', 'exhaustive'):
+        return cosine_top(np.stack([q.global_descriptor for q in queries]), refs.globals, k, allowed)
     ranked = np.full((n_q, k), -1, np.int64)
     scores = np.full((n_q, k), -np.inf, np.float32)
-    if prefilter in ('holistic', 'exhaustive'):
-        hol = np.stack([q.global_descriptor for q in queries]).astype(np.float32) @ refs.globals.T  # (Q, R)
-        if allowed is not None:
-            hol = np.where(allowed, hol, -np.inf)
-        top = np.argsort(-hol, axis=1, kind='stable')[:, :k]  # (Q, K)
-        top_s = np.take_along_axis(hol, top, axis=1)
-        ok = np.isfinite(top_s)
-        ranked[ok], scores[ok] = top[ok], top_s[ok]
-        return ranked, scores
     if prefilter != 'landmarks':
         raise ValueError(f'unknown prefilter {prefilter!r}')
     index = index if index is not None else batch_index(refs, conf)

@@ -56,8 +56,8 @@ from .. import metrics
 from ..core.extractor import default_conf as extractor_defaults
 from ..core.landmark_index import check_prefilter
 from ..core.landmarks import LandmarkSet, l2_normalize, stack_landmarks
-from ..core.lln import head_fingerprint
-from ..core.retrieval import batch_index, candidates_k, first_stage, rank_all, rank_all_at
+from ..core.lln import embed, head_fingerprint
+from ..core.retrieval import batch_index, candidates_k, cosine_top, first_stage, rank_all, rank_all_at
 from ..core.retrieval import default_conf as retrieval_defaults
 from ..core.sequence import check_conf as sequence_conf
 from ..core.sequence import default_conf as sequence_defaults
@@ -282,8 +282,9 @@ def evaluate_dataset(
             if not same:
                 raise AssertionError(f'{row}: reranked candidates differ from the holistic top-{k}')
             if method == 'lln' and stages is None:
+                learned = (weighted_sums(v.head, query_feats), weighted_sums(v.head, ref_feats))
                 stages = first_stage_report(
-                    qs, batch, ds, full, ranked if prefilter == 'exhaustive' else None, scale, reps, index
+                    qs, batch, ds, full, ranked if prefilter == 'exhaustive' else None, scale, reps, index, learned
                 )
             extract_jobs[row] = [(extraction_job(v, im), 1) for im in timing_images]
             # keep only what the timed reranks need (the candidates of a few queries), not the map
@@ -385,6 +386,13 @@ def evaluate_dataset(
 FIRST_STAGE_KS = (1, 5, 10, 30, 100)
 
 
+def weighted_sums(head, feats: list[np.ndarray]) -> np.ndarray:
+    """(N, D) LLN-weighted sums (lln.embed) of N cached feature maps (D, h, w), one image at a time
+    (a dataset's images need not share a grid)."""
+    with torch.inference_mode():
+        return np.concatenate([embed(head, torch.from_numpy(np.asarray(f, np.float32)[None])).numpy() for f in feats])
+
+
 def first_stage_report(
     qs: list,
     batch,
@@ -394,15 +402,20 @@ def first_stage_report(
     scale: float,
     repeats: int,
     index=None,
+    learned: tuple | None = None,
 ) -> dict:
     """Recall@K (FIRST_STAGE_KS) of each first stage's own ranking, i.e. the ceiling of a rerank of
     its top K, and its cost per query (ms, best of `repeats` over the timed queries): holistic
-    (global cosine over every ref), landmarks (landmark_index search + score_hits) and, when the
-    run is exhaustive, S over every ref (its ranking `exhaustive`)."""
+    (global cosine over every ref), landmarks (landmark_index search + score_hits), the paper's
+    learned holistic descriptor when `learned` = (query F (Q, D), ref F (R, D)) is given (cosine of
+    LLN-weighted sums, lln.embed) and, when the run is exhaustive, S over every ref (its ranking
+    `exhaustive`)."""
     kmax = min(max(FIRST_STAGE_KS), len(batch))
     index = index if index is not None else batch_index(batch)
     lm, _ = first_stage(qs, batch, kmax, 'landmarks', ds.candidates, scale=scale, index=index)
     out = {'holistic': holistic_full, 'landmarks': lm}
+    if learned is not None:  # the paper's own holistic descriptor F = sum w_ij f_ij (lln.embed)
+        out['lln-weighted sum'], _ = cosine_top(*learned, kmax, ds.candidates)
     if exhaustive is not None:
         out['exhaustive'] = exhaustive
     report = {
@@ -414,14 +427,15 @@ def first_stage_report(
         for name, r in out.items()
     }
     pick = np.unique(np.linspace(0, len(qs) - 1, min(10, len(qs))).astype(int))
-
-    def holistic_top(q):
-        return np.argsort(-(batch.globals @ q.global_descriptor))[:kmax]
-
+    queries = np.stack([q.global_descriptor for q in qs])
     jobs = {
-        'holistic': [(functools.partial(holistic_top, qs[i]), 1) for i in pick],
+        'holistic': [(functools.partial(cosine_top, queries[i : i + 1], batch.globals, kmax), 1) for i in pick],
         'landmarks': [(functools.partial(index.shortlist, qs[i], kmax, None, scale), 1) for i in pick],
     }
+    if learned is not None:
+        jobs['lln-weighted sum'] = [
+            (functools.partial(cosine_top, learned[0][i : i + 1], learned[1], kmax), 1) for i in pick
+        ]
     for name, ms in interleaved_times(jobs, repeats).items():
         report[name]['ms_per_query'] = finite(ms)
     return report
