@@ -59,7 +59,7 @@ evaluate() {  # evaluate H K DIR HEADS... : every method on held-out H with firs
   local heads
   heads=$(IFS=,; echo "$*")
   $BIN/lln-eval --dataset "${SPEC[$held]}" "${range[@]}" --methods "${METHODS:-holistic,lln,act,rand,all}" \
-    --heads "$heads" --prefilter-k "$k" --cache "$CACHE" --threads "$THREADS" --no-plots --quiet \
+    --heads "$heads" --prefilter holistic --prefilter-k "$k" --cache "$CACHE" --threads "$THREADS" --no-plots --quiet \
     --timing-images 1 --timing-queries 1 --timing-repeats 1 --out "$OUT/$dir"
 }
 
