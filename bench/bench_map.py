@@ -461,7 +461,9 @@ def plot(args, results: dict) -> None:
     ax.set_xscale('log')
     ax.set_yscale('log')
     ax.set_xlabel('keyframes in the map')
-    ax.set_ylabel('query latency, ms (prefilter 30 + rerank)')
+    from lln_ros.core.retrieval import default_conf as first_stage
+
+    ax.set_ylabel(f'query latency, ms ({args.prefilter_list[0]} top {first_stage["prefilter_k"]} + rerank)')
     ax.set_title(f'map backends, n={N_LANDMARKS}, D={DIM}')
     ax.grid(True, which='both', alpha=0.3)
     ax.legend(fontsize=8)
