@@ -134,6 +134,7 @@ def test_matcher_survives_hostile_messages(rig, places, tmp_path):
         'subscriptions',
         proc,
     )
+    rig.answers_reach_us(proc)
     idle_mb = vm_hwm_mb(proc)
     bad_models = [
         f'{{"descriptor_space": "{places["space"]}", "descriptor_dim": 1e999}}',
@@ -255,6 +256,7 @@ def test_matcher_quarantines_a_damaged_keyframe(rig, places, tmp_path):
     q_pub = rig.probe.publisher(PointCloud2, 'query')
     cands = rig.probe.collect(PointCloud2, 'candidates', msgs.cloud_to_candidates)
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
+    rig.answers_reach_us(proc)
     rig.until(
         lambda: any('keyframe 3:' in line and 'quarantined' in line for line in log_lines(proc, 'ERROR')),
         'the ERROR line naming the quarantined keyframe',

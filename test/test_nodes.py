@@ -128,6 +128,22 @@ class Rig:
         assert response.success, response.message
         return json.loads(response.message)
 
+    def answers_reach_us(self, proc: RosProcess, topics=('candidates',), timeout: float = TIMEOUT) -> None:
+        """Wait until the matcher's answer publishers on `topics` have matched this probe's
+        subscriptions (its ~/info `subscriptions`). Answers are volatile, and under load the matcher
+        can discover the query publisher before the answer subscriptions: an answer sent in between
+        is lost (a CI run failed so, 2026-12-02)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            if not proc.alive():
+                raise AssertionError(f'process died while waiting for it to see our subscriptions:\n{read_log(proc)}')
+            subs = self.info().get('subscriptions', {})
+            if all(subs.get(t, 0) > 0 for t in topics):
+                return
+            if time.monotonic() > deadline:
+                raise AssertionError(f'the matcher never matched our answer subscriptions: {subs}')
+            self.probe.spin_for(0.2)
+
     def close(self) -> None:
         for proc in self.procs:
             proc.stop()
@@ -408,6 +424,7 @@ def test_matcher_localization(rig, places, tmp_path):
     cands = rig.probe.collect(PointCloud2, 'candidates')
     matches = rig.probe.collect(PointCloud2, 'matches')
     rig.until(lambda: kf_pub.get_subscription_count() > 0 and q_pub.get_subscription_count() > 0, 'subscriptions', proc)
+    rig.answers_reach_us(proc, ('candidates', 'matches'))
     n = 8
     for i in range(n):
         kf_pub.publish(cloud(places, i, header(i, 'map')))
@@ -447,6 +464,7 @@ def test_matcher_min_score_new_place(rig, places, tmp_path):
     cands = rig.probe.collect(PointCloud2, 'candidates')
     matches = rig.probe.collect(PointCloud2, 'matches')
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
+    rig.answers_reach_us(proc, ('candidates', 'matches'))
     qh = header(50, 'query')
     q_pub.publish(cloud(places, 2, qh))
     rig.until(lambda: cands and matches, 'the answer', proc)
@@ -464,6 +482,7 @@ def test_matcher_mapping_mode_exclude_recent(rig, places, tmp_path):
     q_pub = rig.probe.publisher(PointCloud2, 'query')
     cands = rig.probe.collect(PointCloud2, 'candidates', msgs.cloud_to_candidates)
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
+    rig.answers_reach_us(proc)
     sequence = [0, 1, 2, 3, 4, 1, 5]  # frame 5 revisits place 1 (stored as keyframe 2)
     for j, place in enumerate(sequence):
         q_pub.publish(cloud(places, place, header(j)))
@@ -513,6 +532,7 @@ def test_matcher_refuses_bad_clouds(rig, places, tmp_path):
     q_pub = rig.probe.publisher(PointCloud2, 'query')
     cands = rig.probe.collect(PointCloud2, 'candidates')
     rig.until(lambda: kf_pub.get_subscription_count() > 0 and q_pub.get_subscription_count() > 0, 'subscriptions', proc)
+    rig.answers_reach_us(proc)
     bad = bad_clouds(places)
     kf_pub.publish(cloud(places, 0, header(0)))
     rig.wait_counter(MATCHER, 'keyframes_stored', 1, proc)
@@ -710,6 +730,7 @@ def test_matcher_kill9_in_mapping_mode_loses_no_answered_keyframe(rig, places, t
     q_pub = rig.probe.publisher(PointCloud2, 'query')
     answered = rig.probe.collect(PointCloud2, 'candidates', lambda m: stamp_of(m.header))
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
+    rig.answers_reach_us(proc)
     total, published = 60, 0
     for i in range(total):
         q_pub.publish(cloud(places, i, header(i)))

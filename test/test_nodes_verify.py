@@ -70,6 +70,7 @@ def test_matcher_verify_reranks_by_inliers(rig, scenes, tmp_path):
     kp_pub = rig.probe.publisher(PointCloud2, 'keypoints')
     cands = rig.probe.collect(PointCloud2, 'candidates')
     rig.until(lambda: kp_pub.get_subscription_count() > 0 and q_pub.get_subscription_count() > 0, 'subs', proc)
+    rig.answers_reach_us(proc)
     for i in range(4):
         h = header(i, 'map')
         kp_pub.publish(msgs.keypoints_to_cloud(scenes['kps'][i], h))

@@ -24,6 +24,7 @@ def test_matcher_sequence_online_equals_offline(rig, places, tmp_path):
     q_pub = rig.probe.publisher(PointCloud2, 'query')
     cands = rig.probe.collect(PointCloud2, 'candidates', msgs.cloud_to_candidates)
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
+    rig.answers_reach_us(proc)
     # the route through places 2..7, then an out-of-order stamp, a 5 s gap, then unmapped places
     stream = [(p, 100 + j) for j, p in enumerate(range(2, 8))]  # 50 ms apart
     stream += [(8, 101)]  # older than the last: reset
@@ -100,6 +101,7 @@ def test_matcher_sequence_in_mapping_mode(rig, places, tmp_path):
     q_pub = rig.probe.publisher(PointCloud2, 'query')
     cands = rig.probe.collect(PointCloud2, 'candidates', msgs.cloud_to_candidates)
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
+    rig.answers_reach_us(proc)
     route = [0, 1, 2, 3, 4, 5, 1, 2, 3]
     for j, place in enumerate(route):
         q_pub.publish(cloud(places, place, header(j)))

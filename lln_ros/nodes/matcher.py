@@ -359,7 +359,19 @@ class MatcherNode(Node):
     def on_info(self, request, response):
         return self._service(
             response,
-            lambda: json.dumps({**self.store.info(), 'mode': self.params['mode'], 'counters': self.health.snapshot()}),
+            lambda: json.dumps(
+                {
+                    **self.store.info(),
+                    'mode': self.params['mode'],
+                    'counters': self.health.snapshot(),
+                    # readers matched by the answer publishers: a client can wait until its own
+                    # subscriptions are among them before it asks (answers are volatile)
+                    'subscriptions': {
+                        'candidates': self.candidates_pub.get_subscription_count(),
+                        'matches': self.matches_pub.get_subscription_count(),
+                    },
+                }
+            ),
         )
 
     def _service(self, response, action):
