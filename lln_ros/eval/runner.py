@@ -264,8 +264,10 @@ def evaluate_dataset(
             qs = [v.from_features(f, s) for f, s in zip(query_feats, query_sizes)]
             rs = qs if same_images else [v.from_features(f, s) for f, s in zip(ref_feats, ref_sizes)]
             batch = stack_landmarks(rs)
-            # one landmark index per row, shared by its rerank and (lln) its first-stage report
-            index = batch_index(batch) if method == 'lln' or prefilter == 'landmarks' else None
+            report_stages = method == 'lln' and stages is None  # the first lln row reports the first stages
+            # one landmark index per row, shared by its rerank and its first-stage report; built only
+            # where one of them searches it (training it is the expensive part on a large map)
+            index = batch_index(batch) if prefilter == 'landmarks' or report_stages else None
             if seq_len and k_seq != int(conf['prefilter_k']):
                 # one first stage of k_seq candidates, one rerank: the single-frame row is its first K
                 (ranked, scores), seq_bases[row] = rank_all_at(
@@ -281,7 +283,7 @@ def evaluate_dataset(
             )
             if not same:
                 raise AssertionError(f'{row}: reranked candidates differ from the holistic top-{k}')
-            if method == 'lln' and stages is None:
+            if report_stages:
                 learned = (weighted_sums(v.head, query_feats), weighted_sums(v.head, ref_feats))
                 stages = first_stage_report(
                     qs, batch, ds, full, ranked if prefilter == 'exhaustive' else None, scale, reps, index, learned
