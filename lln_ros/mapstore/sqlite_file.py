@@ -232,6 +232,9 @@ class SQLiteFile:
 
         def wait() -> None:
             worker.join()
+            # the messages SQLiteMapStore.__init__ gives the same errors on its own connection
+            if isinstance(verdict.get('error'), sqlite3.OperationalError):  # locked, read-only, I/O error
+                raise MapError(f'cannot open map {self.path}: {verdict["error"]}')
             if 'error' in verdict:
                 raise MapError(f'map {self.path} is corrupt or truncated: {verdict["error"]}')
             if verdict['rows'] != ['ok']:
