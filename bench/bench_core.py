@@ -1,6 +1,6 @@
 """Core speed benchmark: backbone, full extraction per runtime, and batched matching per pair.
 
-    python bench/bench_core.py [--json] [--repeats 30] [--threads 2] [--budget 8] [--no-runtimes]
+    python bench/bench_core.py [--json] [--repeats 100] [--threads 2] [--budget 8] [--no-runtimes]
 
 All numbers are medians over `--repeats` runs on real pixels (views of a photograph shipped in
 matplotlib), 384x288 input (the paper's 12x9 grid), measured in one run so ratios are comparable.
@@ -54,24 +54,33 @@ def median_time(fn, repeats: int, warmup: int = 3) -> float:
     return statistics.median(times)
 
 
-def round_robin(fns: dict, repeats: int, budget: float, warmup: int = 2) -> dict:
-    """{name: fn()} -> {name: p50/p90 wall ms, median CPU ms, frames}. Each round calls every fn
-    once, so all of them see the same moments of a shared machine's load; rounds stop after
-    `repeats`, or when `budget` seconds per fn are used up (at least 5 rounds)."""
+def round_robin(fns: dict, repeats: int, budget: float, warmup: int = 2, block: int = 4) -> dict:
+    """{name: fn()} -> {name: p50/p90 wall ms, median CPU ms, frames}. Each round gives every fn a
+    turn of one untimed call then `block` timed calls, so all of them see the same minutes of a
+    shared machine's load; rounds stop after `repeats` timed calls per fn, or when `budget` seconds
+    per fn are used up (at least 5 timed calls).
+
+    Why the untimed call: a runtime's idle workers keep spinning for a few ms after its call (torch's
+    OpenMP pool does by default). Timed straight after a torch call, ONNX Runtime at 2 threads shared
+    its second core with torch's spinning worker: 13.6 ms per frame instead of 11.5 alone, and 25 CPU
+    ms instead of 17 at 1 thread. One untimed call absorbs that, so each fn is timed as it runs
+    when it is the only runtime in the process, as in the extractor node."""
     for fn in fns.values():
         for _ in range(warmup):
             fn()
     wall = {name: [] for name in fns}
     cpu = {name: [] for name in fns}
     end = time.perf_counter() + budget * len(fns)
-    rounds = 0
-    while rounds < repeats and (rounds < 5 or time.perf_counter() < end):
+    timed = 0
+    while timed < repeats and (timed < 5 or time.perf_counter() < end):
         for name, fn in fns.items():
-            t, c = time.perf_counter(), time.process_time()
             fn()
-            wall[name].append(time.perf_counter() - t)
-            cpu[name].append(time.process_time() - c)
-        rounds += 1
+            for _ in range(block):
+                t, c = time.perf_counter(), time.process_time()
+                fn()
+                wall[name].append(time.perf_counter() - t)
+                cpu[name].append(time.process_time() - c)
+        timed += block
     # CPU time (all threads of this process) per call: the work, whatever the other processes do;
     # for one thread it is close to what the wall time would be on an idle machine
     return {
@@ -329,7 +338,7 @@ def table(r: dict) -> str:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('--json', action='store_true', help='print one JSON object')
-    p.add_argument('--repeats', type=int, default=30)
+    p.add_argument('--repeats', type=int, default=100)
     p.add_argument('--threads', type=int, default=2)
     p.add_argument(
         '--budget',

@@ -60,7 +60,8 @@ def variants(ex: Extractor, path) -> dict:
         out[f'torch, {t} thread(s)'] = ('torch', t, ex.network)
         out[f'ORT {t}t, spinning on (ORT default)'] = ('ort', t, ort_variant(path, t, True))
         out[f'ORT {t}t, spinning off'] = ('ort', t, ort_variant(path, t, False))
-    out['ORT 2t, spinning off, parallel execution'] = ('ort', 2, ort_variant(path, 2, False, parallel=True))
+    for t in (1, 2):
+        out[f'ORT {t}t, spinning off, parallel execution'] = ('ort', t, ort_variant(path, t, False, parallel=True))
     out['ORT 1t, spinning off, basic graph optimisation'] = ('ort', 1, ort_variant(path, 1, False, basic=True))
     try:
         import openvino  # noqa: F401
