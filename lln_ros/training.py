@@ -63,6 +63,9 @@ default_conf = {
     'negatives': 4,  # hard negatives per tuple (K)
     'margin': 0.3,
     'tuples_per_epoch': 1000,  # queries drawn (without replacement) per epoch; 0 = all
+    # True: every --data set gives the same share of an epoch's queries (a small set's are drawn
+    # again), so a 2,145-place route does not outweigh three sets of ~200 (docs/generalisation.md)
+    'balance_sets': False,
     'train_size': 288,  # input height, aspect kept (as at test time); (W, H) squashes (paper: 352x352)
     'neg_margin': 10,  # route data: refs within this many frames of a positive are not negatives
     'seed': 0,
@@ -78,13 +81,15 @@ OBJECTIVES = ('rerank', 'triplet')
 
 @dataclass
 class PairSet:
-    """Training pairs. positive / negative (Q, R) bool: ref r is a positive / negative of query q."""
+    """Training pairs. positive / negative (Q, R) bool: ref r is a positive / negative of query q.
+    source (Q,) int: which of the combined sets each query comes from (None: one set)."""
 
     name: str
     query_paths: list
     ref_paths: list
     positive: np.ndarray
     negative: np.ndarray
+    source: np.ndarray | None = None
 
     def usable(self) -> np.ndarray:
         """Queries that can form a tuple: at least one positive and enough negatives."""
@@ -168,8 +173,10 @@ def combine(sets: list[PairSet]) -> PairSet:
     q = sum(len(s.query_paths) for s in sets)
     r = sum(len(s.ref_paths) for s in sets)
     pos, neg = np.zeros((q, r), bool), np.zeros((q, r), bool)
+    source = np.zeros(q, int)
     qo = ro = 0
-    for s in sets:
+    for i, s in enumerate(sets):
+        source[qo : qo + len(s.query_paths)] = i
         pos[qo : qo + len(s.query_paths), ro : ro + len(s.ref_paths)] = s.positive
         neg[qo : qo + len(s.query_paths), ro : ro + len(s.ref_paths)] = s.negative
         qo, ro = qo + len(s.query_paths), ro + len(s.ref_paths)
@@ -179,6 +186,7 @@ def combine(sets: list[PairSet]) -> PairSet:
         sum((s.ref_paths for s in sets), []),
         pos,
         neg,
+        source,
     )
 
 
@@ -323,10 +331,25 @@ class Trainer:
 
     # ------------------------------------------------------------------ loop
 
+    def choose_queries(self) -> np.ndarray:
+        """This epoch's queries: `tuples_per_epoch` of the usable ones (0 = as many as there are), at
+        random; with balance_sets, the same number from every source set, each set's queries without
+        replacement until they run out and then again (in a new order)."""
+        n = self.conf['tuples_per_epoch'] or len(self.queries)
+        source = self.pairs.source
+        if not self.conf['balance_sets'] or source is None:
+            return self.rng.permutation(self.queries)[:n]
+        groups = [self.queries[source[self.queries] == s] for s in np.unique(source[self.queries])]
+        share = -(-n // len(groups))  # ceil: every set gets its full share
+        picks = []
+        for g in groups:
+            rounds = -(-share // len(g))
+            picks.append(np.concatenate([self.rng.permutation(g) for _ in range(rounds)])[:share])
+        return self.rng.permutation(np.concatenate(picks))[:n]
+
     def mine(self) -> np.ndarray:
         """This epoch's tuples under the current head (see mine_triplets / mine_rerank)."""
-        n = self.conf['tuples_per_epoch'] or len(self.queries)
-        chosen = self.rng.permutation(self.queries)[:n]
+        chosen = self.choose_queries()
         return self.mine_rerank(chosen) if self.conf['objective'] == 'rerank' else self.mine_triplets(chosen)
 
     def train_epoch(self, tuples: np.ndarray) -> float:

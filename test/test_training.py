@@ -294,3 +294,32 @@ def test_datasets_of_different_grids_train_together_and_best_is_the_validation_m
     _, meta = load_checkpoint(str(tmp_path / 'out' / 'best.pt'))
     assert meta['epoch'] == best['epoch'] and meta['val_data'] == [wide.name, square.name]
     assert meta['val_p_at_100r'] == pytest.approx(best['val_p_at_100r']) and meta['trained'] == (best['epoch'] > 0)
+
+
+def test_balance_sets_gives_every_training_set_the_same_share(tmp_path):
+    """--balance-sets: a 40-query set and a 5-query set give an epoch the same number of queries
+    (the small one's again); without it, every usable query once."""
+
+    def pairs(name, q):  # query i matches ref i; every other ref is a negative
+        pos = np.eye(q, q + 2, dtype=bool)
+        return training.PairSet(
+            name, [f'{name}/q{i}' for i in range(q)], [f'{name}/r{i}' for i in range(q + 2)], pos, ~pos
+        )
+
+    both = training.combine([pairs('big', 40), pairs('small', 5)])
+    assert both.source.tolist() == [0] * 40 + [1] * 5
+
+    def chosen(**kw):
+        t = training.Trainer(small_extractor(), both, None, conf(**kw), cache_dir=str(tmp_path), out_dir=str(tmp_path))
+        return t.choose_queries()
+
+    plain = chosen()
+    assert sorted(plain.tolist()) == list(range(45))
+    balanced = chosen(balance_sets=True)  # 45 queries: 23 + 23 drawn, one dropped at random
+    small = balanced[both.source[balanced] == 1]
+    assert len(balanced) == 45 and len(small) in (22, 23) and set(small.tolist()) == set(range(40, 45))
+    assert np.bincount(small - 40).min() >= 4  # the small set's queries in turns, not 22 draws of one
+    big = balanced[both.source[balanced] == 0]
+    assert len(set(big.tolist())) == len(big)  # the big set's without replacement
+    ten = chosen(balance_sets=True, tuples_per_epoch=10)
+    assert sorted(ten[ten >= 40].tolist()) == list(range(40, 45)) and len(set(ten[ten < 40].tolist())) == 5

@@ -52,6 +52,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--top-n', type=int, default=50, help='landmarks per image (validation, and rerank training)')
     p.add_argument('--tuples-per-epoch', type=int, default=1000, help='0 = every usable query')
     p.add_argument(
+        '--balance-sets',
+        action='store_true',
+        help='draw the same number of training queries from every --data set per epoch (a small set again)',
+    )
+    p.add_argument(
         '--train-size',
         default='288',
         help='training input height H (aspect kept, as at test time; default 288), or WxH '
@@ -117,6 +122,7 @@ def run(args) -> dict:
         'negatives': args.negatives,
         'margin': args.margin,
         'tuples_per_epoch': args.tuples_per_epoch,
+        'balance_sets': args.balance_sets,
         'train_size': train_size,
         'neg_margin': args.neg_margin,
         'seed': args.seed,
