@@ -40,6 +40,7 @@ HELD=${HELD:-$SETS}             # which folds to run (default: every set held ou
 declare -A FLAGS=(
   [mix]=""                 # the plain LLN head on the mixed sets
   [prior]="--norm-prior 1" # the head as a learned correction of ACT's feature-norm ranking
+  [balanced]="--norm-prior 1 --balance-sets"  # the same, every training set an equal share of each epoch
 )
 
 train() {  # train NAME RECIPE SET... : a head on the given sets, validated on their mean
