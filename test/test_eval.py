@@ -179,6 +179,14 @@ def test_results_json_has_the_required_structure(tiny_run):
     assert entry['grid'] == [9, 12]
     assert results['parameters']['top_n'] == 20 and results['parameters']['prefilter_k'] == 5
     assert len(entry['recall_at_k_holistic']) == 12
+    # per query: every row's answers, and its wrong ones are exactly what P@100%R counts
+    pq = entry['per_query']
+    assert len(pq['with_match']) == entry['queries_with_match'] and set(pq['top1']) == set(m)
+    for row, wrong in pq['wrong'].items():
+        assert len(pq['top1'][row]) == 12 and set(wrong) <= set(pq['with_match'])
+        assert 1 - len(wrong) / len(pq['with_match']) == pytest.approx(m[row]['p_at_100r']), row
+        truth = np.asarray(ds.gt, bool)
+        assert all(pq['top1'][row][q] < 0 or not truth[q, pq['top1'][row][q]] for q in wrong), row
 
 
 def test_easy_set_is_solved(tiny_run):

@@ -33,6 +33,9 @@ Per method the metrics.summary numbers are reported, plus
                        holistic: the global-descriptor dot products of one query / R
     n                  landmarks per image (median; `all` depends on the image size); holistic 1
 
+and per dataset `per_query`: every row's top-1 reference per query and the queries (with a true
+match) it gets wrong, to compare two rows query by query.
+
 Timing runs every method round-robin on the same images / queries and keeps the best of
 `timing_repeats` rounds each, so load from other processes does not favour one method.
 
@@ -376,6 +379,7 @@ def evaluate_dataset(
         'recall_at_k_holistic': [finite(float(r)) for r in curve],
         'first_stage': stages,
         'methods': rows_out,
+        'per_query': per_query_answers(rankings, ds.gt),
     }
     if reloc is not None:
         entry['reloc'] = reloc
@@ -383,6 +387,22 @@ def evaluate_dataset(
     if out_dir is not None and conf['plots']:
         entry['figures'] = write_figures(run, ds, extractor, heads, conf, feats, ref_sizes, query_sizes, Path(out_dir))
     return run
+
+
+def per_query_answers(rankings: dict, gt) -> dict:
+    """Which queries each row gets wrong, so two rows can be compared query by query (P@100%R only
+    says how many). rankings: row -> (ranked (Q, K), scores); gt (Q, R) bool. Query and ref indices
+    are positions in the dataset's query / ref lists; top1 is -1 where a row gave no answer."""
+    gt = np.asarray(gt, bool)
+    has = gt.any(1)
+    return {
+        'with_match': np.flatnonzero(has).tolist(),
+        'top1': {row: ranked[:, 0].astype(int).tolist() for row, (ranked, _) in rankings.items()},
+        'wrong': {
+            row: np.flatnonzero(has & ~metrics.top1_correct(ranked, gt)).tolist()
+            for row, (ranked, _) in rankings.items()
+        },
+    }
 
 
 FIRST_STAGE_KS = (1, 5, 10, 30, 100)
