@@ -133,16 +133,12 @@ class Rig:
         subscriptions (its ~/info `subscriptions`). Answers are volatile, and under load the matcher
         can discover the query publisher before the answer subscriptions: an answer sent in between
         is lost (a CI run failed so, 2026-12-02)."""
-        deadline = time.monotonic() + timeout
-        while True:
-            if not proc.alive():
-                raise AssertionError(f'process died while waiting for it to see our subscriptions:\n{read_log(proc)}')
+
+        def matched() -> bool:  # until() calls this between spins, so it may call the service
             subs = self.info().get('subscriptions', {})
-            if all(subs.get(t, 0) > 0 for t in topics):
-                return
-            if time.monotonic() > deadline:
-                raise AssertionError(f'the matcher never matched our answer subscriptions: {subs}')
-            self.probe.spin_for(0.2)
+            return all(subs.get(t, 0) > 0 for t in topics)
+
+        self.until(matched, f'the matcher to match our {"/".join(topics)} subscriptions', proc, timeout)
 
     def close(self) -> None:
         for proc in self.procs:
