@@ -52,7 +52,7 @@ from .core.lln import LLNHead, embed, save_checkpoint
 from .core.retrieval import rank_all
 from .core.similarity import cross_match, offset_mode, offset_weights
 from .errors import DatasetError
-from .io.datasets import list_images
+from .io.datasets import image_keys, list_images
 from .io.features import FeatureCache
 
 default_conf = {
@@ -550,6 +550,10 @@ class Trainer:
             train_data=self.pairs.name,
             val_data=[v.name for v in self.vals] or None,
             val_per_set=per_set or {},
+            seen_images={
+                'train': image_keys(self.pairs.query_paths + self.pairs.ref_paths),
+                'val': image_keys([p for v in self.vals for p in (*v.query_paths, *v.ref_paths)]),
+            },
             **self.meta,
         )
 

@@ -247,6 +247,38 @@ def test_pictures_and_markdown(tiny_run):
     for row in ('holistic', 'lln[other]', 'lln[untrained]', 'act', 'rand', 'all'):
         assert f'| {row} |' in md
     assert '## Parameters' in md and 'prefilter_k: `5`' in md and '(ref-vs-query_pr.png)' in md
+    # the held-out column: other.pt lists no training images, the Xavier head trained on nothing
+    assert '| lln[other] | unknown |' in md and '| lln[untrained] | untrained |' in md and '| act | - |' in md
+
+
+def test_held_out_status_compares_the_images_a_checkpoint_lists(tiny, tmp_path):
+    """A head's status on a dataset comes from the image keys its checkpoint lists; a key names a
+    file by its last three path components, so the same data in another folder is still recognised."""
+    ds = datasets.parse_spec(f'aligned:{tiny / "ref"},{tiny / "query"},0')
+    moved = tmp_path / 'elsewhere' / tiny.name
+    moved.mkdir(parents=True)
+    for side in ('ref', 'query'):
+        (moved / side).mkdir()
+        for f in (tiny / side).iterdir():
+            (moved / side / f.name).write_bytes(f.read_bytes())
+    same = datasets.parse_spec(f'aligned:{moved / "ref"},{moved / "query"},0')
+    refs, queries = datasets.image_keys(ds.ref_paths), datasets.image_keys(ds.query_paths)
+    assert datasets.image_keys(same.ref_paths) == refs and not set(refs) & set(queries)
+    n = len(ds.ref_paths) + len(ds.query_paths)
+
+    def status(seen, **meta):
+        return Head('h', 'h.pt', None, {'seen_images': seen, **meta}).held_out(same)
+
+    assert status({'train': refs, 'val': []}) == {
+        'images': n,
+        'status': 'trained on',
+        'trained': len(refs),
+        'validated': 0,
+    }
+    assert status({'train': ['0' * 16], 'val': queries})['status'] == 'validated on'
+    assert status({'train': ['0' * 16], 'val': []}) == {'images': n, 'status': 'held out', 'trained': 0, 'validated': 0}
+    assert status(None)['status'] == 'unknown'
+    assert status({'train': refs, 'val': []}, trained=False)['status'] == 'untrained'
 
 
 def test_parse_head():

@@ -203,6 +203,9 @@ def test_training_is_deterministic_resumable_and_ships_metadata(traverses, tmp_p
         assert torch.equal(v, t_resumed.head.state_dict()[k]), f'resume differs: {k}'
     head, meta = load_checkpoint(str(tmp_path / 'a' / 'best.pt'), 'efficientnet_lite0', 'stage6', 192)
     assert meta['command'] == 'test' and meta['train_data'] == pairs.name
+    # the images it saw, so lln-eval can say which datasets are held out for it
+    keys = datasets.image_keys([*ds.query_paths, *ds.ref_paths])
+    assert meta['seen_images'] == {'train': keys, 'val': keys} and len(keys) == len(ds.query_paths) + len(ds.ref_paths)
     # best.pt is the first epoch with the best validation score, the untrained head (epoch 0) included
     scores = [h['val_p_at_100r'] for h in full['history']]
     assert meta['epoch'] == scores.index(max(scores)) and meta['trained'] == (meta['epoch'] > 0)

@@ -11,6 +11,7 @@ from pathlib import Path
 from ..core.landmarks import METHODS as LOCAL_METHODS
 from ..core.lln import LLNHead, head_fingerprint, load_checkpoint
 from ..errors import ModelError
+from ..io.datasets import image_keys
 from .peers import PEER_METHODS
 
 METHODS = ('holistic',) + tuple(LOCAL_METHODS)  # the paper's rows, the default
@@ -39,6 +40,23 @@ class Head:
     @property
     def trained(self) -> bool:
         return bool(self.meta.get('trained', True))
+
+    def held_out(self, ds) -> dict:
+        """Whether this head saw dataset ds (its queries or references) in training or validation:
+        {'status': 'held out' | 'validated on' | 'trained on' | 'untrained' | 'unknown', 'images': how
+        many distinct images ds has, 'trained': how many of them the head trained on, 'validated': how
+        many it was validated on}. 'unknown': the checkpoint does not list its images (written before
+        lln-train kept them); 'validated on' matters because validation picks the kept epoch."""
+        keys = set(image_keys([*ds.query_paths, *ds.ref_paths]))
+        out = {'images': len(keys)}
+        seen = self.meta.get('seen_images')
+        if not self.trained:
+            return {**out, 'status': 'untrained', 'trained': 0, 'validated': 0}
+        if not seen:
+            return {**out, 'status': 'unknown'}
+        trained, validated = len(keys & set(seen['train'])), len(keys & set(seen['val']))
+        status = 'trained on' if trained else 'validated on' if validated else 'held out'
+        return {**out, 'status': status, 'trained': trained, 'validated': validated}
 
 
 def parse_head(text: str, label: str | None = None) -> Head:

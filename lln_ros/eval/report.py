@@ -80,6 +80,17 @@ def write_json(results: dict, path) -> None:
 # ------------------------------------------------------------------------------------------ lln-eval
 
 
+def seen_by(rows: dict, row: str) -> str:
+    """The `this data` cell of a row: its head's held-out status on the dataset (an X+seq row: X's)."""
+    h = rows.get(rows[row].get('sequence_of', row), {}).get('held_out')
+    if not h:
+        return '-'
+    if h['status'] in ('trained on', 'validated on'):
+        n = h['trained'] if h['status'] == 'trained on' else h['validated']
+        return f'{h["status"]} ({n} of {h["images"]} images)'
+    return h['status']
+
+
 def markdown(results: dict) -> str:
     """The results as markdown: one table per dataset, every method, the parameters, the figures."""
     p = results.get('parameters', {})
@@ -117,8 +128,9 @@ def markdown(results: dict) -> str:
         lines += ['; '.join(facts) + '.', '']
         lines += [f'Note: {n}.' for n in d.get('notes') or []] + [''] * bool(d.get('notes'))
         lines += [
-            '| method | n | P@100%R | R@100%P | AUC-PR | R@1 | R@5 | R@10 | extract ms/img | match ms/pair |',
-            '|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|',
+            '| method | this data | n | P@100%R | R@100%P | AUC-PR | R@1 | R@5 | R@10 | extract ms/img | '
+            'match ms/pair |',
+            '|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|',
         ]
         best = max((m['p_at_100r'] for m in d['methods'].values() if m['p_at_100r'] is not None), default=None)
         for row, m in d['methods'].items():
@@ -129,10 +141,17 @@ def markdown(results: dict) -> str:
             if row.startswith('lln') and not m.get('head_trained', True) and 'untrained' not in row:
                 label += ' (untrained head)'
             lines.append(
-                f'| {label} | {m["n"]} | {p100} | {pct(m["r_at_100p"])} | {pct(m["auc_pr"])} | '
+                f'| {label} | {seen_by(d["methods"], row)} | {m["n"]} | {p100} | {pct(m["r_at_100p"])} | '
+                f'{pct(m["auc_pr"])} | '
                 f'{pct(m["r_at_1"])} | {pct(m["r_at_5"])} | {pct(m["r_at_10"])} | '
                 f'{ms(m["extract_ms"])} | {ms(m["match_ms_per_pair"])} |'
             )
+        lines += [
+            '',
+            "`this data`: whether the row's head trained on this dataset's images (`trained on`), "
+            'validated on them (`validated on`: validation picks the kept epoch) or never saw them '
+            "(`held out`); `-`: the row has no learned part (the backbone is ImageNet's).",
+        ]
         curve = d.get('recall_at_k_holistic') or []
         k = p.get('prefilter_k')
         if curve and k == 0:

@@ -316,12 +316,14 @@ def evaluate_dataset(
                     'head_trained': head.trained,
                     'weights': head.weights or '',
                     'head_fingerprint': head_fingerprint(head.module),
+                    'held_out': head.held_out(ds),
                 }
             )
         rankings[row] = (ranked, scores)
         log(
             f'{ds.name}: {row:<16} P@100%R {summary["p_at_100r"]:.3f}  R@100%P {summary["r_at_100p"]:.3f}  '
             f'AUC {summary["auc_pr"]:.3f}  ({time.perf_counter() - t0:.1f} s)'
+            + (f'  [head: {rows_out[row]["held_out"]["status"]}]' if method == 'lln' else '')
         )
 
     # X+seq: the same single-frame rankings fed in stream order through the online sequence search

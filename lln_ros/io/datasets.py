@@ -63,6 +63,14 @@ def natural_key(path: str | os.PathLike) -> list:
     return [(0, int(tok), '') if tok.isdigit() else (1, 0, tok.lower()) for tok in re.split(r'(\d+)', name)]
 
 
+def image_keys(paths) -> list[str]:
+    """One short key per image path: a digest of its last three path components (for example
+    nordland_trimmed/summer/00001.png), so the same file has the same key on every machine, whatever
+    folder the data sits in. A checkpoint lists the keys of the images it was trained and validated
+    on; lln-eval compares them with a dataset's to say whether the dataset is held out for a head."""
+    return sorted({hashlib.blake2b('/'.join(Path(p).parts[-3:]).encode(), digest_size=8).hexdigest() for p in paths})
+
+
 def list_images(folder: str | os.PathLike, pattern: str | None = None) -> list[Path]:
     """Image files of a folder (not recursive), in natural order; with `pattern` (a glob such as
     '*.jpg') only the matching ones. DatasetError when the folder is missing or holds no images.
