@@ -3,13 +3,13 @@
 # head against an untrained one, sequence rows and relocalization, on the Nordland test split (the
 # last 30% of the route, never trained on) and on rtabmap_loop, with the paper's holistic top-30
 # prefilter; then Nordland again with exhaustive matching; then both with the shipped default first stage
-# (landmarks). Needs ../shared/data (or LLN_DATA).
+# (landmarks); then essex3in1 and tum_fr1rpy. Needs ../shared/data (or LLN_DATA).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DATA=${LLN_DATA:-../shared/data}
 CACHE=${LLN_CACHE:-cache/features}
-if [ ! -d "$DATA/nordland_trimmed" ] || [ ! -d "$DATA/rtabmap_loop" ]; then
-  echo "results: $DATA/nordland_trimmed and $DATA/rtabmap_loop are needed (set LLN_DATA)" >&2
+if [ ! -d "$DATA/nordland_trimmed" ] || [ ! -d "$DATA/rtabmap_loop" ] || [ ! -d "$DATA/essex3in1" ] || [ ! -d "$DATA/tum_fr1rpy" ]; then
+  echo "results: $DATA/nordland_trimmed, rtabmap_loop, essex3in1 and tum_fr1rpy are needed (set LLN_DATA)" >&2
   exit 1
 fi
 bash scripts/setup.sh
@@ -39,6 +39,11 @@ rm -rf docs/results
   --dataset "aligned:$DATA/nordland_trimmed/summer,$DATA/nordland_trimmed/winter,1,drop=blank+frozen" --range 0.7:1 \
   --methods holistic,lln --sequence 10 --heads trained=shipped \
   --cache "$CACHE" --out docs/results/filtered "$@"
+# every other real set, the paper's protocol: issue 15's LLN / ACT / RAND / ALL side by side
+.venv/bin/lln-eval \
+  --dataset "vprbench:$DATA/essex3in1" --dataset "poses:$DATA/tum_fr1rpy,15,0.3,2,3" \
+  --methods holistic,lln,act,rand,all --heads trained=shipped --prefilter holistic --prefilter-k 30 \
+  --cache "$CACHE" --out docs/results/other "$@"
 .venv/bin/python scripts/results_md.py docs/results.md docs/results docs/results/exhaustive docs/results/landmarks \
-  docs/results/filtered
+  docs/results/filtered docs/results/other
 echo "results: wrote docs/results.md"

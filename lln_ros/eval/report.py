@@ -239,6 +239,9 @@ def markdown(results: dict) -> str:
             lines.append(
                 f'- head `{label}`: weights `{h["weights"] or "(Xavier init, seed 0)"}`, '
                 f'trained {h["trained"]}, fingerprint `{h["fingerprint"]}`'
+                + (f', trained on `{h["train_data"]}`' if h.get('train_data') else '')
+                + (f', validated on `{", ".join(h["val_data"])}`' if h.get('val_data') else '')
+                + (f', epoch {h["epoch"]} kept' if h.get('epoch') is not None and h.get('trained') else '')
             )
         lines += [
             '',

@@ -508,6 +508,8 @@ def evaluate(
                     'weights': h.weights or '',
                     'trained': h.trained,
                     'fingerprint': head_fingerprint(h.module),
+                    # what the checkpoint says it was trained and validated on (None: not recorded)
+                    **{key: h.meta.get(key) for key in ('train_data', 'val_data', 'epoch')},
                 }
                 for h in heads
             },
