@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -33,13 +34,28 @@ def pair():
     return t, o
 
 
+def same_cells(x, y, rel: float = 1e-5) -> bool:
+    """The same cells in the same order, except that cells whose scores tie to float32 precision
+    (relative `rel`) may come in either order: the two runtimes round differently in the last bits."""
+    if len(x.cells) != len(y.cells):
+        return False
+    where = {tuple(c): k for k, c in enumerate(x.cells.tolist())}
+    for k, c in enumerate(y.cells.tolist()):
+        j = where.get(tuple(c))
+        if j is None or abs(x.scores[j] - x.scores[k]) > rel * abs(x.scores[k]):
+            return False
+    return True
+
+
 def compare(t: Extractor, o: Extractor, images: list) -> dict:
     a, b = t.extract_batch(images), o.extract_batch(images)
-    same = [np.array_equal(x.cells, y.cells) for x, y in zip(a, b)]
-    both = [(x, y) for x, y, s in zip(a, b, same) if s]
+    same = [same_cells(x, y) for x, y in zip(a, b)]
+    # descriptors are compared row by row, so only on frames without a swapped tie
+    both = [(x, y) for x, y in zip(a, b) if np.array_equal(x.cells, y.cells)]
     return {
         'frames': len(images),
         'cells_identical': int(sum(same)),
+        'order_identical': len(both),
         # descriptors are float16-exact unit vectors (the map stores them so). Equal to float16
         # precision: no element differs by more than one float16 step at the size of a unit vector's
         # largest entries (2**-12 in [0.25, 0.5)); a feature whose float16 rounding flips between the
@@ -64,14 +80,24 @@ def compare(t: Extractor, o: Extractor, images: list) -> dict:
     }
 
 
+def test_same_cells_allows_only_swapped_ties():
+    def lm(cells, scores):
+        return SimpleNamespace(cells=np.array(cells), scores=np.array(scores, np.float32))
+
+    a = lm([[0, 0], [1, 0], [2, 0]], [3.0, 2.0, 2.0])
+    assert same_cells(a, lm([[0, 0], [2, 0], [1, 0]], [3.0, 2.0, 2.0]))  # the tie in either order
+    assert not same_cells(a, lm([[1, 0], [0, 0], [2, 0]], [3.0, 2.0, 2.0]))  # 3.0 and 2.0 swapped
+    assert not same_cells(a, lm([[0, 0], [1, 0], [3, 0]], [3.0, 2.0, 2.0]))  # another cell
+
+
 def rtabmap_frames() -> list:
     root = shared_data('rtabmap_loop')
     return [load_image(str(root / f'{i}.jpg')) for i in range(1, 85)]
 
 
 def test_same_landmarks_on_rtabmap_loop(pair):
-    """All 84 frames (512x384 -> 384x288, a 12x9 grid): the same cells, in the same order, on >= 99%
-    of frames, and descriptors equal to float16 precision."""
+    """All 84 frames (512x384 -> 384x288, a 12x9 grid): the same cells, in the same order up to
+    float32 ties, on >= 99% of frames, and descriptors equal to float16 precision."""
     r = compare(*pair, rtabmap_frames())
     print(r)
     assert r['grids'] == {((9, 12), (9, 12))}
