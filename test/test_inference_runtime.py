@@ -328,8 +328,8 @@ def test_extractor_node_runtime_parameter(tmp_path):
                 assert info[0]['runtime'] == rt and info[0]['descriptor_space'] == 'efficientnet_lite0/stage6/192'
                 pub.publish(msgs.array_to_image(image, 'rgb8', msgs.make_header(1_000_000_000, 'cam')))
                 probe.spin_until(lambda: got, 120, 'landmarks')
-                cells[rt] = msgs.cloud_to_landmarks(got[0]).cells
+                cells[rt] = msgs.cloud_to_landmarks(got[0])
         finally:
             proc.stop()
         assert f', {rt}) from' in proc.log()  # the start-up line names it
-    assert np.array_equal(cells['torch'], cells['onnxruntime'])
+    assert same_cells(cells['torch'], cells['onnxruntime'])  # up to float32 ties, as offline
