@@ -75,26 +75,17 @@ def l2_normalize(x: np.ndarray, axis: int = -1) -> np.ndarray:
     return x / np.maximum(norm, 1e-12)
 
 
-def coarse(x: np.ndarray) -> np.ndarray:
-    """float32 values truncated to 10 mantissa bits (float16's precision without its range limit),
-    toward zero, so the order of the values is kept except that values within one step tie."""
-    return (np.ascontiguousarray(x, np.float32).view(np.int32) & np.int32(~0x1FFF)).view(np.float32)
-
-
 def select_landmarks(score_map: np.ndarray, n: int, method: str = 'lln', seed: int = 0) -> np.ndarray:
     """Flat indices (row * cols + col) of the selected cells, ordered by descending score.
 
     score_map (rows, cols): the map to rank by (LLN activation for lln/rand/all, feature norm for act).
     `rand` draws n cells from a generator seeded with `seed`, so every image with the same grid
     gets the same cells (the paper's RAND baseline: same locations for query and map). `all` keeps
-    every cell. Scores are compared at float16 precision (10 mantissa bits, any exponent) and ties
-    keep the lower index first: the torch and ONNX Runtime paths, or features computed at another
-    batch size, differ in the last float32 bits, and a near-tie decided by those bits would select
-    or order the cells differently on the two paths (then maps built online and offline differ).
+    every cell. Ties keep the lower index first, so the result is deterministic.
     """
     if method not in METHODS:
         raise ValueError(f'unknown landmark method {method!r}; choose one of {METHODS}')
-    flat = coarse(np.asarray(score_map, dtype=np.float32).ravel())
+    flat = np.asarray(score_map, dtype=np.float32).ravel()
     if n < 1 and method != 'all':
         raise ValueError(f'top_n must be at least 1, got {n}')
     if method == 'rand':
