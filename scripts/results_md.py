@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from lln_ros.core.lln import load_checkpoint
-from lln_ros.eval.report import pct
+from lln_ros.eval.report import held_out_text, pct
 
 
 def verdict(ok):
@@ -67,12 +67,7 @@ def side_by_side(runs: list[dict]) -> list[str]:
     for res in runs:
         for name, d in res['datasets'].items():
             m = d['methods']
-            h = m['lln[trained]']['held_out']
-            seen = (
-                f'{h["status"]} ({h[h["status"].split()[0]]} of {h["images"]} images)'
-                if h['status'] in ('trained on', 'validated on')
-                else h['status']
-            )
+            seen = held_out_text(m['lln[trained]']['held_out'])
             cells = ' | '.join(pct(m[r]['p_at_100r']) for r in ('holistic', 'act', 'rand', 'all', 'lln[trained]'))
             out.append(f'| {name} | {d["queries_with_match"]} | {cells} | {seen} |')
     return out

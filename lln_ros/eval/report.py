@@ -80,15 +80,19 @@ def write_json(results: dict, path) -> None:
 # ------------------------------------------------------------------------------------------ lln-eval
 
 
-def seen_by(rows: dict, row: str) -> str:
-    """The `this data` cell of a row: its head's held-out status on the dataset (an X+seq row: X's)."""
-    h = rows.get(rows[row].get('sequence_of', row), {}).get('held_out')
+def held_out_text(h: dict | None) -> str:
+    """A head's held-out status on a dataset (Head.held_out) in words; '-' for a row without a head."""
     if not h:
         return '-'
     if h['status'] in ('trained on', 'validated on'):
         n = h['trained'] if h['status'] == 'trained on' else h['validated']
         return f'{h["status"]} ({n} of {h["images"]} images)'
     return h['status']
+
+
+def seen_by(rows: dict, row: str) -> str:
+    """The `this data` cell of a row: its head's held-out status on the dataset (an X+seq row: X's)."""
+    return held_out_text(rows.get(rows[row].get('sequence_of', row), {}).get('held_out'))
 
 
 def markdown(results: dict) -> str:
