@@ -479,3 +479,18 @@ def test_backlog_counts_what_the_next_node_has_not_taken_and_writes_off_a_stall(
     assert b() == 0
     sent[0] = 20
     assert b() == 8  # no write-off left to hide an outstanding frame
+
+
+def test_compare_names_the_first_stage_of_a_candidate_difference():
+    """A top-1 that the other side never scored is blamed on the first stage both sides ran, with
+    the reason that first stage can differ between the two."""
+    from lln_ros.eval.online import compare
+    from lln_ros.eval.report import METRICS
+
+    summary = {key: 0.5 for key, _ in METRICS}
+    scores = np.array([[9.0, 5.0], [8.0, 1.0]])
+    online = {'ranked': np.array([[1, 2], [0, 1]]), 'scores': scores, 'summary': summary}
+    r = compare(online, np.array([[3, 2], [0, 1]]), scores, summary, {'map': {'lost': 0}}, prefilter='landmarks')
+    assert r['same_top1'] == 1 and [c['query'] for c in r['differing_queries']] == [0]
+    assert r['differing_queries'][0]['detail'] == "online answer outside the other side's landmarks top-K"
+    assert '1 at the landmark first stage' in r['notes'][0] and 'up to the one that crossed' in r['notes'][0]

@@ -164,7 +164,7 @@ def compare(
                     'offline': b,
                     'cause': 'prefilter',
                     'detail': f'{"online" if a not in off else "offline"} answer outside the other '
-                    "side's holistic top-K",
+                    f"side's {prefilter} top-K",
                 }
             )
             continue
@@ -201,9 +201,10 @@ def compare(
         if n_pre and prefilter == 'landmarks':
             parts.append(
                 f"{n_pre} at the landmark first stage (one answer is outside the other side's top-K): "
-                'past 20k landmarks both sides search an approximate IVF-PQ index, and the two are not '
-                "the same one: the matcher's was trained on its map when it reached that size (the "
-                "first ~400 keyframes), the evaluator's on every map frame at once"
+                'past 20k landmarks both sides search an approximate IVF-PQ index, each trained on the '
+                'landmarks of the keyframes up to the one that crossed that size (the first ~400); '
+                'where one of those landmark sets differs between the sides (near-tied cells selected '
+                'or ordered the other way), the two indexes differ'
             )
         elif n_pre:
             parts.append(
