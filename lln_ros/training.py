@@ -286,6 +286,11 @@ class Trainer:
             raise DatasetError(f'validation datasets need distinct names (their scores are kept by name), got {names}')
         self.out = Path(out_dir)
         self.meta = meta or {}
+        # the images this head sees, for every best.pt it writes (lln-eval's held-out status)
+        self.seen_images = {
+            'train': image_keys(pairs.query_paths + pairs.ref_paths),
+            'val': image_keys([p for v in self.vals for p in (*v.query_paths, *v.ref_paths)]),
+        }
         self.cache = FeatureCache(cache_dir, extractor)
         if conf['objective'] not in OBJECTIVES:
             raise DatasetError(f'unknown objective {conf["objective"]!r}; choose one of {OBJECTIVES}')
@@ -550,10 +555,7 @@ class Trainer:
             train_data=self.pairs.name,
             val_data=[v.name for v in self.vals] or None,
             val_per_set=per_set or {},
-            seen_images={
-                'train': image_keys(self.pairs.query_paths + self.pairs.ref_paths),
-                'val': image_keys([p for v in self.vals for p in (*v.query_paths, *v.ref_paths)]),
-            },
+            seen_images=self.seen_images,
             **self.meta,
         )
 
