@@ -36,7 +36,7 @@ sys.path.insert(0, str(REPO / 'bench'))
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from sensor_msgs.msg import Image, PointCloud2  # noqa: E402
 
-from lln_ros import msgs  # noqa: E402
+from lln_ros.ros import msgs  # noqa: E402
 from ros_harness import VENV_BIN, Probe, RosProcess, ros_env  # noqa: E402
 
 NODE = '/lln_extractor'

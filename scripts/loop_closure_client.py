@@ -6,7 +6,7 @@
 
 Subscribes the matcher's `candidates` and `matches` (they share the query's header stamp and come on
 two topics in either order), keeps the best candidate when it passes the thresholds
-(lln_ros.loop_closure.LoopClosureFilter) and writes {query_stamp_ns, keyframe_stamp_ns, keyframe_id,
+(lln_ros.core.loop_closure.LoopClosureFilter) and writes {query_stamp_ns, keyframe_stamp_ns, keyframe_id,
 score, holistic_score, inliers, regions} lines: what a pose-graph back end needs to look up its two
 poses by stamp and register them (regions = matched region pairs, pixels) before adding the edge.
 On Ctrl-C it prints how many answers were accepted and why the others were not.
@@ -41,8 +41,8 @@ def main(argv=None) -> int:
     from rclpy.executors import ExternalShutdownException
     from sensor_msgs.msg import PointCloud2
 
-    from lln_ros import msgs
-    from lln_ros.loop_closure import LoopClosureFilter
+    from lln_ros.core.loop_closure import LoopClosureFilter
+    from lln_ros.ros import msgs
 
     select = LoopClosureFilter(
         {'min_score': args.min_score, 'min_inliers': args.min_inliers, 'min_gap_s': args.min_gap}

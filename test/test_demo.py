@@ -116,7 +116,7 @@ def test_nodes_ran_as_ros2_run_would_and_stopped_cleanly(tiny_run):
 
 
 def test_outputs_exist(tiny_run):
-    from lln_ros.io import bag
+    from lln_ros.ros import bag
 
     out = tiny_run['out']
     for name in (

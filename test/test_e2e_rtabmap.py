@@ -12,8 +12,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import PointCloud2
 
 from conftest import shared_data
-from lln_ros import msgs
-from lln_ros.io import bag
+from lln_ros.ros import bag, msgs
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 
 # the extractor keeps only the newest waiting frame (by design: bounded latency), so at a fixed rate a

@@ -38,8 +38,8 @@ from test_nodes import (  # noqa: F401
     start_matcher,
 )
 
-from lln_ros import msgs
 from lln_ros.mapstore import MapStore
+from lln_ros.ros import msgs
 
 MATCHER_HWM_MB = 1024  # the matcher idles at ~150-250 MB; the 100k-row query itself is 79 MB on the wire
 EXTRACTOR_HWM_MB = 1536  # torch + the network idle at ~500-700 MB

@@ -1,4 +1,4 @@
-"""lln_ros.loop_closure and scripts/loop_closure_client.py: the matcher's answers turned into
+"""lln_ros.core.loop_closure and scripts/loop_closure_client.py: the matcher's answers turned into
 loop-closure constraints (thresholds, verify-mode inliers, odometry gap), and the client over real DDS."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from sensor_msgs.msg import PointCloud2
 
-from lln_ros import msgs
-from lln_ros.loop_closure import LoopClosureFilter, threshold_table
+from lln_ros.core.loop_closure import LoopClosureFilter, threshold_table
+from lln_ros.ros import msgs
 from ros_harness import Probe, ros_env
 
 CLIENT = Path(__file__).resolve().parents[1] / 'scripts' / 'loop_closure_client.py'

@@ -19,8 +19,8 @@ from std_srvs.srv import Trigger
 from test_mapstore import make_set
 from test_nodes import MATCHER, Rig, header, stamp_of
 
-from lln_ros import msgs
 from lln_ros.mapstore import MapStore
+from lln_ros.ros import msgs
 
 SPACE = 'efficientnet_lite0/stage6/192'
 

@@ -404,7 +404,7 @@ def test_matcher_over_dds_in_mapping_mode(milvus_map, colcon_install, extractor,
     from sensor_msgs.msg import PointCloud2
     from test_nodes import Rig, cloud, header, stamp_of, start_matcher
 
-    from lln_ros import msgs
+    from lln_ros.ros import msgs
 
     crops = [photo[y : y + 256, x : x + 224] for y in (0, 170, 340) for x in (0, 144, 288)]
     sets = extractor.extract_batch([np.ascontiguousarray(c) for c in crops])

@@ -1,4 +1,4 @@
-"""lln_ros.msgs: every table and image encoding round-trips, every malformed message is refused
+"""lln_ros.ros.msgs: every table and image encoding round-trips, every malformed message is refused
 with a MessageError. Real sensor_msgs classes and rclpy's real CDR serialization, no mocks."""
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ import pytest
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
 
-from lln_ros import msgs
 from lln_ros.core.landmarks import LandmarkSet, l2_normalize, select_landmarks
 from lln_ros.core.retrieval import pair_regions
 from lln_ros.errors import MessageError
+from lln_ros.ros import msgs
 
 
 def make_landmarks(d=16, rows=9, cols=12, n=20, image_size=(512, 384), seed=0) -> LandmarkSet:

@@ -26,9 +26,9 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_srvs.srv import Trigger
 
-from lln_ros import msgs
 from lln_ros.core.landmarks import LandmarkSet
 from lln_ros.mapstore import MapStore
+from lln_ros.ros import msgs
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 
 TIMEOUT = 60.0  # generous: a loaded 2-core CI machine starts torch slowly

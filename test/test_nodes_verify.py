@@ -11,9 +11,9 @@ import pytest
 from sensor_msgs.msg import Image, PointCloud2
 from test_nodes import EXTRACTOR, MATCHER, header, read_log, rig, same_header, start_matcher  # noqa: F401
 
-from lln_ros import msgs
+from lln_ros.core.reloc import Relocalizer
 from lln_ros.mapstore import MapStore
-from lln_ros.reloc import Relocalizer
+from lln_ros.ros import msgs
 
 
 @pytest.fixture(scope='module')

@@ -23,8 +23,7 @@ from rcl_interfaces.srv import DescribeParameters, SetParameters
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 
-from lln_ros import msgs
-from lln_ros.io import bag
+from lln_ros.ros import bag, msgs
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 
 MATCHER = '/lln_matcher'

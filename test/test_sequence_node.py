@@ -8,9 +8,9 @@ import numpy as np
 from sensor_msgs.msg import PointCloud2
 from test_nodes import MATCHER, cloud, header, places, read_log, rig, stamp_of, start_matcher  # noqa: F401 (fixtures)
 
-from lln_ros import msgs
 from lln_ros.core.sequence import KeyframeSequence
 from lln_ros.mapstore import MapStore
+from lln_ros.ros import msgs
 
 MAPPED = 10  # places 0..9 are in the map; 10..13 are not (the unmapped area)
 

@@ -1,4 +1,4 @@
-"""lln_ros.drawing (ROS-free, OpenCV) and the lln_visualizer node over real DDS: the query beside its
+"""lln_ros.viz.drawing (ROS-free, OpenCV) and the lln_visualizer node over real DDS: the query beside its
 best keyframe with the matched regions linked, and the loop-closure markers, from real extractions
 of the matplotlib photograph."""
 
@@ -10,10 +10,10 @@ import pytest
 from sensor_msgs.msg import Image, PointCloud2
 from visualization_msgs.msg import MarkerArray
 
-from lln_ros import msgs
 from lln_ros.core.retrieval import pair_regions
 from lln_ros.core.similarity import match_pair
-from lln_ros.drawing import CAPTION_HEIGHT, LEGEND_HEIGHT, draw_match_overlay, similarity_colours
+from lln_ros.ros import msgs
+from lln_ros.viz.drawing import CAPTION_HEIGHT, LEGEND_HEIGHT, draw_match_overlay, similarity_colours
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 
 T0 = 1_700_000_000 * 10**9

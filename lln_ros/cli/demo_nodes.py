@@ -62,8 +62,8 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
     Every node started is stopped, also on an error."""
     from tqdm import tqdm
 
-    from ..io import bag
-    from ..io.bag import DEFAULT_START_NS
+    from ..ros import bag
+    from ..ros.bag import DEFAULT_START_NS
 
     timing = {}
     t = time.monotonic()

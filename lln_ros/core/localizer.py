@@ -2,7 +2,7 @@
 keypoints message once the node has decoded it.
 
     store, quarantined = open_map(uri, mode='mapping', descriptor_space='')   # FATAL-worthy errors raise
-    loc = Localizer(store, conf, counters)          # counters: lln_ros.counters.Counters (node: Health)
+    loc = Localizer(store, conf, counters)          # counters: lln_ros.core.counters.Counters (node: Health)
     loc.model_info(text)                            # the extractor's latched JSON
     args = loc.landmark_decoding('bad_query')       # kwargs for msgs.cloud_to_landmarks, None = refusing
     loc.keyframe(lset, stamp_ns)                    # -> keyframe id or None (refused / failed, counted)
@@ -11,7 +11,7 @@ keypoints message once the node has decoded it.
     loc.keypoints(payload, stamp_ns)                # verify: paired with its landmark set by stamp
 
 Every refusal is counted under one counter and logged by kind (Counters.problem); nothing a message
-declares is used to size an allocation before lln_ros.limits has checked it. Counters (documented in
+declares is used to size an allocation before lln_ros.core.limits has checked it. Counters (documented in
 docs/interfaces.md §3.6) keep these sums for every input:
 
     queries_received                  = queries_answered + queries_stale + bad_query + queries_failed
@@ -30,10 +30,10 @@ import logging
 import os
 from dataclasses import dataclass, field
 
-from .. import limits as limits_mod
 from ..errors import DescriptorError, LLNError, MapError
-from ..limits import LimitError, check_landmark_set, validate_model
+from . import limits as limits_mod
 from .landmark_index import check_prefilter
+from .limits import LimitError, check_landmark_set, validate_model
 from .retrieval import candidates_k
 from .retrieval import default_conf as retrieval_conf
 from .sequence import KeyframeSequence
@@ -129,7 +129,7 @@ class Localizer:
     caller at a time (the node's single-threaded executor); the store is thread-safe itself."""
 
     def __init__(self, store, conf: dict | None = None, counters=None, log=None, decode_keypoints=None):
-        from ..counters import Counters
+        from .counters import Counters
 
         self.conf = conf = self.check_conf(conf)
         self.store, self.limits = store, conf['limits']
@@ -152,7 +152,7 @@ class Localizer:
                     f'verify needs keypoint storage, which the {type(store).__name__} backend of '
                     f'map {store.path} does not have (use an SQLite map)'
                 )
-            from ..reloc import Relocalizer
+            from .reloc import Relocalizer
 
             self.reloc = Relocalizer({'min_inliers': conf['verify_min_inliers'], 'margin': conf['verify_margin']})
 
@@ -272,7 +272,7 @@ class Localizer:
         return self._decode_keypoints(payload, lset)
 
     def _decode_keypoints(self, payload, lset):
-        from ..reloc import detection_scale
+        from .reloc import detection_scale
 
         w, h = (float(v) for v in lset.image_size)
         try:
@@ -294,7 +294,7 @@ class Localizer:
         return kid
 
     def _stored_keypoints(self, keyframe_id: int, image_size):
-        from ..reloc import Keypoints, detection_scale
+        from .reloc import Keypoints, detection_scale
 
         found = self.store.keypoints(keyframe_id)
         if found is None:
@@ -374,7 +374,7 @@ class Localizer:
 
     def verify(self, lset, kps, found):
         """Candidates re-ranked by region-constrained inliers, and {keyframe_id: inliers}."""
-        from ..reloc import verify_candidates
+        from .reloc import verify_candidates
 
         if kps is None or not found:
             return found, {}

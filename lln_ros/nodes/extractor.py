@@ -1,7 +1,7 @@
 """lln_extractor: camera images in, landmark sets out (`ros2 run lln_ros extractor`).
 
 Subscribes  image (sensor_msgs/Image) or, with image_transport=compressed, image/compressed
-Publishes   landmarks (sensor_msgs/PointCloud2, see lln_ros.msgs), activation (sensor_msgs/Image,
+Publishes   landmarks (sensor_msgs/PointCloud2, see lln_ros.ros.msgs), activation (sensor_msgs/Image,
             bgr8, with publish_activation), model_info (std_msgs/String, JSON, latched),
             /diagnostics (counters)
 
@@ -24,16 +24,16 @@ from rclpy.node import Node
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_msgs.msg import String
 
-from .. import msgs
 from ..core.backbones import BACKBONES
 from ..core.backbones import default_conf as BACKBONE
 from ..core.extractor import Extractor
 from ..core.extractor import default_conf as EXTRACTOR
 from ..core.landmarks import METHODS
+from ..core.limits import default_conf as LIMITS
 from ..errors import LLNError
 from ..io.image import check_image, heatmap_bgr
-from ..limits import default_conf as LIMITS
-from ..stream import StampGaps
+from ..ros import msgs
+from ..ros.stream import StampGaps
 from .common import MODEL_QOS, Health, loss_events, run_node, start_diagnostics, subscription_qos, worst
 from .parameters import Param, declare_all
 
@@ -138,7 +138,7 @@ class ExtractorNode(Node):
         self.set_activation(p['publish_activation'])
         self.keypoints_pub, self.orb = None, None
         if p['publish_keypoints']:
-            from ..reloc import Relocalizer
+            from ..core.reloc import Relocalizer
 
             self.orb = Relocalizer({'detector': 'orb', 'max_keypoints': p['keypoints_max']})
             self.keypoints_pub = self.create_publisher(PointCloud2, 'keypoints', 10)

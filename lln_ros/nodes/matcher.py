@@ -15,7 +15,7 @@ never answers). A keyframe is committed to the SQLite map before its query's ans
 so whatever a subscriber has seen answered survives kill -9.
 
 verify=true: keypoints are paired with landmark sets by header stamp and stored per keyframe; the
-top candidates are re-ranked by region-constrained RANSAC inliers (lln_ros.reloc.verify_candidates).
+top candidates are re-ranked by region-constrained RANSAC inliers (lln_ros.core.reloc.verify_candidates).
 
 sequence_length L > 0 ranks keyframes by sequence agreement over the last L queries (lln_ros.core.sequence,
 the search lln-eval --sequence runs offline): candidates come best sequence_score first, min_score
@@ -24,9 +24,9 @@ not among this query's prefilter_k). Out-of-order stamps and gaps longer than se
 new sequence (counted as sequence_reset_out_of_order / sequence_reset_gap).
 
 What happens to each message is decided by lln_ros.core.localizer.Localizer (ROS-free, unit-tested
-without rclpy); this node decodes (lln_ros.msgs), calls it and publishes. Input limits
+without rclpy); this node decodes (lln_ros.ros.msgs), calls it and publishes. Input limits
 (max_image_pixels, max_landmarks, max_descriptor_dim, max_grid_side, max_keypoints) default to
-lln_ros.limits.default_conf.
+lln_ros.core.limits.default_conf.
 """
 
 from __future__ import annotations
@@ -39,14 +39,14 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from .. import msgs
 from ..core.landmark_index import PREFILTERS
+from ..core.limits import default_conf as LIMITS
 from ..core.localizer import Localizer, open_map
 from ..core.localizer import default_conf as LOC
 from ..core.sequence import KeyframeSequence
 from ..errors import LLNError
-from ..limits import default_conf as LIMITS
-from ..stream import StampGaps
+from ..ros import msgs
+from ..ros.stream import StampGaps
 from .common import MODEL_QOS, Health, loss_events, run_node, start_diagnostics, subscription_qos, worst
 from .parameters import Param, declare_all
 
@@ -137,7 +137,7 @@ PARAMETERS = {
         dynamic=True,
         range=(1e-3, 1e6),
     ),
-    # input limits (lln_ros.limits): a message declaring more is refused and counted, never sized from
+    # input limits (lln_ros.core.limits): a message declaring more is refused and counted, never sized from
     'max_image_pixels': Param(
         LIMITS['max_image_pixels'], 'limit: image width x height a landmark cloud may declare', range=(1, 2**40)
     ),

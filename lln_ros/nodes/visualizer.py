@@ -28,9 +28,9 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
-from .. import msgs
-from ..drawing import draw_match_overlay, similarity_colours
 from ..errors import LLNError
+from ..ros import msgs
+from ..viz.drawing import draw_match_overlay, similarity_colours
 from .common import Health, run_node, subscription_qos
 from .parameters import Param, declare_all
 

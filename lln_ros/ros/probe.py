@@ -206,7 +206,7 @@ class Probe:
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 100)
 
     def _on_landmarks(self, kind: str, msg) -> None:
-        from .. import msgs
+        from . import msgs
 
         stamp = msgs.stamp_to_ns(msg.header)
         try:
@@ -227,7 +227,7 @@ class Probe:
         )
 
     def _on_candidates(self, msg) -> None:
-        from .. import msgs
+        from . import msgs
 
         stamp = msgs.stamp_to_ns(msg.header)
         if stamp in self.candidates:
@@ -240,7 +240,7 @@ class Probe:
             self.candidates[stamp] = None
 
     def _on_matches(self, msg) -> None:
-        from .. import msgs
+        from . import msgs
 
         stamp = msgs.stamp_to_ns(msg.header)
         try:
@@ -289,7 +289,7 @@ class Probe:
         frame 0, `confirm(stamp)` checks that it arrived downstream (the map counts a keyframe / the
         query is answered); if not, frame 0 is sent again (HANDSHAKE_TRIES times at most). Returns
         timing and the number of frames sent again."""
-        from ..io import bag
+        from ..ros import bag
 
         seen = self.landmarks[out_kind]
         self.spin_until(
