@@ -12,6 +12,7 @@ from std_msgs.msg import Header
 from ...core.landmarks import LandmarkSet
 from ...core.limits import LimitError
 from ...errors import DescriptorError, MessageError
+from .headers import TABLE_FRAME
 
 __all__ = [
     'LANDMARK_FIELDS',
@@ -138,7 +139,8 @@ def array_to_cloud(records: np.ndarray, header: Header | None = None) -> PointCl
     fields = dtype_to_fields(records.dtype)
     le = np.ascontiguousarray(records.astype(_little_endian(records.dtype), copy=False))
     msg = PointCloud2()
-    msg.header = header if header is not None else Header()
+    # the stamp is the caller's, the frame says 'a table' (headers.TABLE_FRAME)
+    msg.header = Header(stamp=header.stamp if header is not None else Header().stamp, frame_id=TABLE_FRAME)
     msg.height = 1
     msg.width = int(len(le))
     msg.fields = fields
