@@ -466,7 +466,7 @@ def test_damaged_keyframe_is_quarantined_at_open(milvus_uri):
     `lln-map check` name the same keyframe."""
     from test_map_backends import run_cli
 
-    from lln_ros.core.localizer import open_map
+    from lln_ros.mapstore import open_for_matcher as open_map
 
     rng = np.random.default_rng(21)
     sets = [make_set(rng) for _ in range(6)]

@@ -41,10 +41,11 @@ from std_srvs.srv import Trigger
 
 from ..core.landmark_index import PREFILTERS
 from ..core.limits import default_conf as LIMITS
-from ..core.localizer import Localizer, open_map
+from ..core.localizer import Localizer
 from ..core.localizer import default_conf as LOC
 from ..core.sequence import KeyframeSequence
 from ..errors import LLNError
+from ..mapstore import open_for_matcher
 from ..ros import msgs, topics
 from ..ros.stream import StampGaps
 from .common import MODEL_QOS, Health, loss_events, run_node, start_diagnostics, subscription_qos, worst
@@ -180,7 +181,7 @@ class MatcherNode(Node):
         conf = {name: p[name] for name in LOCALIZER_KEYS}
         conf['limits'] = {name: p[name] for name in LIMITS}
         Localizer.check_conf(conf)  # a bad parameter ends the node before the map is touched
-        self.store, quarantined = open_map(p['map_path'], p['mode'], p['descriptor_space'])
+        self.store, quarantined = open_for_matcher(p['map_path'], p['mode'], p['descriptor_space'])
         self.loc = Localizer(self.store, conf, self.health, self.get_logger(), msgs.cloud_to_keypoints)
         qos = subscription_qos(p['reliability'], p['queue_depth'])
         self.candidates_pub = self.create_publisher(PointCloud2, topics.CANDIDATES, 10)
