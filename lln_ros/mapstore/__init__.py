@@ -11,8 +11,8 @@ backend the URI names (backend_for): a plain path is the embedded SQLiteMapStore
 Both have the API listed in MapStore's docstring and pass one test suite (test/test_map_backends.py).
 
 Modules: base (MapStore, MapCandidate), uri (backend_for), matcher_open (open_for_matcher), index
-(GlobalIndex), sqlite (+ sqlite_file, sqlite_landmarks), milvus. A backend module is imported when a URI first names it (BACKENDS), so
-the SQLite backend never imports pymilvus.
+(GlobalIndex), sqlite (+ sqlite_file, sqlite_landmarks), milvus. A backend module is imported when a
+URI first names it (BACKENDS), so the SQLite backend never imports pymilvus.
 """
 
 from __future__ import annotations
