@@ -14,10 +14,14 @@ head's learned correction (the 1x1 fuse output):
     border        share of LLN's (ACT's) top-n on the outer ring of the grid, against the ring's
                   share of the grid
     top, bottom   share of the top-n in the upper (lower) third of the image (sky / ground)
+    pad_prior     c on a map holding the image's mean feature in every cell: interior minus ring,
+                  in units of c's std on the real image (> 0: the zero padding of the 3x3 / 5x5
+                  branches alone makes the head prefer the centre, whatever the image shows)
 
 and, per dataset, the mean selection frequency of every cell position (normalised to a 9x9 grid
 of relative positions) for LLN and ACT, and the mean c there: a fixed position prior shows as the
-same pattern on every dataset. Writes OUT/analysis.json, OUT/analysis.md and OUT/selection.png.
+same pattern on every dataset. Writes OUT/analysis.json, OUT/analysis.md, OUT/selection.png and
+OUT/examples.png (one query and its reference per dataset, both selections drawn on them).
 """
 
 from __future__ import annotations
@@ -78,6 +82,7 @@ def analyse(feats: list, head, top_n: int) -> dict:
             'bottom_lln',
             'bottom_act',
             'cells',
+            'pad_prior',
         )
     }
     maps = {k: [np.zeros((BINS, BINS)), np.zeros((BINS, BINS))] for k in ('lln', 'act', 'c')}
@@ -96,6 +101,14 @@ def analyse(feats: list, head, top_n: int) -> dict:
             sel[name] = m.reshape(rows, cols)
         ring = np.zeros((rows, cols), bool)
         ring[[0, -1], :] = ring[:, [0, -1]] = True
+        # the same mean feature in every cell: any spatial pattern of c is then the convs' zero padding
+        flat = np.broadcast_to(f.mean(axis=(1, 2), keepdims=True), f.shape).copy()
+        with torch.inference_mode():
+            c_flat = head.logits(torch.from_numpy(flat)[None])[0].numpy() - prior * np.log(
+                np.linalg.norm(flat, axis=0) + 1e-6
+            )
+        # interior minus ring of c on that input, in units of c's spread over the real image's cells
+        stats['pad_prior'].append(float((c_flat[~ring].mean() - c_flat[ring].mean()) / max(c.std(), 1e-9)))
         third = max(1, rows // 3)
         stats['spearman'].append(spearman(logits, lognorm))
         stats['c_spread'].append(float(c.std() / max(lognorm.std(), 1e-9)))
@@ -156,6 +169,50 @@ def figure(results: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def examples(shown: dict, ex, top_n: int, path: Path) -> None:
+    """One row per dataset: a query and its reference, with LLN's top-n cells (filled red squares)
+    and ACT's (cyan outlines)."""
+    import matplotlib
+
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    import torch
+
+    from lln_ros.core.landmarks import select_landmarks
+    from lln_ros.io.image import load_image
+
+    fig, axes = plt.subplots(len(shown), 2, figsize=(7.2, 2.3 * len(shown) + 0.5), squeeze=False)
+    for i, (name, items) in enumerate(shown.items()):
+        for j, (what, img_path, f) in enumerate(items):
+            ax = axes[i, j]
+            img = load_image(str(img_path))
+            h, w = img.shape[:2]
+            f = np.asarray(f, np.float32)
+            _, rows, cols = f.shape
+            with torch.inference_mode():
+                logits = ex.head.logits(torch.from_numpy(f)[None])[0].numpy()
+            n = min(top_n, rows * cols)
+            ax.imshow(img, extent=(0, cols, rows, 0), interpolation='bilinear')
+            for k, (score, style) in enumerate(((logits, 'lln'), (np.linalg.norm(f, axis=0), 'act'))):
+                for cell in select_landmarks(score, n, 'lln'):
+                    r, c = divmod(int(cell), cols)
+                    if style == 'lln':
+                        ax.add_patch(plt.Rectangle((c + 0.3, r + 0.3), 0.4, 0.4, color='red', lw=0))
+                    else:
+                        ax.add_patch(plt.Rectangle((c + 0.08, r + 0.08), 0.84, 0.84, fill=False, ec='cyan', lw=0.8))
+            ax.set_xlim(0, cols)
+            ax.set_ylim(rows, 0)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_title(f'{name}: {what} ({w}x{h} px, {cols}x{rows} cells)', fontsize=8)
+    fig.suptitle(
+        f'top-{top_n} cells: red squares = the shipped head (LLN), cyan outlines = ACT (feature norm)', fontsize=9
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     p.add_argument('--dataset', action='append', required=True)
@@ -164,6 +221,7 @@ def main() -> int:
     p.add_argument('--top-n', type=int, default=50)
     p.add_argument('--cache', default='cache/features')
     p.add_argument('--out', default='out/shift-analysis')
+    p.add_argument('--example', type=int, default=3, help='query index shown in examples.png per dataset')
     a = p.parse_args()
 
     from lln_ros.core.extractor import Extractor
@@ -172,13 +230,17 @@ def main() -> int:
 
     ex = Extractor({'weights': a.weights})
     cache = FeatureCache(a.cache, ex)
-    results = {}
+    results, shown = {}, {}
     for spec in a.dataset:
-        ds = parse_spec(spec, parse_range(a.range))
+        ds = parse_spec(spec, parse_range(a.range) if spec.startswith('aligned:') else None)
         paths = list(dict.fromkeys([str(q) for q in ds.query_paths] + [str(r) for r in ds.ref_paths]))
         r = analyse(cache.load(paths, size=int(ex.conf['input_height'])), ex.head, a.top_n)
         r['top_n'] = a.top_n
         results[ds.name] = r
+        q = min(a.example, len(ds.query_paths) - 1)
+        ref = int(np.flatnonzero(ds.gt[q])[0]) if ds.gt[q].any() else q
+        pair = [('query', ds.query_paths[q]), ('its reference', ds.ref_paths[ref])]
+        shown[ds.name] = [(w, p_, f) for (w, p_), f in zip(pair, cache.load([str(x) for _, x in pair]))]
         print(f'{ds.name}: ' + ', '.join(f'{k} {v:.3f}' for k, v in r.items() if not isinstance(v, (dict, list))))
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -195,6 +257,7 @@ def main() -> int:
         'top_act',
         'bottom_lln',
         'bottom_act',
+        'pad_prior',
     )
     lines = ['| set | ' + ' | '.join(keys) + ' |', '|---|' + '---:|' * len(keys)]
     for name, r in results.items():
@@ -202,7 +265,8 @@ def main() -> int:
     (out / 'analysis.md').write_text('\n'.join(lines) + '\n')
     print('\n'.join(lines))
     figure(results, out / 'selection.png')
-    print(f'wrote {out}/analysis.json, analysis.md, selection.png')
+    examples(shown, ex, a.top_n, out / 'examples.png')
+    print(f'wrote {out}/analysis.json, analysis.md, selection.png, examples.png')
     return 0
 
 
