@@ -5,7 +5,8 @@ For a query set A and K candidate sets B_k:
   2. offset_mode: the most frequent grid-cell offset (dx, dy) = cell(A_i) - cell(B_j) over the pairs;
   3. offset_weights: w_ij = exp(-1/2 * |offset_ij - mode|^2 / scale^2), offsets in grid cells;
   4. S = sum_ij w_ij * s_ij.
-All K candidates are done at once with array operations (no Python loop per candidate).
+All K candidates are done with array operations (no Python loop per candidate), in chunks whose
+similarity tensor is bounded (MATCH_CHUNK_ELEMENTS): memory per query does not grow with K x n_max.
 """
 
 from __future__ import annotations
@@ -57,9 +58,12 @@ def cross_match(
     Returns match (K, n_a) int (-1 = no mutual partner) and sims (K, n_a) cosine to the partner.
     """
     k, n_b, d = cands.shape
-    # one GEMM for all candidates: (K*n_b, D) @ (D, n_a)
+    # one GEMM for all candidates: (K*n_b, D) @ (D, n_a); the invalid entries are masked in place
+    # (broadcast masks, no (K, n_a, n_b) temporary): the tensor itself is the only big allocation
     sims = (cands.reshape(k * n_b, d) @ query.T).reshape(k, n_b, query.shape[0]).transpose(0, 2, 1)
-    sims = np.where(valid_c[:, None, :] & valid_q[None, :, None], sims, -np.inf)  # (K, n_a, n_b)
+    np.copyto(sims, -np.inf, where=~valid_c[:, None, :])  # (K, n_a, n_b)
+    if not valid_q.all():
+        sims[:, ~valid_q, :] = -np.inf
     nn_ab = sims.argmax(axis=2)  # (K, n_a)
     nn_ba = sims.argmax(axis=1)  # (K, n_b)
     rows = np.arange(k)[:, None]
@@ -116,12 +120,74 @@ def offset_weights(offsets: np.ndarray, mode: np.ndarray, scale: float = 1.0) ->
     return np.exp(-0.5 * d2 / float(scale) ** 2).astype(np.float32)
 
 
+# Elements (float32) of the similarity tensor one chunk of candidates may hold at once: K_c x n_a x
+# n_b <= this, i.e. 64 MiB, and as many stacked descriptor elements (K_c x n_b x D). One pair at
+# the limits (max_landmarks 4096 query x 4096 keyframe landmarks) is exactly this much; a chunk
+# never holds less than one candidate. Before (issue 25) one 4,096-landmark keyframe and query
+# padded all 100 candidates to 4096 x 4096 and took 6.3 GB.
+MATCH_CHUNK_ELEMENTS = 1 << 24
+
+
+def chunk_size(n_a: int, n_b: int, d: int, cap: int = MATCH_CHUNK_ELEMENTS) -> int:
+    """Candidates of n_b landmarks (D-dim) matched at once against n_a query landmarks (>= 1)."""
+    return max(1, cap // max(1, n_b * max(n_a, d)))
+
+
 def match_batch(query: LandmarkSet, batch: LandmarkBatch, scale: float = 1.0) -> MatchResult:
-    """Similarity S of one query against every set in a LandmarkBatch."""
-    if batch.descriptors.shape[2] != query.dim:
-        raise DescriptorError(
-            f'descriptor size mismatch: query has D={query.dim}, candidates have D={batch.descriptors.shape[2]}'
-        )
+    """Similarity S of one query against every set in a LandmarkBatch (an already padded stack),
+    in chunks of chunk_size() candidates, each cut to its own longest set."""
+    k, n_b, d = batch.descriptors.shape
+    if d != query.dim:
+        raise DescriptorError(f'descriptor size mismatch: query has D={query.dim}, candidates have D={d}')
+    step = chunk_size(len(query), n_b, d)
+    if k <= step:
+        return _match_chunk(query, batch, scale)
+    parts = []
+    for start in range(0, k, step):
+        part = batch.take(np.arange(start, min(k, start + step)))
+        used = int(part.valid.any(axis=0).nonzero()[0].max(initial=-1)) + 1
+        parts.append(_match_chunk(query, _cut(part, max(used, 1)), scale))
+    return _concat(parts)
+
+
+def match_sets(query: LandmarkSet, sets: list[LandmarkSet], scale: float = 1.0) -> MatchResult:
+    """match_batch against a list of sets (results in list order) without padding them all to the
+    longest: the sets are grouped by landmark count (sorted) and stacked chunk by chunk, so the
+    similarity tensor and the stacked descriptors of a chunk stay within MATCH_CHUNK_ELEMENTS
+    floats (one candidate at least). Peak extra memory of a query is then ~2 x 64 MiB whatever K
+    and the landmark counts, and a long keyframe costs only its own candidates' time."""
+    if not sets:
+        raise DescriptorError('no landmark sets to match')
+    order = np.argsort([len(s) for s in sets], kind='stable')
+    parts, idx, start = [], [], 0
+    while start < len(order):
+        # sorted ascending: the chunk's longest set is its last; grow while it fits
+        stop = start + 1
+        while stop < len(order):
+            n_b = len(sets[order[stop]])
+            if stop + 1 - start > chunk_size(len(query), n_b, query.dim):
+                break
+            stop += 1
+        chunk = order[start:stop]
+        parts.append(match_batch(query, stack_landmarks([sets[i] for i in chunk]), scale))
+        idx.append(chunk)
+        start = stop
+    merged = _concat(parts)
+    inverse = np.empty(len(sets), np.int64)
+    inverse[np.concatenate(idx)] = np.arange(len(sets))
+    return MatchResult(*(getattr(merged, f)[inverse] for f in ('scores', 'offsets', 'match', 'similarity', 'weight')))
+
+
+def _cut(batch: LandmarkBatch, n: int) -> LandmarkBatch:
+    return LandmarkBatch(batch.descriptors[:, :n], batch.cells[:, :n], batch.valid[:, :n], batch.globals)
+
+
+def _concat(parts: list[MatchResult]) -> MatchResult:
+    fields = ('scores', 'offsets', 'match', 'similarity', 'weight')
+    return MatchResult(*(np.concatenate([getattr(p, f) for p in parts]) for f in fields))
+
+
+def _match_chunk(query: LandmarkSet, batch: LandmarkBatch, scale: float) -> MatchResult:
     q = np.asarray(query.descriptors, np.float32)
     valid_q = np.ones(len(q), bool)
     match, sims = cross_match(q, np.asarray(batch.descriptors, np.float32), valid_q, batch.valid)
