@@ -93,10 +93,10 @@ def run(seconds: float, hz: float, runtime: str | None, threads: int, reliable: 
     from std_msgs.msg import String
 
     probe.node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 50)
-    probe.node.create_subscription(PointCloud2, 'landmarks', on_landmarks, 100)
+    probe.node.create_subscription(PointCloud2, 'lln/landmarks', on_landmarks, 100)
     probe.node.create_subscription(
         String,
-        'model_info',
+        'lln/model_info',
         lambda m: model.append(json.loads(m.data)),
         QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL),
     )

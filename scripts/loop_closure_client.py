@@ -74,8 +74,8 @@ def main(argv=None) -> int:
             state['accepted'] += 1
             print(json.dumps(closure.as_dict()), file=out, flush=True)
 
-    node.create_subscription(PointCloud2, 'candidates', lambda m: on_answer(m, 'candidates'), 100)
-    node.create_subscription(PointCloud2, 'matches', lambda m: on_answer(m, 'matches'), 100)
+    node.create_subscription(PointCloud2, 'lln/candidates', lambda m: on_answer(m, 'candidates'), 100)
+    node.create_subscription(PointCloud2, 'lln/matches', lambda m: on_answer(m, 'matches'), 100)
     try:
         while rclpy.ok() and not (args.count and state['answers'] >= args.count):
             rclpy.spin_once(node, timeout_sec=0.1)

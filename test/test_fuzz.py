@@ -21,8 +21,9 @@ from test_localizer import ask, invariants, keyframe
 from test_mapstore import MODEL, SPACE, make_set
 
 from lln_ros.core.limits import LimitError, default_conf, validate_model
-from lln_ros.core.localizer import Localizer, open_map
+from lln_ros.core.localizer import Localizer
 from lln_ros.errors import MessageError, ModelError
+from lln_ros.mapstore import open_for_matcher as open_map
 from lln_ros.ros import msgs
 
 FUZZ = settings(

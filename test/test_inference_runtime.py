@@ -311,10 +311,10 @@ def test_extractor_node_runtime_parameter(tmp_path):
         )
         try:
             with Probe(env) as probe:
-                info, got = [], probe.collect(PointCloud2, 'landmarks')
+                info, got = [], probe.collect(PointCloud2, 'lln/landmarks')
                 probe.node.create_subscription(
                     String,
-                    'model_info',
+                    'lln/model_info',
                     lambda m: info.append(json.loads(m.data)),
                     QoSProfile(
                         depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL

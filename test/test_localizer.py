@@ -13,9 +13,10 @@ from test_mapstore import MODEL, SPACE, make_set
 
 from lln_ros.core.counters import Counters, problem_kind
 from lln_ros.core.limits import check_landmark_set, default_conf, validate_model
-from lln_ros.core.localizer import Localizer, open_map, writable_problem
+from lln_ros.core.localizer import Localizer
 from lln_ros.errors import MapError, ModelError
-from lln_ros.mapstore import MapStore
+from lln_ros.mapstore import MapStore, writable_problem
+from lln_ros.mapstore import open_for_matcher as open_map
 
 T0 = 1_700_000_000 * 10**9
 

@@ -88,7 +88,7 @@ def test_client_over_dds(tmp_path):
     )
     try:
         with Probe(env) as probe:
-            cpub, mpub = probe.publisher(PointCloud2, 'candidates'), probe.publisher(PointCloud2, 'matches')
+            cpub, mpub = probe.publisher(PointCloud2, 'lln/candidates'), probe.publisher(PointCloud2, 'lln/matches')
             probe.spin_until(lambda: cpub.get_subscription_count() and mpub.get_subscription_count(), 60, 'client')
             for i, rows in enumerate(([row(3, 20.0, T0)], [row(4, 9.0, T0)], [])):
                 header = msgs.make_header((T0 + 100 + i) * 10**9)

@@ -84,10 +84,10 @@ def test_visualizer_node_overlay_and_markers(pair, colcon_install, tmp_path):
     probe = Probe(env)
     try:
         images = probe.publisher(Image, 'image')
-        candidates = probe.publisher(PointCloud2, 'candidates')
-        matches = probe.publisher(PointCloud2, 'matches')
-        overlays = probe.collect(Image, 'overlay')
-        markers = probe.collect(MarkerArray, 'markers')
+        candidates = probe.publisher(PointCloud2, 'lln/candidates')
+        matches = probe.publisher(PointCloud2, 'lln/matches')
+        overlays = probe.collect(Image, 'lln/overlay')
+        markers = probe.collect(MarkerArray, 'lln/markers')
         probe.spin_until(
             lambda: all(p.get_subscription_count() for p in (images, candidates, matches)) or not proc.alive(),
             60,

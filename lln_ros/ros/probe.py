@@ -3,7 +3,7 @@ calls services and plays bags with back-pressure. lln-demo drives the nodes with
 
     probe = Probe(domain)
     probe.watch = [matcher, extractor]            # supervisor.NodeProcess: a dead one fails any wait
-    got = probe.collect(PointCloud2, '/candidates', msgs.cloud_to_candidates)
+    got = probe.collect(PointCloud2, '/lln/candidates', msgs.cloud_to_candidates)
     probe.collect_answers(); probe.collect_diagnostics()
     probe.spin_until(lambda: len(got) == 3, 30, 'three answers')
     probe.play_paced(bag, publisher, 'query', stamps, 120, '/lln_extractor_query', confirm)
@@ -196,8 +196,8 @@ class Probe:
         reliable = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
         for kind in ('keyframes', 'query'):
             self.node.create_subscription(PointCloud2, f'/{kind}', lambda m, k=kind: self._on_landmarks(k, m), reliable)
-        self.node.create_subscription(PointCloud2, '/candidates', self._on_candidates, reliable)
-        self.node.create_subscription(PointCloud2, '/matches', self._on_matches, reliable)
+        self.node.create_subscription(PointCloud2, '/lln/candidates', self._on_candidates, reliable)
+        self.node.create_subscription(PointCloud2, '/lln/matches', self._on_matches, reliable)
 
     def collect_diagnostics(self) -> None:
         """The latest /diagnostics status of every node, in self.diag; read with counter()."""

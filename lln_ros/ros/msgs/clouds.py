@@ -13,6 +13,7 @@ from ...core.landmarks import LandmarkSet
 from ...core.limits import LimitError
 from ...core.limits import default_conf as LIMITS
 from ...errors import DescriptorError, MessageError
+from .headers import TABLE_FRAME
 
 __all__ = [
     'LANDMARK_FIELDS',
@@ -133,7 +134,8 @@ def array_to_cloud(records: np.ndarray, header: Header | None = None) -> PointCl
     fields = dtype_to_fields(records.dtype)
     le = np.ascontiguousarray(records.astype(_little_endian(records.dtype), copy=False))
     msg = PointCloud2()
-    msg.header = header if header is not None else Header()
+    # the stamp is the caller's, the frame says 'a table' (headers.TABLE_FRAME)
+    msg.header = Header(stamp=header.stamp if header is not None else Header().stamp, frame_id=TABLE_FRAME)
     msg.height = 1
     msg.width = int(len(le))
     msg.fields = fields
@@ -176,8 +178,7 @@ def check_fields(
     msg: PointCloud2, required: Sequence[tuple], what: str = 'cloud', max_fields: int = LIMITS['max_point_fields']
 ) -> None:
     """Raise MessageError unless every (name, datatype, count) in `required` is present as given.
-    A count of None accepts any count. LimitError first when the cloud has more than max_fields
-    PointFields (every decoder starts here, so no cost grows with a hostile field count)."""
+    A count of None accepts any count. LimitError first for more than max_fields PointFields."""
     if len(msg.fields) > max_fields:
         raise LimitError(f'{what}: {len(msg.fields)} PointFields is more than max_point_fields {max_fields}')
     present = {f.name: f for f in msg.fields}
@@ -206,9 +207,7 @@ def cloud_to_array(
 
     Checks the required fields (see check_fields), refuses big-endian clouds, and checks that
     point_step, row_step, width * height and len(data) agree. max_rows: LimitError for a cloud of
-    more rows, before anything is copied; max_fields: LimitError for more PointFields (check_fields).
-    The result owns its memory.
-    """
+    more rows, before anything is copied (max_fields: more PointFields). The result owns its memory."""
     if not isinstance(msg, PointCloud2):
         raise MessageError(f'{what}: expected a sensor_msgs/PointCloud2, got {type(msg).__name__}')
     if msg.is_bigendian:

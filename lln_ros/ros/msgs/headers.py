@@ -8,7 +8,14 @@ from std_msgs.msg import Header
 from ...core.limits import stamp_problem
 from ...errors import MessageError
 
+# frame_id of every PointCloud2 this package publishes: the clouds are typed tables (landmarks,
+# candidates, keypoints, matches), not points in space, and a frame that no TF tree has makes rviz and
+# PCL tools say so ("no transform from lln_table") instead of drawing the rows as points at the
+# camera. The stamp stays the camera image's, which is how an answer is paired with its frame.
+TABLE_FRAME = 'lln_table'
+
 __all__ = [
+    'TABLE_FRAME',
     'header_stamp_ns',
     'make_header',
     'stamp_to_ns',
