@@ -30,6 +30,14 @@ from ..errors import MapError
 log = logging.getLogger(__name__)
 
 
+def _inode(path: str) -> tuple | None:
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return None
+    return (st.st_dev, st.st_ino)
+
+
 class SQLiteIdentity:
     """Mixin of SQLiteMapStore (uses path, _conn, _configure, _data_version, _ids)."""
 
@@ -37,11 +45,7 @@ class SQLiteIdentity:
     _lost: str = ''  # set when the file was replaced: every later call raises MapError(_lost)
 
     def _file_identity(self) -> tuple | None:
-        try:
-            st = os.stat(self.path)
-        except FileNotFoundError:
-            return None
-        return (st.st_dev, st.st_ino)
+        return _inode(self.path)
 
     def _remember_identity(self) -> None:
         self._identity = self._file_identity()
@@ -70,8 +74,15 @@ class SQLiteIdentity:
             f'the {held} keyframes this node held were saved to {rescued}; this map is refused from now '
             f'on: restart the node to open the new file, or move the rescued copy back'
         )
+        # our -wal/-shm are still named after the path: SQLite does not checkpoint into a moved
+        # file, and a leftover WAL would be replayed into the replacement when it is next opened
+        # (seen: the replacement gained our keyframes). Ours are the ones we held: same inode
+        ours = {suffix: _inode(self.path + suffix) for suffix in ('-wal', '-shm')}
         conn, self._conn = self._conn, None
         conn.close()
+        for suffix, inode in ours.items():
+            if inode is not None and _inode(self.path + suffix) == inode:
+                os.remove(self.path + suffix)
         log.error('%s', self._lost)
         raise MapError(self._lost)
 
