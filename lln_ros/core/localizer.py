@@ -135,6 +135,7 @@ class Localizer:
         """The extractor's model (JSON). Validated completely first (limits.validate_model): a bad
         one is counted as bad_model_info and changes nothing, neither the map nor the refusal state.
         A valid one is declared to the map: recorded on a new map, or the refusal is set/lifted."""
+        self.count('model_info_received')
         try:
             # bounded in size and depth before it is parsed (limits.parse_model_json): nothing
             # recorded in the map can fail to be written or read back

@@ -58,18 +58,30 @@ def cross_match(
     Returns match (K, n_a) int (-1 = no mutual partner) and sims (K, n_a) cosine to the partner.
     """
     k, n_b, d = cands.shape
-    # one GEMM for all candidates: (K*n_b, D) @ (D, n_a); the invalid entries are masked in place
-    # (broadcast masks, no (K, n_a, n_b) temporary): the tensor itself is the only big allocation
-    sims = (cands.reshape(k * n_b, d) @ query.T).reshape(k, n_b, query.shape[0]).transpose(0, 2, 1)
-    np.copyto(sims, -np.inf, where=~valid_c[:, None, :])  # (K, n_a, n_b)
-    if not valid_q.all():
-        sims[:, ~valid_q, :] = -np.inf
-    nn_ab = sims.argmax(axis=2)  # (K, n_a)
-    nn_ba = sims.argmax(axis=1)  # (K, n_b)
+    n_a = query.shape[0]
+    flat = cands.reshape(k * n_b, d)
+    # the query in row blocks, so the similarity block (K, n_b, rows) stays within
+    # MATCH_CHUNK_ELEMENTS floats whatever n_a; nn_ba is kept as a running max / first argmax over
+    # the blocks, which is exactly the argmax of the whole (ties go to the first row, as argmax's)
+    step = max(1, MATCH_CHUNK_ELEMENTS // max(1, k * n_b))
+    nn_ab, best = np.zeros((k, n_a), np.int64), np.zeros((k, n_a), np.float32)
+    col_max, nn_ba = np.full((k, n_b), -np.inf, np.float32), np.zeros((k, n_b), np.int64)
+    for start in range(0, n_a, step):
+        stop = min(n_a, start + step)
+        sims = (flat @ query[start:stop].T).reshape(k, n_b, stop - start)  # one GEMM per block
+        np.copyto(sims, -np.inf, where=~valid_c[:, :, None])  # in place: broadcast mask, no temporary
+        if not valid_q[start:stop].all():
+            sims[:, :, ~valid_q[start:stop]] = -np.inf
+        block_ab = sims.argmax(axis=1)  # (K, rows)
+        nn_ab[:, start:stop] = block_ab
+        best[:, start:stop] = np.take_along_axis(sims, block_ab[:, None, :], axis=1)[:, 0, :]
+        block_max, block_arg = sims.max(axis=2), sims.argmax(axis=2)  # (K, n_b)
+        better = block_max > col_max
+        col_max = np.where(better, block_max, col_max)
+        nn_ba = np.where(better, block_arg + start, nn_ba)
     rows = np.arange(k)[:, None]
-    mutual = nn_ba[rows, nn_ab] == np.arange(query.shape[0])[None, :]
+    mutual = nn_ba[rows, nn_ab] == np.arange(n_a)[None, :]
     mutual &= valid_q[None, :] & valid_c[rows, nn_ab]
-    best = np.take_along_axis(sims, nn_ab[:, :, None], axis=2)[:, :, 0]
     return np.where(mutual, nn_ab, -1), np.where(mutual, best, 0.0).astype(np.float32)
 
 
@@ -120,17 +132,21 @@ def offset_weights(offsets: np.ndarray, mode: np.ndarray, scale: float = 1.0) ->
     return np.exp(-0.5 * d2 / float(scale) ** 2).astype(np.float32)
 
 
-# Elements (float32) of the similarity tensor one chunk of candidates may hold at once: K_c x n_a x
-# n_b <= this, i.e. 64 MiB, and as many stacked descriptor elements (K_c x n_b x D). One pair at
-# the limits (max_landmarks 4096 query x 4096 keyframe landmarks) is exactly this much; a chunk
-# never holds less than one candidate. Before (issue 25) one 4,096-landmark keyframe and query
-# padded all 100 candidates to 4096 x 4096 and took 6.3 GB.
-MATCH_CHUNK_ELEMENTS = 1 << 24
+# float32 elements one step of the match may hold: a chunk of K_c candidates stacked to its own
+# longest n_b (K_c x n_b x D descriptors <= this), and the similarity block of that chunk against a
+# block of query rows (K_c x n_b x rows <= this; cross_match). 2^22 floats = 16 MiB; with argmax's
+# copy of a block the match needs ~2-3 x 16 MiB beyond the sets it matches, whatever K, n_a and the
+# landmark counts (bench/bench_hostile.py, docs/interfaces.md "worst-case cost of one message").
+# Before (issue 25) one 4,096-landmark keyframe and query padded all 100 candidates to 4096 x 4096
+# similarities: 6.3 GB.
+MATCH_CHUNK_ELEMENTS = 1 << 22
 
 
-def chunk_size(n_a: int, n_b: int, d: int, cap: int = MATCH_CHUNK_ELEMENTS) -> int:
-    """Candidates of n_b landmarks (D-dim) matched at once against n_a query landmarks (>= 1)."""
-    return max(1, cap // max(1, n_b * max(n_a, d)))
+def chunk_size(n_a: int, n_b: int, d: int, cap: int | None = None) -> int:
+    """Candidates of n_b landmarks (D-dim) stacked and matched at once (>= 1); n_a is blocked inside
+    cross_match, so it does not size the chunk."""
+    cap = MATCH_CHUNK_ELEMENTS if cap is None else cap
+    return max(1, cap // max(1, n_b * d))
 
 
 def match_batch(query: LandmarkSet, batch: LandmarkBatch, scale: float = 1.0) -> MatchResult:
@@ -153,9 +169,10 @@ def match_batch(query: LandmarkSet, batch: LandmarkBatch, scale: float = 1.0) ->
 def match_sets(query: LandmarkSet, sets: list[LandmarkSet], scale: float = 1.0) -> MatchResult:
     """match_batch against a list of sets (results in list order) without padding them all to the
     longest: the sets are grouped by landmark count (sorted) and stacked chunk by chunk, so the
-    similarity tensor and the stacked descriptors of a chunk stay within MATCH_CHUNK_ELEMENTS
-    floats (one candidate at least). Peak extra memory of a query is then ~2 x 64 MiB whatever K
-    and the landmark counts, and a long keyframe costs only its own candidates' time."""
+    stacked descriptors and the similarity blocks stay within MATCH_CHUNK_ELEMENTS floats (one
+    candidate at least), and a long keyframe costs only its own candidates' time. Beyond that the
+    results are K x n_a (match, similarity, weight, offsets: ~40 bytes per query landmark and
+    candidate)."""
     if not sets:
         raise DescriptorError('no landmark sets to match')
     order = np.argsort([len(s) for s in sets], kind='stable')
