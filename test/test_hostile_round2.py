@@ -283,22 +283,26 @@ def test_matcher_verify_keypoints_are_bounded_in_bytes(rig, places, tmp_path):
 
 
 def test_extractor_publish_activation_toggled_during_a_stream(rig, small_photo):
-    """publish_activation switched on and off between frames of a stream: every frame is published
-    (before: frames lost to internal_error, InvalidHandle), activation images while it is on; an image
-    stamped with nanosec 1e9 is bad_image; diagnostics_period 1e-6 is refused."""
+    """publish_activation switched on and off while the worker extracts a backlog of 30 frames: every
+    frame is published (before: 6 of 30 lost to internal_error, InvalidHandle, in one run), activation
+    images while it is on; an image stamped with nanosec 1e9 is bad_image; diagnostics_period 1e-6 is
+    refused."""
     proc = rig.extractor('-p', 'input_height:=128', '-p', 'top_n:=10', '-p', 'frame_queue:=100')
     got = rig.probe.collect(PointCloud2, topics.LANDMARKS)
     heat = rig.probe.collect(Image, topics.ACTIVATION)
     pub = rig.probe.publisher(Image, topics.IMAGE)
     rig.until(lambda: pub.get_subscription_count() > 0, 'extractor up', proc)
-    frames = 12
-    for i in range(frames):
-        assert all(r.successful for r in set_params(rig, EXTRACTOR, publish_activation=i % 2 == 0))
+    frames = 30
+    for i in range(frames):  # a backlog (frame_queue 100) the worker is busy with while we toggle
         pub.publish(msgs.array_to_image(small_photo, 'rgb8', header(i)))
-        rig.probe.spin_for(0.05)
+    toggles = 0
+    while len(got) < frames and toggles < 400:
+        assert all(r.successful for r in set_params(rig, EXTRACTOR, publish_activation=toggles % 2 == 0))
+        toggles += 1
     pub.publish(with_stamp(msgs.array_to_image(small_photo, 'rgb8', header(0)), 1_700_000_000, 10**9))
     rig.until(lambda: len(got) == frames, 'every frame published', proc, timeout=2 * TIMEOUT)
     rig.wait_counter(EXTRACTOR, 'bad_image', 1, proc)
+    rig.wait_counter(EXTRACTOR, 'published', frames, proc)
     (result,) = set_params(rig, EXTRACTOR, diagnostics_period=1e-6)
     assert not result.successful and 'at least 0.05' in result.reason
     assert rig.counter(EXTRACTOR, 'internal_error') == 0 and rig.counter(EXTRACTOR, 'published') == frames
