@@ -372,3 +372,18 @@ def test_guard_counts_internal_error_logs_once_and_returns_the_fallback():
     assert response.success is False and 'internal_error' in response.message
     assert node.health.snapshot() == {'internal_error': 6}
     assert len(lines) == 2 and 'query callback: unexpected ZeroDivisionError' in lines[0], lines
+
+
+def test_map_folder_removed_under_the_store_is_restored(tmp_path):
+    import shutil
+
+    rng = np.random.default_rng(7)
+    path = tmp_path / 'maps' / 'map.db'
+    store = MapStore(path, model=MODEL)
+    kept = store.add(make_set(rng), (1, 0))
+    shutil.rmtree(path.parent)
+    with pytest.raises(MapError, match='restored'):
+        store.add(make_set(rng), (2, 0))
+    store.close()
+    with MapStore(path, create=False) as again:
+        assert kept in again.ids()

@@ -109,6 +109,10 @@ class SQLiteIdentity:
 
     def _restore_in_place(self) -> None:
         """The path is empty: put the open connection's content back there and reconnect to it."""
+        try:
+            os.makedirs(os.path.dirname(self.path), exist_ok=True)  # rm -r of the folder, too
+        except OSError as e:
+            raise MapError(f'map {self.path} was deleted under this node and its folder cannot be made again: {e}')
         tmp = self._rescue_copy(f'{self.path}.restoring-{os.getpid()}')
         # our WAL and shared-memory files are still named <path>-wal/-shm: closing the old
         # connection checkpoints into the unlinked file and removes them, so the restored file
