@@ -93,6 +93,9 @@ def test_store_refuses_and_quarantines_stamps_that_do_not_fit(tmp_path):
         msgs.candidates_to_cloud(answer.rows)  # encodable
         # any backend: a stored stamp out of range is left out of an answer and counted
         assert not loc._stamp_ok(9, (2**31 - 1 + 4, 0)) and loc.counters.snapshot()['bad_stored_stamp'] == 1
+        assert not loc._stamp_ok(2**32, (1, 0)) and loc._stamp_ok(2**32 - 1, (1, 0))  # keyframe_id is UINT32
+        with pytest.raises(ValueError, match='UINT32'):
+            store.add_many([sets[0]], [(1, 0)], ids=[2**32])
 
 
 # ------------------------------------------------------------------------------- 2. batched match

@@ -49,6 +49,7 @@ default_conf = {
 # INT64). The narrowest of them bounds it; nanosec must be normalised (< 1e9): a stamp is refused,
 # never renormalised, so an answer's stamps are exactly the sender's.
 STAMP_SEC_RANGE = (-(2**31), 2**31 - 1)
+KEYFRAME_ID_MAX = 2**32 - 1  # the candidates' and matches' keyframe_id is UINT32
 NANOSEC_PER_SEC = 1_000_000_000
 
 # model_info (and a map's model record) is a small flat JSON object (Extractor.model_info: depth 2,

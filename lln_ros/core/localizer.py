@@ -373,10 +373,13 @@ class Localizer:
         return Answer(rows, extra, found[0] if found else None, inliers)
 
     def _stamp_ok(self, keyframe_id: int, stamp) -> bool:
-        """Whether a stored stamp fits the answer's stamp_sec (INT32) / stamp_nanosec (< 1e9). One
-        stored out of range by an older version (SQLite quarantines those at open; this covers any
-        backend) is left out of the answer, counted as bad_stored_stamp, never fails the encoder."""
+        """Whether a stored keyframe fits the answer's keyframe_id (UINT32), stamp_sec (INT32) and
+        stamp_nanosec (< 1e9). One stored out of range by an older version (SQLite quarantines bad
+        stamps at open; this covers any backend) is left out of the answer, counted as
+        bad_stored_stamp, and never fails the encoder."""
         problem = stamp_problem(*stamp)
+        if not 0 <= int(keyframe_id) <= limits_mod.KEYFRAME_ID_MAX:
+            problem = f"id does not fit the answers' keyframe_id (UINT32, at most {limits_mod.KEYFRAME_ID_MAX})"
         if problem:
             self.counters.problem('bad_stored_stamp', f'map keyframe {keyframe_id}: {problem}; not answered')
         return not problem

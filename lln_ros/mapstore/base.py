@@ -11,7 +11,7 @@ import numpy as np
 from ..core import landmark_index
 from ..core.landmark_index import LandmarkIndex, check_prefilter
 from ..core.landmarks import LandmarkSet
-from ..core.limits import parse_model_json, stamp_problem, validate_model
+from ..core.limits import KEYFRAME_ID_MAX, parse_model_json, stamp_problem, validate_model
 from ..core.retrieval import Candidate, pair_regions, rerank
 from ..core.retrieval import default_conf as retrieval_conf
 from ..errors import DescriptorError, MapError, ModelError
@@ -375,6 +375,8 @@ class MapStore(abc.ABC):
                 f'{len(sets)} landmark sets need as many stamps (and ids); got {len(stamps)}'
                 f'{"" if ids is None else f" and {len(ids)}"}'
             )
+        if ids is not None and any(not 1 <= int(i) <= KEYFRAME_ID_MAX for i in ids):
+            raise ValueError(f'keyframe ids must be in [1, {KEYFRAME_ID_MAX}] (the answers carry them as UINT32)')
         spaces = [self._check_storable(lset) for lset in sets]
         given = spaces[0]
         if any(sp != given for sp in spaces):
