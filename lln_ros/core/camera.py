@@ -182,4 +182,3 @@ def _load_yaml(path) -> dict:
     if not isinstance(data, dict):
         raise CameraError(f'camera info {str(path)!r} must be a YAML mapping')
     return data
-
