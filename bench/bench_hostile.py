@@ -27,9 +27,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_integrity import SPACE, synthetic  # noqa: E402
 
-from lln_ros import msgs  # noqa: E402
-from lln_ros.core.localizer import Localizer, open_map  # noqa: E402
+from lln_ros.core.localizer import Localizer  # noqa: E402
 from lln_ros.errors import MessageError  # noqa: E402
+from lln_ros.mapstore import open_for_matcher as open_map  # noqa: E402
+from lln_ros.ros import msgs  # noqa: E402
 
 
 def hostile(good) -> dict:

@@ -240,7 +240,7 @@ def nordland_first_stage(args, data: dict) -> list[dict]:
     puts the test split first)."""
     from lln_ros.core.landmark_index import LandmarkIndex, encode_ids
     from lln_ros.core.landmarks import LandmarkSet
-    from lln_ros.metrics import recall_at_k
+    from lln_ros.core.metrics import recall_at_k
 
     ds = nordland_test()
     n_ref, n_q = len(ds.ref_paths), len(ds.query_paths)

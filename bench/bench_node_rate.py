@@ -36,7 +36,7 @@ sys.path.insert(0, str(REPO / 'bench'))
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from sensor_msgs.msg import Image, PointCloud2  # noqa: E402
 
-from lln_ros import msgs  # noqa: E402
+from lln_ros.ros import msgs  # noqa: E402
 from ros_harness import VENV_BIN, Probe, RosProcess, ros_env  # noqa: E402
 
 NODE = '/lln_extractor'
@@ -93,10 +93,10 @@ def run(seconds: float, hz: float, runtime: str | None, threads: int, reliable: 
     from std_msgs.msg import String
 
     probe.node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 50)
-    probe.node.create_subscription(PointCloud2, 'landmarks', on_landmarks, 100)
+    probe.node.create_subscription(PointCloud2, 'lln/landmarks', on_landmarks, 100)
     probe.node.create_subscription(
         String,
-        'model_info',
+        'lln/model_info',
         lambda m: model.append(json.loads(m.data)),
         QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL),
     )

@@ -23,10 +23,10 @@ import cv2
 import numpy as np
 
 from lln_ros.core.extractor import Extractor
+from lln_ros.core.reloc import Relocalizer, pair_boxes
 from lln_ros.core.similarity import match_pair
 from lln_ros.io.image import load_image
 from lln_ros.mapstore import MapStore
-from lln_ros.reloc import Relocalizer, pair_boxes
 
 DATA = Path(__file__).resolve().parents[1].parent / 'shared' / 'data' / 'rtabmap_loop'
 

@@ -22,7 +22,7 @@ import sys
 import time
 from pathlib import Path
 
-from lln_ros import metrics
+from lln_ros.core import metrics
 from lln_ros.core.extractor import Extractor
 from lln_ros.core.landmarks import stack_landmarks
 from lln_ros.core.retrieval import rank_all

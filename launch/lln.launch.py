@@ -9,8 +9,9 @@
         map_path:=milvus://127.0.0.1:19530?map=campus log_level:=debug
 
 The extractor subscribes `image` (or `image/compressed`), both remapped from the `image` argument;
-its `landmarks` go to the matcher's `query` (answered; in mapping mode also stored) or, with
-feed:=keyframes, to `keyframes` (stored, not answered). Parameters come from the YAML files in
+its `lln/landmarks` go to the matcher's `lln/query` (answered; in mapping mode also stored) or, with
+feed:=keyframes, to `lln/keyframes` (stored, not answered). Every topic is relative (lln_ros.ros.topics),
+so `namespace:=robot1` moves the whole pipeline, rviz included, under /robot1. Parameters come from the YAML files in
 share/lln_ros/config, then the launch arguments below override theirs. Every process started here
 (and any camera driver included after it in the same launch) gets the Fast DDS profile for
 camera-sized images, unless FASTRTPS_DEFAULT_PROFILES_FILE is already set. See docs/interfaces.md.
@@ -36,9 +37,9 @@ def generate_launch_description() -> LaunchDescription:
     arguments = [
         DeclareLaunchArgument(
             'image',
-            default_value='/camera/image_raw',
-            description='camera image topic (sensor_msgs/Image); with image_transport '
-            'compressed, <image>/compressed is used',
+            default_value='camera/image_raw',
+            description='camera image topic (sensor_msgs/Image; relative: inside the namespace); with '
+            'image_transport compressed, <image>/compressed is used',
         ),
         DeclareLaunchArgument(
             'image_transport',
@@ -169,7 +170,7 @@ def generate_launch_description() -> LaunchDescription:
                 'use_sim_time': use_sim_time,
             },
         ],
-        remappings=[(LaunchConfiguration('feed'), 'landmarks')],
+        remappings=[(['lln/', LaunchConfiguration('feed')], 'lln/landmarks')],
     )
     visualizer = Node(
         executable='visualizer',

@@ -6,7 +6,7 @@
 
 Subscribes the matcher's `candidates` and `matches` (they share the query's header stamp and come on
 two topics in either order), keeps the best candidate when it passes the thresholds
-(lln_ros.loop_closure.LoopClosureFilter) and writes {query_stamp_ns, keyframe_stamp_ns, keyframe_id,
+(lln_ros.core.loop_closure.LoopClosureFilter) and writes {query_stamp_ns, keyframe_stamp_ns, keyframe_id,
 score, holistic_score, inliers, regions} lines: what a pose-graph back end needs to look up its two
 poses by stamp and register them (regions = matched region pairs, pixels) before adding the edge.
 On Ctrl-C it prints how many answers were accepted and why the others were not.
@@ -41,8 +41,8 @@ def main(argv=None) -> int:
     from rclpy.executors import ExternalShutdownException
     from sensor_msgs.msg import PointCloud2
 
-    from lln_ros import msgs
-    from lln_ros.loop_closure import LoopClosureFilter
+    from lln_ros.core.loop_closure import LoopClosureFilter
+    from lln_ros.ros import msgs
 
     select = LoopClosureFilter(
         {'min_score': args.min_score, 'min_inliers': args.min_inliers, 'min_gap_s': args.min_gap}
@@ -74,8 +74,8 @@ def main(argv=None) -> int:
             state['accepted'] += 1
             print(json.dumps(closure.as_dict()), file=out, flush=True)
 
-    node.create_subscription(PointCloud2, 'candidates', lambda m: on_answer(m, 'candidates'), 100)
-    node.create_subscription(PointCloud2, 'matches', lambda m: on_answer(m, 'matches'), 100)
+    node.create_subscription(PointCloud2, 'lln/candidates', lambda m: on_answer(m, 'candidates'), 100)
+    node.create_subscription(PointCloud2, 'lln/matches', lambda m: on_answer(m, 'matches'), 100)
     try:
         while rclpy.ok() and not (args.count and state['answers'] >= args.count):
             rclpy.spin_once(node, timeout_sec=0.1)

@@ -28,9 +28,9 @@ def main() -> int:
     p.add_argument('--prefilter-k', type=int, default=30)
     args = p.parse_args()
     from lln_ros.core.extractor import Extractor
+    from lln_ros.core.loop_closure import threshold_table
     from lln_ros.io.datasets import loop
     from lln_ros.io.image import load_image
-    from lln_ros.loop_closure import threshold_table
     from lln_ros.mapstore import MapStore
 
     ds = loop(args.data, Path(args.data) / args.gt, min_gap=args.exclude_recent)

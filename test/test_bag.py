@@ -1,4 +1,4 @@
-"""lln_ros.io.bag and lln-bag: MCAP bags from image folders, read back with rosbags and with the
+"""lln_ros.ros.bag and lln-bag: MCAP bags from image folders, read back with rosbags and with the
 `mcap` reader, `info`, and `play` into a real subscriber in another process (real rclpy, real DDS)."""
 
 from __future__ import annotations
@@ -16,11 +16,10 @@ import pytest
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CompressedImage, Image
 
-from lln_ros import msgs
 from lln_ros.cli.bag import main
 from lln_ros.errors import ImageError
-from lln_ros.io import bag
 from lln_ros.io.datasets import natural_key
+from lln_ros.ros import bag, msgs
 from ros_harness import ros_env
 
 DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
@@ -306,7 +305,7 @@ SUBSCRIBER = r"""
 import hashlib, json, sys, time
 import rclpy
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from lln_ros.io.bag import message_class
+from lln_ros.ros.bag import message_class
 topic, msgtype, reliability = sys.argv[1], sys.argv[2], sys.argv[5]
 expected, timeout = int(sys.argv[3]), float(sys.argv[4])
 rclpy.init()
@@ -531,7 +530,7 @@ def test_play_clock_drives_sim_time_faster_than_real_time(tmp_path):
 
 TEARDOWN_STUCK = """
 import threading, time
-from lln_ros.dds import exit_if_teardown_hangs
+from lln_ros.ros.dds import exit_if_teardown_hangs
 print('published', flush=True)
 exit_if_teardown_hangs('lln-bag', 0.5, done='all 3 messages were published')
 threading.Event().wait()  # a teardown that never returns, as the Fast DDS deadlock does

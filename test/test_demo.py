@@ -109,14 +109,17 @@ def test_nodes_ran_as_ros2_run_would_and_stopped_cleanly(tiny_run):
     cmds = p['node_commands']
     assert set(cmds) == {'matcher', 'extractor (map)', 'extractor (query)'}
     assert all('--ros-args' in c for c in cmds.values())
-    assert 'reliability:=reliable' in cmds['extractor (map)'] and 'landmarks:=/keyframes' in cmds['extractor (map)']
-    assert 'landmarks:=/query' in cmds['extractor (query)'] and 'mode:=localization' in cmds['matcher']
+    assert (
+        'reliability:=reliable' in cmds['extractor (map)']
+        and 'lln/landmarks:=/lln/keyframes' in cmds['extractor (map)']
+    )
+    assert 'lln/landmarks:=/lln/query' in cmds['extractor (query)'] and 'mode:=localization' in cmds['matcher']
     assert 1 <= p['domain_id'] <= 101 and p['playback'] == 'paced'
     assert r['node_exit_status'] == {'matcher': 0, 'extractor (map)': 0, 'extractor (query)': 0}
 
 
 def test_outputs_exist(tiny_run):
-    from lln_ros.io import bag
+    from lln_ros.ros import bag
 
     out = tiny_run['out']
     for name in (

@@ -12,8 +12,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import PointCloud2
 
 from conftest import shared_data
-from lln_ros import msgs
-from lln_ros.io import bag
+from lln_ros.ros import bag, msgs
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 
 # the extractor keeps only the newest waiting frame (by design: bounded latency), so at a fixed rate a
@@ -61,7 +60,7 @@ def play_rtabmap(colcon_install, tmp, matcher_params: list) -> dict:
             f'exclude_recent:={GAP - 1}',
             *matcher_params,
             '-r',
-            'query:=landmarks',
+            'lln/query:=lln/landmarks',
         ],
         env,
         tmp / 'matcher.log',
@@ -75,7 +74,7 @@ def play_rtabmap(colcon_install, tmp, matcher_params: list) -> dict:
     try:
         with Probe(env) as probe:
             got = probe.collect(
-                PointCloud2, 'candidates', lambda m: (msgs.stamp_to_ns(m.header), msgs.cloud_to_candidates(m))
+                PointCloud2, 'lln/candidates', lambda m: (msgs.stamp_to_ns(m.header), msgs.cloud_to_candidates(m))
             )
             diag = {}  # the nodes' latest counters, to say where a missing answer was lost
             probe.node.create_subscription(
@@ -86,9 +85,9 @@ def play_rtabmap(colcon_install, tmp, matcher_params: list) -> dict:
             )
             probe.spin_until(
                 lambda: (
-                    probe.node.count_publishers('candidates') > 0
+                    probe.node.count_publishers('lln/candidates') > 0
                     and probe.node.count_subscribers('/camera/image_raw') > 0
-                    and probe.node.count_subscribers('landmarks') > 0
+                    and probe.node.count_subscribers('lln/landmarks') > 0
                 ),
                 300,
                 'both nodes up',

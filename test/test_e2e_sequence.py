@@ -8,7 +8,7 @@ import pytest
 from test_e2e_rtabmap import GAP, play_rtabmap
 
 from conftest import shared_data
-from lln_ros import metrics
+from lln_ros.core import metrics
 from lln_ros.eval import evaluate_dataset
 from lln_ros.io import datasets
 

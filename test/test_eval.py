@@ -144,7 +144,7 @@ def test_weighted_sum_is_the_papers_embedding_of_the_head():
     normalised mean of the normalised features."""
     import torch
 
-    from lln_ros.eval.runner import weighted_sums
+    from lln_ros.eval.first_stage import weighted_sums
 
     rng = np.random.default_rng(0)
     feats = [rng.normal(size=(8, 3, 4)).astype(np.float16), rng.normal(size=(8, 2, 5)).astype(np.float16)]

@@ -1,4 +1,4 @@
-"""Fuzzing the codecs (lln_ros.msgs) and the matcher's inputs (lln_ros.core.localizer) with Hypothesis.
+"""Fuzzing the codecs (lln_ros.ros.msgs) and the matcher's inputs (lln_ros.core.localizer) with Hypothesis.
 
 Property: whatever a message holds, decoding ends in a result or a MessageError (LimitError for
 sizes above the limits), never another exception, and never an allocation sized by a declared
@@ -20,10 +20,11 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
 from test_localizer import ask, invariants, keyframe
 from test_mapstore import MODEL, SPACE, make_set
 
-from lln_ros import msgs
-from lln_ros.core.localizer import Localizer, open_map
+from lln_ros.core.limits import LimitError, default_conf, validate_model
+from lln_ros.core.localizer import Localizer
 from lln_ros.errors import MessageError, ModelError
-from lln_ros.limits import LimitError, default_conf, validate_model
+from lln_ros.mapstore import open_for_matcher as open_map
+from lln_ros.ros import msgs
 
 FUZZ = settings(
     derandomize=True,

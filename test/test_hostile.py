@@ -38,8 +38,8 @@ from test_nodes import (  # noqa: F401
     start_matcher,
 )
 
-from lln_ros import msgs
 from lln_ros.mapstore import MapStore
+from lln_ros.ros import msgs
 
 MATCHER_HWM_MB = 1024  # the matcher idles at ~150-250 MB; the 100k-row query itself is 79 MB on the wire
 EXTRACTOR_HWM_MB = 1536  # torch + the network idle at ~500-700 MB
@@ -121,10 +121,10 @@ def test_matcher_survives_hostile_messages(rig, places, tmp_path):
     line per kind, nothing stored or recorded, the next good query answered, VmHWM bounded."""
     map_path = tmp_path / 'map.db'
     proc = start_matcher(rig, map_path, places)
-    kf_pub = rig.probe.publisher(PointCloud2, 'keyframes')
-    q_pub = rig.probe.publisher(PointCloud2, 'query')
-    model_pub = rig.probe.node.create_publisher(String, 'model_info', LATCHED)
-    cands = rig.probe.collect(PointCloud2, 'candidates')
+    kf_pub = rig.probe.publisher(PointCloud2, 'lln/keyframes')
+    q_pub = rig.probe.publisher(PointCloud2, 'lln/query')
+    model_pub = rig.probe.node.create_publisher(String, 'lln/model_info', LATCHED)
+    cands = rig.probe.collect(PointCloud2, 'lln/candidates')
     rig.until(
         lambda: (
             kf_pub.get_subscription_count() > 0
@@ -253,8 +253,8 @@ def test_matcher_quarantines_a_damaged_keyframe(rig, places, tmp_path):
     )
     assert out.returncode == 1 and 'keyframe 3:' in out.stdout and 'quarantined' in out.stdout, out
     proc = start_matcher(rig, map_path, places, '-p', 'prefilter_k:=0')
-    q_pub = rig.probe.publisher(PointCloud2, 'query')
-    cands = rig.probe.collect(PointCloud2, 'candidates', msgs.cloud_to_candidates)
+    q_pub = rig.probe.publisher(PointCloud2, 'lln/query')
+    cands = rig.probe.collect(PointCloud2, 'lln/candidates', msgs.cloud_to_candidates)
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
     rig.answers_reach_us(proc)
     rig.until(
@@ -278,7 +278,7 @@ def test_extractor_refuses_decompression_bombs_from_the_header(rig, small_photo)
     before decoding, counted as bad_image (not internal_error), the next image answered, VmHWM
     bounded; received = published + dropped + bad_image."""
     proc = rig.extractor('-p', 'image_transport:=compressed', '-p', 'input_height:=128', '-p', 'top_n:=10')
-    got = rig.probe.collect(PointCloud2, 'landmarks')
+    got = rig.probe.collect(PointCloud2, 'lln/landmarks')
     pub = rig.probe.publisher(CompressedImage, 'image/compressed')
     rig.until(lambda: pub.get_subscription_count() > 0, 'extractor up', proc)
     bombs = {16000: png_of_zeros(16000, 16000, 3), 40000: png_of_zeros(40000, 40000, 1)}
@@ -310,7 +310,7 @@ def test_extractor_refuses_raw_images_above_the_limit(rig, small_photo):
     """A raw image above max_image_pixels (lowered here to 20,000) is bad_image by its declared size,
     before its data is copied; a smaller one right after is published."""
     proc = rig.extractor('-p', 'max_image_pixels:=20000', '-p', 'input_height:=128', '-p', 'top_n:=10')
-    got = rig.probe.collect(PointCloud2, 'landmarks')
+    got = rig.probe.collect(PointCloud2, 'lln/landmarks')
     pub = rig.probe.publisher(Image, 'image')
     rig.until(lambda: pub.get_subscription_count() > 0, 'extractor up', proc)
     big = msgs.array_to_image(small_photo, 'rgb8', header(1))  # 160 x 188 = 30,080 px
@@ -319,7 +319,7 @@ def test_extractor_refuses_raw_images_above_the_limit(rig, small_photo):
     small = cv2.resize(small_photo, (120, 150))  # 18,000 px
     pub.publish(msgs.array_to_image(small, 'rgb8', header(2, 'small')))
     rig.until(lambda: got, 'the image under the limit', proc)
-    assert got[0].header.frame_id == 'small'
+    assert got[0].header.frame_id == msgs.TABLE_FRAME  # a table, not points in the camera frame
     assert len(log_lines(proc, '160x188 = 30080 pixels is more than max_image_pixels 20000')) == 1, read_log(proc)
     rig.wait_counter(EXTRACTOR, 'published', 1, proc)
     assert rig.counter(EXTRACTOR, 'received') == 2 and rig.counter(EXTRACTOR, 'internal_error') == 0

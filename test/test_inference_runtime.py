@@ -296,7 +296,7 @@ def test_extractor_node_runtime_parameter(tmp_path):
     from sensor_msgs.msg import Image, PointCloud2
     from std_msgs.msg import String
 
-    from lln_ros import msgs
+    from lln_ros.ros import msgs
     from ros_harness import VENV_BIN, Probe, RosProcess, ros_env
 
     image = cv2.resize(load_image(str(shared_data('rtabmap_loop', '5.jpg'))), (384, 288))
@@ -311,10 +311,10 @@ def test_extractor_node_runtime_parameter(tmp_path):
         )
         try:
             with Probe(env) as probe:
-                info, got = [], probe.collect(PointCloud2, 'landmarks')
+                info, got = [], probe.collect(PointCloud2, 'lln/landmarks')
                 probe.node.create_subscription(
                     String,
-                    'model_info',
+                    'lln/model_info',
                     lambda m: info.append(json.loads(m.data)),
                     QoSProfile(
                         depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL

@@ -4,10 +4,10 @@
 import numpy as np
 import pytest
 
-from lln_ros import msgs
+from lln_ros.core.reloc import Relocalizer
 from lln_ros.errors import DescriptorError, MessageError
 from lln_ros.mapstore import MapStore
-from lln_ros.reloc import Relocalizer
+from lln_ros.ros import msgs
 
 
 @pytest.fixture(scope='module')

@@ -13,12 +13,12 @@ from test_mapstore import MODEL, make_set
 from conftest import shared_data
 from lln_ros.core.landmark_index import LandmarkIndex, check_prefilter, decode_ids, encode_ids, score_hits
 from lln_ros.core.landmarks import stack_landmarks
+from lln_ros.core.metrics import recall_at_k
 from lln_ros.core.retrieval import first_stage
 from lln_ros.errors import MapError
 from lln_ros.io import datasets
 from lln_ros.io.image import load_image
 from lln_ros.mapstore import MapStore
-from lln_ros.metrics import recall_at_k
 
 SMALL_IVF = {'landmark_index_threshold': 500, 'landmark_ivf_lists': 8, 'landmark_nprobe': 8, 'landmark_pq_bits': 4}
 KINDS = ('ivfpq-fs', 'ivfpq')  # the compressed index types (landmark_index.COMPRESSED)

@@ -95,6 +95,6 @@ def test_rviz_config_matches_the_nodes(colcon_install):
     manager = config['Visualization Manager']
     assert manager['Global Options']['Fixed Frame'] == PARAMETERS['timeline_frame'].default
     displays = {d['Class']: d for d in manager['Displays']}
-    assert displays['rviz_default_plugins/MarkerArray']['Topic']['Value'] == '/markers'
+    assert displays['rviz_default_plugins/MarkerArray']['Topic']['Value'] == 'lln/markers'
     images = [d['Topic']['Value'] for d in manager['Displays'] if d['Class'] == 'rviz_default_plugins/Image']
-    assert images == ['/overlay', '/activation']
+    assert images == ['lln/overlay', 'lln/activation']

@@ -1,5 +1,5 @@
 """The matcher's decisions without rclpy (lln_ros.core.localizer.Localizer) on real SQLite maps, the
-input limits (lln_ros.limits) and problem logging by kind (lln_ros.counters)."""
+input limits (lln_ros.core.limits) and problem logging by kind (lln_ros.core.counters)."""
 
 import json
 import os
@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 from test_mapstore import MODEL, SPACE, make_set
 
-from lln_ros.core.localizer import Localizer, open_map, writable_problem
-from lln_ros.counters import Counters, problem_kind
+from lln_ros.core.counters import Counters, problem_kind
+from lln_ros.core.limits import check_landmark_set, default_conf, validate_model
+from lln_ros.core.localizer import Localizer
 from lln_ros.errors import MapError, ModelError
-from lln_ros.limits import check_landmark_set, default_conf, validate_model
-from lln_ros.mapstore import MapStore
+from lln_ros.mapstore import MapStore, writable_problem
+from lln_ros.mapstore import open_for_matcher as open_map
 
 T0 = 1_700_000_000 * 10**9
 
@@ -94,7 +95,7 @@ def map_path(tmp_path):
 def test_localizer_is_ros_free():
     """The Localizer, limits and counters import without rclpy (nodes decode; this decides)."""
     code = (
-        'import sys, lln_ros.core.localizer, lln_ros.limits, lln_ros.counters; '
+        'import sys, lln_ros.core.localizer, lln_ros.core.limits, lln_ros.core.counters; '
         'bad = [m for m in sys.modules if m.split(".")[0] in ("rclpy", "sensor_msgs", "std_msgs")]; '
         'print(bad); sys.exit(1 if bad else 0)'
     )
@@ -357,7 +358,7 @@ def test_bad_model_record_is_explained(map_path, rng):
 def test_keypoints_paired_by_stamp_either_order(map_path, rng):
     """verify: keypoints that come before their landmark set wait for it; ones that come after are
     attached to the stored keyframe."""
-    from lln_ros.reloc import Keypoints
+    from lln_ros.core.reloc import Keypoints
 
     sets = [make_set(rng) for _ in range(2)]
 

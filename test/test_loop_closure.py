@@ -1,4 +1,4 @@
-"""lln_ros.loop_closure and scripts/loop_closure_client.py: the matcher's answers turned into
+"""lln_ros.core.loop_closure and scripts/loop_closure_client.py: the matcher's answers turned into
 loop-closure constraints (thresholds, verify-mode inliers, odometry gap), and the client over real DDS."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from sensor_msgs.msg import PointCloud2
 
-from lln_ros import msgs
-from lln_ros.loop_closure import LoopClosureFilter, threshold_table
+from lln_ros.core.loop_closure import LoopClosureFilter, threshold_table
+from lln_ros.ros import msgs
 from ros_harness import Probe, ros_env
 
 CLIENT = Path(__file__).resolve().parents[1] / 'scripts' / 'loop_closure_client.py'
@@ -88,7 +88,7 @@ def test_client_over_dds(tmp_path):
     )
     try:
         with Probe(env) as probe:
-            cpub, mpub = probe.publisher(PointCloud2, 'candidates'), probe.publisher(PointCloud2, 'matches')
+            cpub, mpub = probe.publisher(PointCloud2, 'lln/candidates'), probe.publisher(PointCloud2, 'lln/matches')
             probe.spin_until(lambda: cpub.get_subscription_count() and mpub.get_subscription_count(), 60, 'client')
             for i, rows in enumerate(([row(3, 20.0, T0)], [row(4, 9.0, T0)], [])):
                 header = msgs.make_header((T0 + 100 + i) * 10**9)

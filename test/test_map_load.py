@@ -19,8 +19,8 @@ from std_srvs.srv import Trigger
 from test_mapstore import make_set
 from test_nodes import MATCHER, Rig, header, stamp_of
 
-from lln_ros import msgs
 from lln_ros.mapstore import MapStore
+from lln_ros.ros import msgs
 
 SPACE = 'efficientnet_lite0/stage6/192'
 
@@ -51,7 +51,9 @@ def rss_mb(pid: int) -> float:
 def start(rig, map_path, *args):
     proc = rig.matcher(map_path, '-p', f'descriptor_space:={SPACE}', *args)
     rig.until(
-        lambda: rig.probe.node.count_publishers('candidates') > 0 and rig.probe.node.count_subscribers('query') > 0,
+        lambda: (
+            rig.probe.node.count_publishers('lln/candidates') > 0 and rig.probe.node.count_subscribers('lln/query') > 0
+        ),
         'matcher up',
         proc,
         timeout=120,
@@ -72,11 +74,11 @@ def test_matcher_30hz_for_60s_on_10k_map(rig, tmp_path, record_property):
             revisits.update({ids[j]: sets[j] for j in range(0, 1000, 50)})
         store.save()
     proc = start(rig, map_path, '-p', f'max_query_age:={max_age}', '-p', 'queue_depth:=10')
-    q_pub = rig.probe.publisher(PointCloud2, 'query', depth=10)
+    q_pub = rig.probe.publisher(PointCloud2, 'lln/query', depth=10)
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'query subscription', proc)
     answers = rig.probe.collect(
         PointCloud2,
-        'candidates',
+        'lln/candidates',
         lambda m: (
             msgs.stamp_to_ns(m.header),
             time.monotonic(),
@@ -142,7 +144,7 @@ def test_clear_and_save_during_a_burst(rig, tmp_path):
     rng = np.random.default_rng(1)
     map_path = tmp_path / 'map.db'
     proc = start(rig, map_path, '-p', 'queue_depth:=200')  # the whole burst fits the queue
-    kf_pub = rig.probe.publisher(PointCloud2, 'keyframes', depth=200)
+    kf_pub = rig.probe.publisher(PointCloud2, 'lln/keyframes', depth=200)
     rig.until(lambda: kf_pub.get_subscription_count() > 0, 'keyframes subscription', proc)
     clients = {n: rig.probe.node.create_client(Trigger, f'{MATCHER}/{n}') for n in ('clear', 'save')}
     rig.until(lambda: all(c.service_is_ready() for c in clients.values()), 'services', proc)
@@ -176,9 +178,9 @@ def test_stale_queries_are_dropped_and_counted(rig, tmp_path):
     with MapStore.open(map_path, model={'descriptor_space': SPACE, 'descriptor_dim': 192}) as store:
         store.add_many(sets, [(i, 0) for i in range(5)])
     proc = start(rig, map_path, '-p', 'max_query_age:=1.0')
-    q_pub = rig.probe.publisher(PointCloud2, 'query')
+    q_pub = rig.probe.publisher(PointCloud2, 'lln/query')
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'query subscription', proc)
-    answers = rig.probe.collect(PointCloud2, 'candidates', lambda m: msgs.stamp_to_ns(m.header))
+    answers = rig.probe.collect(PointCloud2, 'lln/candidates', lambda m: msgs.stamp_to_ns(m.header))
     old = [time.time_ns() - 10 * 10**9 + i for i in range(4)]
     for stamp in old:
         q_pub.publish(msgs.landmarks_to_cloud(sets[1], msgs.make_header(stamp)))

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from lln_ros import metrics
+from lln_ros.core import metrics
 
 
 def case():

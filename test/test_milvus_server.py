@@ -404,7 +404,7 @@ def test_matcher_over_dds_in_mapping_mode(milvus_map, colcon_install, extractor,
     from sensor_msgs.msg import PointCloud2
     from test_nodes import Rig, cloud, header, stamp_of, start_matcher
 
-    from lln_ros import msgs
+    from lln_ros.ros import msgs
 
     crops = [photo[y : y + 256, x : x + 224] for y in (0, 170, 340) for x in (0, 144, 288)]
     sets = extractor.extract_batch([np.ascontiguousarray(c) for c in crops])
@@ -416,8 +416,8 @@ def test_matcher_over_dds_in_mapping_mode(milvus_map, colcon_install, extractor,
     rig = Rig(colcon_install, tmp_path)
     try:
         proc = start_matcher(rig, milvus_map, places, '-p', 'mode:=mapping', '-p', 'exclude_recent:=2')
-        q_pub = rig.probe.publisher(PointCloud2, 'query')
-        cands = rig.probe.collect(PointCloud2, 'candidates', msgs.cloud_to_candidates)
+        q_pub = rig.probe.publisher(PointCloud2, 'lln/query')
+        cands = rig.probe.collect(PointCloud2, 'lln/candidates', msgs.cloud_to_candidates)
         rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
         sequence = [0, 1, 2, 3, 4, 1, 5, 3]  # frame 5 revisits place 1, frame 7 place 3
         for j, place in enumerate(sequence):
@@ -466,7 +466,7 @@ def test_damaged_keyframe_is_quarantined_at_open(milvus_uri):
     `lln-map check` name the same keyframe."""
     from test_map_backends import run_cli
 
-    from lln_ros.core.localizer import open_map
+    from lln_ros.mapstore import open_for_matcher as open_map
 
     rng = np.random.default_rng(21)
     sets = [make_set(rng) for _ in range(6)]

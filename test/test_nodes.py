@@ -26,9 +26,9 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_srvs.srv import Trigger
 
-from lln_ros import msgs
 from lln_ros.core.landmarks import LandmarkSet
 from lln_ros.mapstore import MapStore
+from lln_ros.ros import msgs
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 
 TIMEOUT = 60.0  # generous: a loaded 2-core CI machine starts torch slowly
@@ -170,6 +170,12 @@ def same_header(a, b) -> bool:
     return msgs.stamp_to_ns(a) == msgs.stamp_to_ns(b) and a.frame_id == b.frame_id
 
 
+def answers_header(table, sent) -> bool:
+    """A table cloud (landmarks, candidates, matches, keypoints) answering `sent`: its stamp, and the
+    frame that says it is a table (msgs.TABLE_FRAME), not the camera's."""
+    return msgs.stamp_to_ns(table) == msgs.stamp_to_ns(sent) and table.frame_id == msgs.TABLE_FRAME
+
+
 def stamp_of(h) -> tuple[int, int]:
     return int(h.stamp.sec), int(h.stamp.nanosec)
 
@@ -231,10 +237,10 @@ def test_extractor_every_encoding(rig, small_photo):
         'rgba8': np.concatenate([rgb, alpha], 2),
         'bgra8': np.concatenate([rgb[:, :, ::-1], alpha], 2),
     }
-    got = rig.probe.collect(PointCloud2, 'landmarks')
+    got = rig.probe.collect(PointCloud2, 'lln/landmarks')
     pub = rig.probe.publisher(Image, 'image')
     rig.until(
-        lambda: pub.get_subscription_count() > 0 and rig.probe.node.count_publishers('landmarks') > 0,
+        lambda: pub.get_subscription_count() > 0 and rig.probe.node.count_publishers('lln/landmarks') > 0,
         'extractor up',
         proc,
     )
@@ -246,7 +252,7 @@ def test_extractor_every_encoding(rig, small_photo):
         sent[enc] = hdr
     out = {}
     for enc, msg in zip(images, got):
-        assert same_header(msg.header, sent[enc]), (enc, msg.header, sent[enc])
+        assert answers_header(msg.header, sent[enc]), (enc, msg.header, sent[enc])
         lset = msgs.cloud_to_landmarks(msg, expected_dim=DIM)
         assert tuple(lset.image_size) == (w, h), enc
         table = msgs.cloud_to_array(msg)
@@ -280,7 +286,7 @@ def test_extractor_skips_bad_images(rig, small_photo):
     """Wrong encoding, zero size, truncated data, too small: skipped, counted in /diagnostics,
     each distinct problem logged once (as a warning), and the next good image is answered."""
     proc = rig.extractor()
-    got = rig.probe.collect(PointCloud2, 'landmarks')
+    got = rig.probe.collect(PointCloud2, 'lln/landmarks')
     pub = rig.probe.publisher(Image, 'image')
     rig.until(lambda: pub.get_subscription_count() > 0, 'extractor up', proc)
     bad = bad_images()
@@ -294,7 +300,7 @@ def test_extractor_skips_bad_images(rig, small_photo):
     good = header(7, 'good')
     pub.publish(msgs.array_to_image(small_photo, 'rgb8', good))
     rig.until(lambda: len(got) == 1, 'the good image after the bad ones', proc)
-    assert same_header(got[0].header, good)
+    assert answers_header(got[0].header, good)
     rig.wait_counter(EXTRACTOR, 'published', 1, proc)
     assert rig.counter(EXTRACTOR, 'bad_image') == 2 * len(bad)
     assert rig.counter(EXTRACTOR, 'received') == 2 * len(bad) + 1
@@ -318,7 +324,7 @@ def test_extractor_compressed_transport(rig, photo):
         '-p',
         'top_n:=10',
     )
-    got = rig.probe.collect(PointCloud2, 'landmarks')
+    got = rig.probe.collect(PointCloud2, 'lln/landmarks')
     pub = rig.probe.node.create_publisher(CompressedImage, 'image/compressed', qos_profile_sensor_data)
     rig.until(lambda: pub.get_subscription_count() > 0, 'extractor up', proc)
     bgr = cv2.resize(photo, (200, 150))[:, :, ::-1]
@@ -337,13 +343,15 @@ def test_extractor_compressed_transport(rig, photo):
                 if fmt == 'garbage':
                     rig.wait_counter(EXTRACTOR, 'bad_image', 1, proc, timeout=1.0)
                 else:
-                    rig.until(lambda: any(same_header(m.header, msg.header) for m in got), fmt, proc, 1.0)
+                    rig.until(lambda: any(answers_header(m.header, msg.header) for m in got), fmt, proc, 1.0)
                 break
             except AssertionError:
                 if time.monotonic() > deadline or not proc.alive():
                     raise
-    for fmt in ('jpeg', 'png'):
-        m = next(m for m in got if m.header.frame_id == 'cam_' + fmt)
+    for i, (fmt, _) in enumerate(frames):
+        if fmt not in ('jpeg', 'png'):
+            continue
+        m = next(m for m in got if msgs.stamp_to_ns(m.header) == msgs.stamp_to_ns(header(i)))
         lset = msgs.cloud_to_landmarks(m, expected_dim=DIM)
         assert tuple(lset.image_size) == (200, 150) and len(lset) == 10
     assert len(log_lines(proc, 'cannot decode')) == 1
@@ -353,11 +361,11 @@ def test_extractor_compressed_transport(rig, photo):
 def test_extractor_activation_image(rig, small_photo):
     """publish_activation: a bgr8 heatmap of the input's size, with the input's header."""
     proc = rig.extractor('-p', 'publish_activation:=true', '-p', 'input_height:=128')
-    heat = rig.probe.collect(Image, 'activation')
-    got = rig.probe.collect(PointCloud2, 'landmarks')
+    heat = rig.probe.collect(Image, 'lln/activation')
+    got = rig.probe.collect(PointCloud2, 'lln/landmarks')
     pub = rig.probe.publisher(Image, 'image')
     rig.until(
-        lambda: pub.get_subscription_count() > 0 and rig.probe.node.count_publishers('activation') > 0,
+        lambda: pub.get_subscription_count() > 0 and rig.probe.node.count_publishers('lln/activation') > 0,
         'extractor up',
         proc,
     )
@@ -367,7 +375,7 @@ def test_extractor_activation_image(rig, small_photo):
     img = heat[0]
     h, w = small_photo.shape[:2]
     assert (img.encoding, img.width, img.height) == ('bgr8', w, h)
-    assert same_header(img.header, hdr) and same_header(got[0].header, hdr)
+    assert same_header(img.header, hdr) and answers_header(got[0].header, hdr)
     arr, order = msgs.image_to_array(img)
     assert arr.shape == (h, w, 3) and order == 'bgr' and arr.std() > 0
 
@@ -376,7 +384,7 @@ def test_extractor_backlog_keeps_newest(rig, photo):
     """A burst faster than extraction: bounded output, `dropped` > 0, newest frame processed, and
     every received frame is either published or counted as dropped."""
     proc = rig.extractor('-p', 'input_height:=480')  # ~0.1-0.2 s per frame on one thread
-    got = rig.probe.collect(PointCloud2, 'landmarks')
+    got = rig.probe.collect(PointCloud2, 'lln/landmarks')
     pub = rig.probe.publisher(Image, 'image')
     rig.until(lambda: pub.get_subscription_count() > 0, 'extractor up', proc)
     image = msgs.array_to_image(cv2.resize(photo, (320, 240)), 'rgb8')
@@ -385,7 +393,7 @@ def test_extractor_backlog_keeps_newest(rig, photo):
         image.header = header(i, 'burst')
         pub.publish(image)
     last = header(burst - 1, 'burst')
-    rig.until(lambda: any(same_header(m.header, last) for m in got), 'the newest frame', proc)
+    rig.until(lambda: any(answers_header(m.header, last) for m in got), 'the newest frame', proc)
     rig.probe.spin_for(0.5)
     stamps = [msgs.stamp_to_ns(m.header) for m in got]
     assert stamps[-1] == msgs.stamp_to_ns(last) and stamps == sorted(stamps)
@@ -403,7 +411,10 @@ def test_extractor_backlog_keeps_newest(rig, photo):
 def start_matcher(rig, map_path, places, *args) -> RosProcess:
     proc = rig.matcher(map_path, '-p', f'descriptor_space:={places["space"]}', *args)
     rig.until(
-        lambda: rig.probe.node.count_publishers('candidates') > 0 and rig.probe.node.count_subscribers('keyframes') > 0,
+        lambda: (
+            rig.probe.node.count_publishers('lln/candidates') > 0
+            and rig.probe.node.count_subscribers('lln/keyframes') > 0
+        ),
         'matcher up',
         proc,
     )
@@ -415,10 +426,10 @@ def test_matcher_localization(rig, places, tmp_path):
     (header = the query's, scores descending, matches of the best candidate); the map is unchanged."""
     map_path = tmp_path / 'map.db'
     proc = start_matcher(rig, map_path, places, '-p', 'k:=3')
-    kf_pub = rig.probe.publisher(PointCloud2, 'keyframes')
-    q_pub = rig.probe.publisher(PointCloud2, 'query')
-    cands = rig.probe.collect(PointCloud2, 'candidates')
-    matches = rig.probe.collect(PointCloud2, 'matches')
+    kf_pub = rig.probe.publisher(PointCloud2, 'lln/keyframes')
+    q_pub = rig.probe.publisher(PointCloud2, 'lln/query')
+    cands = rig.probe.collect(PointCloud2, 'lln/candidates')
+    matches = rig.probe.collect(PointCloud2, 'lln/matches')
     rig.until(lambda: kf_pub.get_subscription_count() > 0 and q_pub.get_subscription_count() > 0, 'subscriptions', proc)
     rig.answers_reach_us(proc, ('candidates', 'matches'))
     n = 8
@@ -431,7 +442,7 @@ def test_matcher_localization(rig, places, tmp_path):
     qh = header(1000, 'query')
     q_pub.publish(cloud(places, target, qh))
     rig.until(lambda: cands and matches, 'the answer', proc)
-    assert same_header(cands[0].header, qh) and same_header(matches[0].header, qh)
+    assert answers_header(cands[0].header, qh) and answers_header(matches[0].header, qh)
     table = msgs.cloud_to_candidates(cands[0])
     assert 1 <= len(table) <= 3
     assert (int(table['stamp_sec'][0]), int(table['stamp_nanosec'][0])) == stamp_of(header(target, 'map'))
@@ -456,15 +467,15 @@ def test_matcher_min_score_new_place(rig, places, tmp_path):
         for i in range(4):
             store.add(places['sets'][i], stamp=stamp_of(header(i)))
     proc = start_matcher(rig, map_path, places, '-p', 'min_score:=1000000.0')
-    q_pub = rig.probe.publisher(PointCloud2, 'query')
-    cands = rig.probe.collect(PointCloud2, 'candidates')
-    matches = rig.probe.collect(PointCloud2, 'matches')
+    q_pub = rig.probe.publisher(PointCloud2, 'lln/query')
+    cands = rig.probe.collect(PointCloud2, 'lln/candidates')
+    matches = rig.probe.collect(PointCloud2, 'lln/matches')
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
     rig.answers_reach_us(proc, ('candidates', 'matches'))
     qh = header(50, 'query')
     q_pub.publish(cloud(places, 2, qh))
     rig.until(lambda: cands and matches, 'the answer', proc)
-    assert same_header(cands[0].header, qh)
+    assert answers_header(cands[0].header, qh)
     assert len(msgs.cloud_to_candidates(cands[0])) == 0 and cands[0].width == 0
     assert len(msgs.cloud_to_matches(matches[0])) == 0
     assert rig.info()['keyframes'] == 4
@@ -475,8 +486,8 @@ def test_matcher_mapping_mode_exclude_recent(rig, places, tmp_path):
     never answers, an older revisit is found."""
     map_path = tmp_path / 'map.db'
     proc = start_matcher(rig, map_path, places, '-p', 'mode:=mapping', '-p', 'exclude_recent:=2')
-    q_pub = rig.probe.publisher(PointCloud2, 'query')
-    cands = rig.probe.collect(PointCloud2, 'candidates', msgs.cloud_to_candidates)
+    q_pub = rig.probe.publisher(PointCloud2, 'lln/query')
+    cands = rig.probe.collect(PointCloud2, 'lln/candidates', msgs.cloud_to_candidates)
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
     rig.answers_reach_us(proc)
     sequence = [0, 1, 2, 3, 4, 1, 5]  # frame 5 revisits place 1 (stored as keyframe 2)
@@ -524,9 +535,9 @@ def test_matcher_refuses_bad_clouds(rig, places, tmp_path):
     keyframe it stored; a good query afterwards is answered."""
     map_path = tmp_path / 'map.db'
     proc = start_matcher(rig, map_path, places)
-    kf_pub = rig.probe.publisher(PointCloud2, 'keyframes')
-    q_pub = rig.probe.publisher(PointCloud2, 'query')
-    cands = rig.probe.collect(PointCloud2, 'candidates')
+    kf_pub = rig.probe.publisher(PointCloud2, 'lln/keyframes')
+    q_pub = rig.probe.publisher(PointCloud2, 'lln/query')
+    cands = rig.probe.collect(PointCloud2, 'lln/candidates')
     rig.until(lambda: kf_pub.get_subscription_count() > 0 and q_pub.get_subscription_count() > 0, 'subscriptions', proc)
     rig.answers_reach_us(proc)
     bad = bad_clouds(places)
@@ -568,7 +579,7 @@ def test_matcher_services(rig, places, tmp_path):
     ~/clear (no keyframes; ids are not reused)."""
     map_path = tmp_path / 'sub dir' / 'map.db'
     proc = start_matcher(rig, map_path, places)
-    kf_pub = rig.probe.publisher(PointCloud2, 'keyframes')
+    kf_pub = rig.probe.publisher(PointCloud2, 'lln/keyframes')
     rig.until(lambda: kf_pub.get_subscription_count() > 0, 'subscription', proc)
     empty = rig.info()
     assert empty['keyframes'] == 0 and empty['path'] == str(map_path)
@@ -598,7 +609,7 @@ def test_matcher_service_calls_during_burst(rig, places, tmp_path):
     keyframe is lost."""
     map_path = tmp_path / 'map.db'
     proc = start_matcher(rig, map_path, places)
-    kf_pub = rig.probe.publisher(PointCloud2, 'keyframes', depth=100)
+    kf_pub = rig.probe.publisher(PointCloud2, 'lln/keyframes', depth=100)
     rig.until(lambda: kf_pub.get_subscription_count() > 0, 'subscription', proc)
     clients = {name: rig.probe.node.create_client(Trigger, f'{MATCHER}/{name}') for name in ('info', 'save')}
     rig.until(lambda: all(c.service_is_ready() for c in clients.values()), 'services', proc)
@@ -687,7 +698,7 @@ def test_matcher_refuses_other_model(rig, places, tmp_path, small_photo, other_d
             stamp=(5, 6),
         )
     matcher = rig.matcher(map_path)
-    kf_pub = rig.probe.publisher(PointCloud2, 'keyframes')
+    kf_pub = rig.probe.publisher(PointCloud2, 'lln/keyframes')
     rig.until(lambda: kf_pub.get_subscription_count() > 0, 'matcher up', matcher)
     refused = 0
     if other_dim != places['dim']:
@@ -696,7 +707,7 @@ def test_matcher_refuses_other_model(rig, places, tmp_path, small_photo, other_d
         rig.wait_counter(MATCHER, 'bad_keyframe', refused, matcher)
         assert len(log_lines(matcher, f'D={places["dim"]}, expected D={other_dim}')) == 1, read_log(matcher)
 
-    extractor = rig.extractor('-p', 'input_height:=128', '-r', 'landmarks:=keyframes')
+    extractor = rig.extractor('-p', 'input_height:=128', '-r', 'lln/landmarks:=lln/keyframes')
     rig.until(lambda: log_lines(matcher, places['space']), "the refusal of the extractor's model", matcher)
     refusal = log_lines(matcher, places['space'])[0]
     assert 'ERROR' in refusal and space in refusal and str(map_path) in refusal, refusal
@@ -723,8 +734,8 @@ def test_matcher_kill9_in_mapping_mode_loses_no_answered_keyframe(rig, places, t
     map_path = tmp_path / 'map.db'
     args = ('-p', 'mode:=mapping', '-p', 'exclude_recent:=3', '-p', 'k:=3')
     proc = start_matcher(rig, map_path, places, *args)
-    q_pub = rig.probe.publisher(PointCloud2, 'query')
-    answered = rig.probe.collect(PointCloud2, 'candidates', lambda m: stamp_of(m.header))
+    q_pub = rig.probe.publisher(PointCloud2, 'lln/query')
+    answered = rig.probe.collect(PointCloud2, 'lln/candidates', lambda m: stamp_of(m.header))
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
     rig.answers_reach_us(proc)
     total, published = 60, 0

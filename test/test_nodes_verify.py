@@ -11,9 +11,9 @@ import pytest
 from sensor_msgs.msg import Image, PointCloud2
 from test_nodes import EXTRACTOR, MATCHER, header, read_log, rig, same_header, start_matcher  # noqa: F401
 
-from lln_ros import msgs
+from lln_ros.core.reloc import Relocalizer
 from lln_ros.mapstore import MapStore
-from lln_ros.reloc import Relocalizer
+from lln_ros.ros import msgs
 
 
 @pytest.fixture(scope='module')
@@ -37,11 +37,11 @@ def scenes(extractor, photo) -> dict:
 
 def test_extractor_publishes_keypoints_with_the_landmarks_header(rig, scenes):
     proc = rig.extractor('-p', 'publish_keypoints:=true', '-p', 'keypoints_max:=300')
-    landmarks = rig.probe.collect(PointCloud2, 'landmarks')
-    keypoints = rig.probe.collect(PointCloud2, 'keypoints')
+    landmarks = rig.probe.collect(PointCloud2, 'lln/landmarks')
+    keypoints = rig.probe.collect(PointCloud2, 'lln/keypoints')
     pub = rig.probe.publisher(Image, 'image')
     rig.until(
-        lambda: pub.get_subscription_count() > 0 and rig.probe.node.count_publishers('keypoints') > 0,
+        lambda: pub.get_subscription_count() > 0 and rig.probe.node.count_publishers('lln/keypoints') > 0,
         'extractor up',
         proc,
     )
@@ -65,10 +65,10 @@ def test_extractor_publishes_keypoints_with_the_landmarks_header(rig, scenes):
 def test_matcher_verify_reranks_by_inliers(rig, scenes, tmp_path):
     map_path = tmp_path / 'map.db'
     proc = start_matcher(rig, map_path, {'space': scenes['space']}, '-p', 'verify:=true', '-p', 'k:=4')
-    kf_pub = rig.probe.publisher(PointCloud2, 'keyframes')
-    q_pub = rig.probe.publisher(PointCloud2, 'query')
-    kp_pub = rig.probe.publisher(PointCloud2, 'keypoints')
-    cands = rig.probe.collect(PointCloud2, 'candidates')
+    kf_pub = rig.probe.publisher(PointCloud2, 'lln/keyframes')
+    q_pub = rig.probe.publisher(PointCloud2, 'lln/query')
+    kp_pub = rig.probe.publisher(PointCloud2, 'lln/keypoints')
+    cands = rig.probe.collect(PointCloud2, 'lln/candidates')
     rig.until(lambda: kp_pub.get_subscription_count() > 0 and q_pub.get_subscription_count() > 0, 'subs', proc)
     rig.answers_reach_us(proc)
     for i in range(4):

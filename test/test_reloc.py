@@ -1,4 +1,4 @@
-"""Keypoint matching and geometric verification (lln_ros.reloc) on real images: a photograph under
+"""Keypoint matching and geometric verification (lln_ros.core.reloc) on real images: a photograph under
 a known affine warp (the true correspondence of every pixel is known), rtabmap_loop frames, a
 Nordland frame, and every kind of input that must end in "not verified" instead of an exception."""
 
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from conftest import shared_data
+from lln_ros.core.reloc import Keypoints, Relocalizer, RelocError, camera_matrix, pair_boxes, region_boxes
 from lln_ros.core.similarity import match_pair
 from lln_ros.io.image import load_image
-from lln_ros.reloc import Keypoints, Relocalizer, RelocError, camera_matrix, pair_boxes, region_boxes
 
 
 @pytest.fixture(scope='module')

@@ -23,8 +23,7 @@ from rcl_interfaces.srv import DescribeParameters, SetParameters
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 
-from lln_ros import msgs
-from lln_ros.io import bag
+from lln_ros.ros import bag, msgs
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 
 MATCHER = '/lln_matcher'
@@ -103,9 +102,9 @@ class Matcher:
 def test_runtime_parameters_and_diagnostic_levels(colcon_install, tmp_path, places):
     m = Matcher(colcon_install, tmp_path, places, '-p', 'mode:=localization')
     try:
-        keyframes = m.probe.publisher(PointCloud2, 'keyframes')
-        queries = m.probe.publisher(PointCloud2, 'query')
-        answers = m.probe.collect(PointCloud2, 'candidates', msgs.cloud_to_candidates)
+        keyframes = m.probe.publisher(PointCloud2, 'lln/keyframes')
+        queries = m.probe.publisher(PointCloud2, 'lln/query')
+        answers = m.probe.collect(PointCloud2, 'lln/candidates', msgs.cloud_to_candidates)
         m.probe.spin_until(lambda: keyframes.get_subscription_count() and queries.get_subscription_count(), 60, 'subs')
         for i, lset in enumerate(places['sets']):
             keyframes.publish(msgs.landmarks_to_cloud(lset, msgs.make_header(T0 + i * 10**9)))
@@ -155,13 +154,13 @@ def test_runtime_parameters_and_diagnostic_levels(colcon_install, tmp_path, plac
         # WARN: a best-effort landmark publisher cannot match the reliable query subscription
         from rclpy.qos import qos_profile_sensor_data
 
-        m.probe.node.create_publisher(PointCloud2, 'query', qos_profile_sensor_data)
+        m.probe.node.create_publisher(PointCloud2, 'lln/query', qos_profile_sensor_data)
         m.wait_status(lambda s: s.level == DiagnosticStatus.WARN and 'incompatible QoS' in s.message, 'QoS WARN')
 
         # ERROR: an extractor with another model: every landmark input is refused until they agree
         from lln_ros.nodes.common import MODEL_QOS  # latched, as the extractor's
 
-        models = m.probe.node.create_publisher(String, 'model_info', MODEL_QOS)
+        models = m.probe.node.create_publisher(String, 'lln/model_info', MODEL_QOS)
         other = {**places['model'], 'descriptor_space': 'efficientnet_lite2/stage6/192'}
         models.publish(String(data=json.dumps(other)))
         m.wait_status(lambda s: s.level == DiagnosticStatus.ERROR, 'ERROR')
@@ -178,7 +177,7 @@ def landmark_bag(tmp_path, places, count=12, rate=2.0):
     bag.write_bag(
         out,
         [
-            ('/query', msgs.landmarks_to_cloud(places['sets'][i % len(places['sets'])], msgs.make_header(s)), s)
+            ('/lln/query', msgs.landmarks_to_cloud(places['sets'][i % len(places['sets'])], msgs.make_header(s)), s)
             for i, s in enumerate(stamps)
         ],
     )
@@ -186,7 +185,7 @@ def landmark_bag(tmp_path, places, count=12, rate=2.0):
 
 
 def replay(m: Matcher, bag_dir, rate, clock: bool):
-    answers = m.probe.collect(PointCloud2, 'candidates', lambda c: (msgs.stamp_to_ns(c.header.stamp), c))
+    answers = m.probe.collect(PointCloud2, 'lln/candidates', lambda c: (msgs.stamp_to_ns(c.header.stamp), c))
     play = subprocess.Popen(
         [
             sys.executable,
@@ -279,7 +278,7 @@ def test_frame_queue_keeps_every_frame_of_a_burst(colcon_install, tmp_path, phot
     probe = Probe(env)
     try:
         images = probe.publisher(Image, 'image')
-        got = probe.collect(PointCloud2, 'landmarks', lambda c: msgs.stamp_to_ns(c.header.stamp))
+        got = probe.collect(PointCloud2, 'lln/landmarks', lambda c: msgs.stamp_to_ns(c.header.stamp))
         probe.spin_until(lambda: images.get_subscription_count() or not proc.alive(), 120, 'extractor')
         assert proc.alive(), proc.log()
         probe.spin_for(1.0)

@@ -266,7 +266,7 @@ def test_eval_sequence_longer_than_the_map_is_one_line(tmp_path, capsys):
 
 
 def test_candidates_codec_carries_sequence_score_even_with_zero_rows():
-    from lln_ros import msgs
+    from lln_ros.ros import msgs
 
     rows = [
         {

@@ -8,9 +8,9 @@ import numpy as np
 from sensor_msgs.msg import PointCloud2
 from test_nodes import MATCHER, cloud, header, places, read_log, rig, stamp_of, start_matcher  # noqa: F401 (fixtures)
 
-from lln_ros import msgs
 from lln_ros.core.sequence import KeyframeSequence
 from lln_ros.mapstore import MapStore
+from lln_ros.ros import msgs
 
 MAPPED = 10  # places 0..9 are in the map; 10..13 are not (the unmapped area)
 
@@ -21,8 +21,8 @@ def test_matcher_sequence_online_equals_offline(rig, places, tmp_path):
         for i in range(MAPPED):
             store.add(places['sets'][i], stamp=stamp_of(header(i, 'map')))
     proc = start_matcher(rig, map_path, places, '-p', 'sequence_length:=4', '-p', 'k:=3', '-p', 'sequence_max_gap:=1.0')
-    q_pub = rig.probe.publisher(PointCloud2, 'query')
-    cands = rig.probe.collect(PointCloud2, 'candidates', msgs.cloud_to_candidates)
+    q_pub = rig.probe.publisher(PointCloud2, 'lln/query')
+    cands = rig.probe.collect(PointCloud2, 'lln/candidates', msgs.cloud_to_candidates)
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
     rig.answers_reach_us(proc)
     # the route through places 2..7, then an out-of-order stamp, a 5 s gap, then unmapped places
@@ -98,8 +98,8 @@ def test_matcher_sequence_in_mapping_mode(rig, places, tmp_path):
         '-p',
         'prefilter_k:=0',
     )
-    q_pub = rig.probe.publisher(PointCloud2, 'query')
-    cands = rig.probe.collect(PointCloud2, 'candidates', msgs.cloud_to_candidates)
+    q_pub = rig.probe.publisher(PointCloud2, 'lln/query')
+    cands = rig.probe.collect(PointCloud2, 'lln/candidates', msgs.cloud_to_candidates)
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
     rig.answers_reach_us(proc)
     route = [0, 1, 2, 3, 4, 5, 1, 2, 3]

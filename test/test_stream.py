@@ -1,6 +1,6 @@
-"""lln_ros.stream: missing frames from stamp gaps, and counter windows (no rclpy)."""
+"""lln_ros.ros.stream: missing frames from stamp gaps, and counter windows (no rclpy)."""
 
-from lln_ros.stream import StampGaps, Window
+from lln_ros.ros.stream import StampGaps, Window
 
 MS = 1_000_000
 

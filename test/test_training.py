@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from lln_ros import training
+from lln_ros.core import training
 from lln_ros.core.extractor import Extractor
 from lln_ros.core.lln import LLNHead, load_checkpoint
 from lln_ros.errors import DatasetError

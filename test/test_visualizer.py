@@ -1,4 +1,4 @@
-"""lln_ros.drawing (ROS-free, OpenCV) and the lln_visualizer node over real DDS: the query beside its
+"""lln_ros.viz.drawing (ROS-free, OpenCV) and the lln_visualizer node over real DDS: the query beside its
 best keyframe with the matched regions linked, and the loop-closure markers, from real extractions
 of the matplotlib photograph."""
 
@@ -10,10 +10,10 @@ import pytest
 from sensor_msgs.msg import Image, PointCloud2
 from visualization_msgs.msg import MarkerArray
 
-from lln_ros import msgs
 from lln_ros.core.retrieval import pair_regions
 from lln_ros.core.similarity import match_pair
-from lln_ros.drawing import CAPTION_HEIGHT, LEGEND_HEIGHT, draw_match_overlay, similarity_colours
+from lln_ros.ros import msgs
+from lln_ros.viz.drawing import CAPTION_HEIGHT, LEGEND_HEIGHT, draw_match_overlay, similarity_colours
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 
 T0 = 1_700_000_000 * 10**9
@@ -84,10 +84,10 @@ def test_visualizer_node_overlay_and_markers(pair, colcon_install, tmp_path):
     probe = Probe(env)
     try:
         images = probe.publisher(Image, 'image')
-        candidates = probe.publisher(PointCloud2, 'candidates')
-        matches = probe.publisher(PointCloud2, 'matches')
-        overlays = probe.collect(Image, 'overlay')
-        markers = probe.collect(MarkerArray, 'markers')
+        candidates = probe.publisher(PointCloud2, 'lln/candidates')
+        matches = probe.publisher(PointCloud2, 'lln/matches')
+        overlays = probe.collect(Image, 'lln/overlay')
+        markers = probe.collect(MarkerArray, 'lln/markers')
         probe.spin_until(
             lambda: all(p.get_subscription_count() for p in (images, candidates, matches)) or not proc.alive(),
             60,

@@ -23,7 +23,7 @@ import json
 import sys
 from pathlib import Path
 
-from ..dds import exit_if_teardown_hangs
+from ..ros.dds import exit_if_teardown_hangs
 from .common import run_cli
 
 # a player's work is over when every message is acknowledged; a teardown longer than this is the
@@ -51,7 +51,7 @@ def _positive(text: str) -> float:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from ..io.bag import DEFAULT_START_NS, DEFAULT_TOPIC
+    from ..ros.bag import DEFAULT_START_NS, DEFAULT_TOPIC
 
     p = argparse.ArgumentParser(prog='lln-bag', description=__doc__.strip().splitlines()[0])
     sub = p.add_subparsers(dest='command', required=True, metavar='COMMAND')
@@ -187,7 +187,7 @@ def skipped_note(skipped: dict, shown: int = 3) -> str:
 
 
 def run(args) -> int:
-    from ..io import bag
+    from ..ros import bag
 
     if args.command == 'from-images':
         paths, skipped = bag.frame_images(args.folder, args.glob)
@@ -213,7 +213,8 @@ def run(args) -> int:
         info = bag.bag_info(args.bag)
         print(json.dumps(info) if args.json else bag.format_info(info))
     elif args.command == 'play':
-        from ..dds import apply_large_data_profile
+        from ..ros import player
+        from ..ros.dds import apply_large_data_profile
 
         log = (lambda _m: None) if args.quiet else (lambda m: print(f'lln-bag: {m}', flush=True))
         level, note = apply_large_data_profile()  # a player publishes camera-sized frames: before rclpy.init
@@ -221,10 +222,10 @@ def run(args) -> int:
             print(f'lln-bag: warning: {note}', file=sys.stderr)
         else:
             log(note)
-        bag.play_bag(
+        player.play_bag(
             args.bag,
             rate=args.speed,
-            remaps=bag.parse_remaps(args.topic_remap),
+            remaps=player.parse_remaps(args.topic_remap),
             qos=args.qos,
             qos_depth=args.qos_depth,
             wait_subscribers=args.wait_subscribers,

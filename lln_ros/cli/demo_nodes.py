@@ -62,8 +62,8 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
     Every node started is stopped, also on an error."""
     from tqdm import tqdm
 
-    from ..io import bag
-    from ..io.bag import DEFAULT_START_NS
+    from ..ros import bag
+    from ..ros.bag import DEFAULT_START_NS
 
     timing = {}
     t = time.monotonic()
@@ -135,8 +135,15 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
         )
         # one extractor per traverse, wired by remaps as a user would (the matcher stores /keyframes and
         # answers /query)
-        for role, image, landmarks in (('map', MAP_IMAGE, '/keyframes'), ('query', QUERY_IMAGE, '/query')):
-            remaps = ['-r', f'__node:=lln_extractor_{role}', '-r', f'image:={image}', '-r', f'landmarks:={landmarks}']
+        for role, image, landmarks in (('map', MAP_IMAGE, '/lln/keyframes'), ('query', QUERY_IMAGE, '/lln/query')):
+            remaps = [
+                '-r',
+                f'__node:=lln_extractor_{role}',
+                '-r',
+                f'image:={image}',
+                '-r',
+                f'lln/landmarks:={landmarks}',
+            ]
             procs.append(
                 NodeProcess(
                     exes['extractor'],
@@ -160,11 +167,11 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
             return (
                 node.count_subscribers(MAP_IMAGE) >= 1
                 and node.count_subscribers(QUERY_IMAGE) >= 1
-                and node.count_publishers('/keyframes') >= 1
-                and node.count_publishers('/query') >= 1
-                and node.count_subscribers('/keyframes') >= 2
-                and node.count_subscribers('/query') >= 2
-                and node.count_publishers('/candidates') >= 1
+                and node.count_publishers('/lln/keyframes') >= 1
+                and node.count_publishers('/lln/query') >= 1
+                and node.count_subscribers('/lln/keyframes') >= 2
+                and node.count_subscribers('/lln/query') >= 2
+                and node.count_publishers('/lln/candidates') >= 1
             )
 
         graph.spin_until(ready, args.timeout, 'the extractors and the matcher to come up')

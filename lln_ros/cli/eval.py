@@ -49,9 +49,9 @@ PROG = 'lln-eval'
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from ..core.reloc import DETECTORS
     from ..eval.methods import ALL_METHODS, METHODS
     from ..eval.runner import default_conf as conf
-    from ..reloc import DETECTORS
 
     p = parser_from_doc(PROG, __doc__)
     p.add_argument('--dataset', action='append', required=True, metavar='SPEC', help='dataset (repeatable)')

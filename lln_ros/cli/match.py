@@ -46,7 +46,7 @@ def run(args) -> dict:
     result = match_pair(a, b, args.scale)
     pairs = result.pairs(0)
     if args.plot:
-        from ..plotting import plot_matches
+        from ..viz.plotting import plot_matches
 
         plot_matches(
             images[0],

@@ -21,7 +21,7 @@ PROG = 'lln-reloc'
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from ..reloc import DETECTORS, default_conf
+    from ..core.reloc import DETECTORS, default_conf
 
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.strip().splitlines()[0])
     p.add_argument('query')
@@ -53,9 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run(args) -> dict:
+    from ..core.reloc import Relocalizer, camera_matrix, pair_boxes
     from ..core.similarity import match_pair
     from ..io.image import load_image
-    from ..reloc import Relocalizer, camera_matrix, pair_boxes
 
     check_output_file(args.plot, '--plot')
     images = [load_image(args.query), load_image(args.keyframe)]
@@ -78,7 +78,7 @@ def run(args) -> dict:
     regions = reloc.relocalize(kq, km, qb, mb, K=K)
     plain = reloc.relocalize(kq, km, K=K)
     if args.plot:
-        from ..plotting import plot_keypoint_matches
+        from ..viz.plotting import plot_keypoint_matches
 
         plot_keypoint_matches(
             images[0],

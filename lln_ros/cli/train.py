@@ -5,7 +5,7 @@
 
 --objective rerank (default) trains on a differentiable form of the test-time reranking score;
 triplet is the paper's loss on the LLN-weighted embedding (the paper's recipe:
---objective triplet --train-size 352x352 --lr 1e-4). See lln_ros/training.py.
+--objective triplet --train-size 352x352 --lr 1e-4). See lln_ros/core/training.py.
 
 SPEC: any lln-eval dataset (aligned:REF,QUERY[,TOL], vprbench:DIR, loop:DIR,GT, gardenspoint:DIR,
 poses:DIR[,MAX_DEG,MAX_M,MIN_GAP_S]), or places:DIR (DIR/<place>/*.jpg), or sfm:PICKLE,IMS_ROOT
@@ -81,7 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def load_pairs(spec: str, frac, neg_margin: int):
-    from .. import training
+    from ..core import training
 
     kind, _, rest = spec.partition(':')
     if kind == 'places':
@@ -105,7 +105,7 @@ def load_dataset(spec: str, frac):
 
 
 def run(args) -> dict:
-    from .. import training
+    from ..core import training
     from ..core.extractor import Extractor
     from ..io import datasets
 

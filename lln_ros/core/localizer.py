@@ -1,8 +1,8 @@
 """The matcher's decisions, without rclpy: what happens to each model_info, keyframe, query and
 keypoints message once the node has decoded it.
 
-    store, quarantined = open_map(uri, mode='mapping', descriptor_space='')   # FATAL-worthy errors raise
-    loc = Localizer(store, conf, counters)          # counters: lln_ros.counters.Counters (node: Health)
+    store, quarantined = mapstore.open_for_matcher(uri, mode='mapping')   # FATAL-worthy errors raise
+    loc = Localizer(store, conf, counters)          # counters: lln_ros.core.counters.Counters (node: Health)
     loc.model_info(text)                            # the extractor's latched JSON
     args = loc.landmark_decoding('bad_query')       # kwargs for msgs.cloud_to_landmarks, None = refusing
     loc.keyframe(lset, stamp_ns)                    # -> keyframe id or None (refused / failed, counted)
@@ -11,7 +11,7 @@ keypoints message once the node has decoded it.
     loc.keypoints(payload, stamp_ns)                # verify: paired with its landmark set by stamp
 
 Every refusal is counted under one counter and logged by kind (Counters.problem); nothing a message
-declares is used to size an allocation before lln_ros.limits has checked it. Counters (documented in
+declares is used to size an allocation before lln_ros.core.limits has checked it. Counters (documented in
 docs/interfaces.md §3.6) keep these sums for every input:
 
     queries_received                  = queries_answered + queries_stale + bad_query + queries_failed
@@ -27,13 +27,12 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 from dataclasses import dataclass, field
 
-from .. import limits as limits_mod
 from ..errors import DescriptorError, LLNError, MapError
-from ..limits import LimitError, check_landmark_set, validate_model
+from . import limits as limits_mod
 from .landmark_index import check_prefilter
+from .limits import LimitError, check_landmark_set, validate_model
 from .retrieval import candidates_k
 from .retrieval import default_conf as retrieval_conf
 from .sequence import KeyframeSequence
@@ -72,64 +71,12 @@ class Answer:
     inliers: dict = field(default_factory=dict)
 
 
-def space_model(space: str) -> dict:
-    """{'descriptor_space', 'descriptor_dim'} from a 'backbone/layer/D' string (validated)."""
-    try:
-        dim = int(space.rsplit('/', 1)[1])
-    except (IndexError, ValueError):
-        raise ValueError(f"descriptor_space must look like 'backbone/layer/D', got {space!r}") from None
-    return validate_model({'descriptor_space': space, 'descriptor_dim': dim})
-
-
-def writable_problem(uri) -> str:
-    """Why the map at uri cannot be written ('' = it can, or it is not an SQLite file we can judge).
-    Asked before the file is opened, so a refused map leaves no -wal/-shm behind."""
-    from ..mapstore import backend_for
-
-    kind, location = backend_for(uri)
-    if kind != 'sqlite':
-        return ''
-    path = os.path.abspath(os.path.expanduser(os.fspath(location)))
-    folder = os.path.dirname(path)
-    if os.path.exists(path):
-        if not os.access(path, os.W_OK):
-            return f'map {path} is not writable (read-only file or file system)'
-        if not os.access(folder, os.W_OK | os.X_OK):
-            return (
-                f'map {path}: its folder {folder} is not writable, and SQLite keeps the -wal and -shm '
-                f'files of a map being written beside it'
-            )
-        return ''
-    while folder and not os.path.exists(folder):
-        folder = os.path.dirname(folder) if os.path.dirname(folder) != folder else ''
-    if folder and os.path.isdir(folder) and not os.access(folder, os.W_OK | os.X_OK):
-        return f'map {path} cannot be created: folder {folder} is not writable'
-    return ''
-
-
-def open_map(uri, mode: str = 'localization', descriptor_space: str = '', conf: dict | None = None):
-    """(store, {quarantined keyframe id: problem}) for the matcher: the model from descriptor_space
-    validated, a map that mapping mode cannot write refused (MapError naming the file and why),
-    and the map's damaged keyframes found by the open's integrity scan."""
-    from ..mapstore import MapStore
-
-    model = space_model(descriptor_space) if descriptor_space else None
-    if mode == 'mapping':
-        problem = writable_problem(uri)
-        if problem:
-            raise MapError(
-                f'{problem}; mode mapping needs to store keyframes (use mode localization, or fix the permissions)'
-            )
-    store = MapStore.open(uri, model=model, conf=conf)
-    return store, store.quarantined
-
-
 class Localizer:
     """Per-message logic of the matcher (see the module docstring). Thread-compatible with one
     caller at a time (the node's single-threaded executor); the store is thread-safe itself."""
 
     def __init__(self, store, conf: dict | None = None, counters=None, log=None, decode_keypoints=None):
-        from ..counters import Counters
+        from .counters import Counters
 
         self.conf = conf = self.check_conf(conf)
         self.store, self.limits = store, conf['limits']
@@ -152,7 +99,7 @@ class Localizer:
                     f'verify needs keypoint storage, which the {type(store).__name__} backend of '
                     f'map {store.path} does not have (use an SQLite map)'
                 )
-            from ..reloc import Relocalizer
+            from .reloc import Relocalizer
 
             self.reloc = Relocalizer({'min_inliers': conf['verify_min_inliers'], 'margin': conf['verify_margin']})
 
@@ -272,7 +219,7 @@ class Localizer:
         return self._decode_keypoints(payload, lset)
 
     def _decode_keypoints(self, payload, lset):
-        from ..reloc import detection_scale
+        from .reloc import detection_scale
 
         w, h = (float(v) for v in lset.image_size)
         try:
@@ -294,7 +241,7 @@ class Localizer:
         return kid
 
     def _stored_keypoints(self, keyframe_id: int, image_size):
-        from ..reloc import Keypoints, detection_scale
+        from .reloc import Keypoints, detection_scale
 
         found = self.store.keypoints(keyframe_id)
         if found is None:
@@ -374,7 +321,7 @@ class Localizer:
 
     def verify(self, lset, kps, found):
         """Candidates re-ranked by region-constrained inliers, and {keyframe_id: inliers}."""
-        from ..reloc import verify_candidates
+        from .reloc import verify_candidates
 
         if kps is None or not found:
             return found, {}
@@ -431,4 +378,4 @@ def _bound(pending: dict, size: int = PENDING) -> None:
         pending.pop(next(iter(pending)))
 
 
-__all__ = ['Answer', 'LimitError', 'Localizer', 'default_conf', 'open_map', 'space_model', 'writable_problem']
+__all__ = ['Answer', 'LimitError', 'Localizer', 'default_conf']

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import metrics
+from ..core import metrics
 from ..core.landmarks import METHODS as LOCAL_METHODS
 from ..core.landmarks import stack_landmarks
 from ..core.similarity import match_batch, match_pair
@@ -27,7 +27,7 @@ from .report import pct
 def _pyplot():
     import matplotlib.pyplot as plt
 
-    from .. import plotting  # noqa: F401  (selects the Agg backend first: files only, no display)
+    from ..viz import plotting  # noqa: F401  (selects the Agg backend first: files only, no display)
 
     return plt
 
@@ -213,7 +213,7 @@ def plot_heatmaps(
     from matplotlib.patches import Patch, Rectangle
 
     from ..io.image import heatmap
-    from ..plotting import ACTIVATION_CMAP
+    from ..viz.plotting import ACTIVATION_CMAP
 
     plt = _pyplot()
     nr, nc = len(rows), len(images)
@@ -256,7 +256,7 @@ def write_figures(
 ) -> dict:
     """PNGs of one dataset; returns {'pr', 'recall_at_k', 'heatmaps': file, 'examples': [...]}."""
     from ..io.image import load_image
-    from ..plotting import plot_matches
+    from ..viz.plotting import plot_matches
 
     stem = slug(run.name)
     figs: dict = {}
@@ -385,7 +385,7 @@ def plot_online_examples(ds, run: dict, online: dict, out: Path, count: int) -> 
     from types import SimpleNamespace
 
     from ..io.image import load_image
-    from ..plotting import plot_matches
+    from ..viz.plotting import plot_matches
 
     if count <= 0:
         return []

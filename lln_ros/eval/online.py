@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import metrics
+from ..core import metrics
 from .report import METRICS
 
 

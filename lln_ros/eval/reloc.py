@@ -1,4 +1,4 @@
-"""Relocalization rows of lln-eval (`--reloc`): both keypoint pipelines of lln_ros.reloc on a
+"""Relocalization rows of lln-eval (`--reloc`): both keypoint pipelines of lln_ros.core.reloc on a
 dataset's top pLLN candidates, region-constrained (mLLN) against all keypoints."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from ..reloc import Keypoints, Relocalizer, pair_boxes
+from ..core.reloc import Keypoints, Relocalizer, pair_boxes
 
 eval_conf = {
     'reloc_top': 5,  # pLLN candidates per query (the paper's top 5)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import metrics
+from ..core import metrics
 from ..core.retrieval import default_conf as retrieval_defaults
 
 # (results key, label) of every metric a report shows, in the order shown

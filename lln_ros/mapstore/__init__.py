@@ -10,9 +10,9 @@ backend the URI names (backend_for): a plain path is the embedded SQLiteMapStore
 ``milvus://host:port`` and ``milvus-lite:///path.db`` are MilvusMapStore (lln_ros/mapstore/milvus.py).
 Both have the API listed in MapStore's docstring and pass one test suite (test/test_map_backends.py).
 
-Modules: base (MapStore, MapCandidate), uri (backend_for), index (GlobalIndex), sqlite (+ sqlite_file,
-sqlite_landmarks), milvus. A backend module is imported when a URI first names it (BACKENDS), so
-the SQLite backend never imports pymilvus.
+Modules: base (MapStore, MapCandidate), uri (backend_for), matcher_open (open_for_matcher), index
+(GlobalIndex), sqlite (+ sqlite_file, sqlite_landmarks), milvus. A backend module is imported when a
+URI first names it (BACKENDS), so the SQLite backend never imports pymilvus.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ import importlib
 from ..errors import MapError
 from .base import FORMAT, MapCandidate, MapStore
 from .index import GlobalIndex
+from .matcher_open import open_for_matcher, space_model, writable_problem
 from .uri import backend_for
 
 # backend name (backend_for) -> (module, class), imported on first use
@@ -67,5 +68,8 @@ __all__ = [
     'SCHEMA_VERSION',
     'backend_class',
     'backend_for',
+    'open_for_matcher',
     'open_map',
+    'space_model',
+    'writable_problem',
 ]

@@ -12,10 +12,10 @@ import numpy as np
 from ..core import landmark_index
 from ..core.landmark_index import LandmarkIndex, check_prefilter
 from ..core.landmarks import LandmarkSet, stack_landmarks
+from ..core.limits import validate_model
 from ..core.retrieval import Candidate, pair_regions, rerank
 from ..core.retrieval import default_conf as retrieval_conf
 from ..errors import DescriptorError, MapError, ModelError
-from ..limits import validate_model
 from .uri import backend_for
 
 FORMAT = 'lln_ros-map'
@@ -237,7 +237,7 @@ class MapStore(abc.ABC):
 
     @staticmethod
     def _check_model_dict(model: dict) -> dict:
-        """The model validated by lln_ros.limits.validate_model (the one check the node, both
+        """The model validated by lln_ros.core.limits.validate_model (the one check the node, both
         backends and lln-map share): nothing unvalidated is ever written as a model record."""
         try:
             return validate_model(model)

@@ -1,5 +1,18 @@
 """The Milvus backend's row format and plumbing (milvus.py): URIs, the base64 pieces of a row's
-bytes, the compact cached form of a frames row, its integrity check, the read cache, error text."""
+bytes, the compact cached form of a frames row, its integrity check, the read cache, error text.
+
+Read cache: a stored keyframe is never rewritten (ids are never reused; only deletes change the map),
+so the rows this process has read or written are kept (RowCache, at most conf['cache_mb'], least
+recently used dropped first) and a query asks the server only for the candidates it has not seen.
+The open reads every row anyway (to build the landmark index), so a map that fits is then served
+from memory: the server is the map of record, shared and durable, not the per-query path.
+
+Integrity: every row read (all of them at open) is checked against its declared sizes (row_problem:
+landmark bytes = n x (16 + 2 D), n >= 1, grid >= 1x1, stamp nanosec < 1e9). A damaged
+keyframe is quarantined, as the SQLite backend does: left in the collection, named in the log and
+in ``quarantined`` / info() / check(), never answered; a query never counts it as bad input. The
+check costs nothing beyond the open's read of every row (bench/bench_milvus_server.py times it).
+"""
 
 from __future__ import annotations
 

@@ -4,21 +4,20 @@ descriptor as the float16 bits in an ARRAY<INT16>); schema 2 stores a row per ke
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from ..core.landmarks import LandmarkSet
 from ..errors import MapError
+from .base import MapStore
 from .milvus_rows import scan_ids
 
-if TYPE_CHECKING:
-    from .milvus import MilvusMapStore
+# `store` below is a MilvusMapStore, annotated by its base: milvus.py imports this module, so
+# importing milvus.py here would make an import circle.
 
 _FETCH_IDS = 256  # keyframes per fetch-by-id query: a reply of ~9 MB at n=50, D=320
 
 
-def _v1_rows_to_sets(store: MilvusMapStore, kf_rows: list, lm_rows: list) -> list[tuple]:
+def _v1_rows_to_sets(store: MapStore, kf_rows: list, lm_rows: list) -> list[tuple]:
     """Schema 1 rows (a keyframe row + one row per landmark) -> [(id, LandmarkSet, (sec, nsec))]."""
     by_kf: dict[int, list] = {}
     for r in lm_rows:
@@ -53,7 +52,7 @@ def _v1_rows_to_sets(store: MilvusMapStore, kf_rows: list, lm_rows: list) -> lis
     return out
 
 
-def _migrate_1_to_2(store: MilvusMapStore, meta: dict) -> None:
+def _migrate_1_to_2(store: MapStore, meta: dict) -> None:
     """Schema 1 (a row per landmark in {map}_landmarks) -> 2 (a row per keyframe in {map}_frames).
     Copies every keyframe, checks the count, then the caller records schema 2 and the old
     collections are dropped. Stopped half-way, it starts again from the schema 1 collections."""

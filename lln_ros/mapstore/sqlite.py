@@ -1,51 +1,8 @@
 """The embedded map backend: one SQLite file plus in-memory FAISS indexes.
 
-Why this module is past 500 lines: the query path, writes, deletes, keypoints, info and check of one
-backend; the file handling and the landmark index are already in sqlite_file.py / sqlite_landmarks.py.
-
-Storage
--------
-One SQLite file in WAL mode with ``synchronous=FULL``: ``add`` commits one transaction and fsyncs
-the WAL before it returns, so an acknowledged keyframe survives ``kill -9`` and power loss. New files
-are built under a temporary name and linked into place, so a file at the map path is always either a
-complete map or not ours (never half-created). Schema version 1::
-
-    meta       key TEXT PRIMARY KEY, value TEXT
-               format='lln_ros-map', schema_version='1', created (unix s), created_by,
-               model (JSON of Extractor.model_info, or {descriptor_space, descriptor_dim}; written on
-               first use), descriptor_space, descriptor_dim
-    keyframes  id INTEGER PRIMARY KEY AUTOINCREMENT   -- never reused, not even after clear()
-               stamp_sec INTEGER, stamp_nanosec INTEGER
-               image_w REAL, image_h REAL              -- original image pixels
-               grid_rows INTEGER, grid_cols INTEGER
-               cell_w REAL, cell_h REAL                -- one grid cell in original pixels
-               n INTEGER                               -- number of landmarks (>= 1)
-               global_descriptor BLOB                  -- float32 little-endian (D,)
-    landmarks  keyframe_id INTEGER PRIMARY KEY REFERENCES keyframes(id) ON DELETE CASCADE
-               cells BLOB        -- int16 LE (n, 2), (col, row)
-               centers BLOB      -- float32 LE (n, 2), (u, v) region centre in original pixels
-               scores BLOB       -- float32 LE (n,)
-               descriptors BLOB  -- float16 LE (n, D), L2-normalised (float16: ~1e-3 relative)
-    keypoints  (optional, created by the first add_keypoints; for the matcher's verify mode)
-               keyframe_id INTEGER PRIMARY KEY REFERENCES keyframes(id) ON DELETE CASCADE
-               n INTEGER, uv BLOB (float32 LE (n, 2), original pixels), descriptors BLOB (uint8 (n, B))
-               -- 40 bytes per ORB keypoint (B = 32): 20 KB per keyframe at 500 keypoints
-
-All landmarks of a keyframe are one row (a row per landmark would be ~50x more rows and far slower to
-insert and fetch). ``landmarks`` is its own table so the scan at open, which rebuilds the FAISS index,
-reads only the small ``keyframes`` rows; the large ``descriptors`` blob is the LAST column so the small
-blobs are read without touching its overflow pages. The activation map and ``LandmarkSet.meta`` are
-not stored.
-
-Bytes per keyframe at n=50 with the default model (D=192): blobs 768 (global) + 19,200
-(descriptors) + 200 (cells) + 400 (centers) + 200 (scores) = 20,768; measured 21.3 KB per keyframe in a
-1,000-keyframe .db file after a checkpoint. At D=320 the blobs are 34,080
-and the .db file measured ~34.7-34.9 KB per keyframe after a checkpoint (4 KiB pages; record
-headers, b-tree and overflow-page slack add ~2%). float32 descriptors would double the descriptor
-part.
-
-Migrations: ``MIGRATIONS[v]`` upgrades a map from schema v to v+1 inside one transaction at open.
-A map newer than this code is refused, never modified.
+The query path, writes, deletes and info of one backend; the file (its schema, laid out in
+sqlite_file.py's docstring, creation, migrations, load, check and verify mode's keypoints) is in
+sqlite_file.py, the landmark index in sqlite_landmarks.py.
 
 In memory: a FAISS index over the global descriptors, keyed by keyframe id (GlobalIndex): exact
 (``IndexIDMap(IndexFlatIP(D))``) up to ``conf['index_threshold']`` keyframes (50,000), IVF above
@@ -75,10 +32,10 @@ import numpy as np
 from ..core.landmark_index import LandmarkIndex
 from ..core.landmark_index import default_conf as landmark_index_defaults
 from ..core.landmarks import LandmarkSet
-from ..errors import DescriptorError, MapError
+from ..errors import MapError
 from .base import MapStore
 from .index import GlobalIndex
-from .sqlite_file import _KF_COLS, _KF_INSERT, _LM_COLS, _SQL_CHUNK, FORMAT, SCHEMA_VERSION, SQLiteFile
+from .sqlite_file import _KF_COLS, _KF_INSERT, _LM_COLS, _SQL_CHUNK, SQLiteFile
 from .sqlite_landmarks import SQLiteLandmarks
 from .uri import backend_for
 
@@ -376,52 +333,6 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
         'descriptors BLOB NOT NULL)'
     )
 
-    def add_keypoints(self, keyframe_id: int, uv: np.ndarray, descriptors: np.ndarray) -> None:
-        """Store a keyframe's keypoints: uv (N, 2) float32 original pixels, binary descriptors
-        (N, B) uint8, as float32 / uint8 blobs (8 + B bytes per keypoint). Replaces earlier ones."""
-        uv = np.ascontiguousarray(uv, '<f4').reshape(-1, 2)
-        desc = np.ascontiguousarray(descriptors)
-        if desc.dtype != np.uint8 or desc.ndim != 2 or len(desc) != len(uv):
-            raise DescriptorError(
-                f'keypoints need (N, B) uint8 descriptors for N={len(uv)} points, got {desc.dtype} {desc.shape}'
-            )
-        with self._lock:
-            self._ready()
-            if int(keyframe_id) not in set(self._ids):
-                raise KeyError(f'no keyframe {keyframe_id} in map {self.path}')
-            self._write(
-                lambda c: (
-                    c.execute(self._KEYPOINTS_TABLE),
-                    c.execute(
-                        'INSERT OR REPLACE INTO keypoints (keyframe_id, n, uv, descriptors) VALUES (?, ?, ?, ?)',
-                        (int(keyframe_id), len(uv), uv.tobytes(), desc.tobytes()),
-                    ),
-                )
-            )
-
-    def keypoints(self, keyframe_id: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """(uv (N, 2) float32, descriptors (N, B) uint8) of a keyframe, or None when none were stored."""
-        with self._lock:
-            self._ready()
-            with self._read_errors():
-                if not self._conn.execute("SELECT 1 FROM sqlite_master WHERE name = 'keypoints'").fetchone():
-                    return None
-                row = self._conn.execute(
-                    'SELECT n, uv, descriptors FROM keypoints WHERE keyframe_id = ?', (int(keyframe_id),)
-                ).fetchone()
-        if row is None:
-            return None
-        n, uv, desc = row
-        if len(uv) != 8 * n or (n and len(desc) % n) or (not n and desc):
-            raise MapError(
-                f'map {self.path} is corrupt: keyframe {keyframe_id} keypoints are {len(uv)} + '
-                f'{len(desc)} bytes for n={n}'
-            )
-        return (
-            np.frombuffer(uv, '<f4').reshape(n, 2).copy(),
-            np.frombuffer(desc, np.uint8).reshape(n, len(desc) // n if n else 32).copy(),
-        )
-
     def get(self, keyframe_id: int) -> LandmarkSet:
         """The stored landmark set of a keyframe (descriptors back from float16; no activation map)."""
         with self._lock:
@@ -525,56 +436,6 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, MapStore):
                 raise MapError(f'cannot checkpoint map {self.path}: {e}') from e
             if busy:
                 log.warning('map %s: checkpoint incomplete, another connection is reading', self.path)
-
-    def check(self, limit: int = 20) -> list[str]:
-        """Problems found in the map (empty list = healthy): SQLite integrity_check, format and
-        schema version, model record, blob sizes against n and D, orphan rows, FAISS vs SQLite."""
-        problems: list[str] = []
-
-        def add(items, what):
-            items = list(items)
-            problems.extend(what(x) for x in items[:limit])
-            if len(items) > limit:
-                problems.append(f'... and {len(items) - limit} more like that')
-
-        with self._lock:
-            self._ready()
-            c = self._conn
-            try:
-                rows = [r[0] for r in c.execute(f'PRAGMA integrity_check({int(limit)})')]
-                if rows != ['ok']:
-                    add(rows, lambda r: f'integrity_check: {r}')
-                    return problems
-                meta = self._meta()
-                if meta.get('format') != FORMAT:
-                    problems.append(f'meta format is {meta.get("format")!r}, expected {FORMAT!r}')
-                if meta.get('schema_version') != str(SCHEMA_VERSION):
-                    problems.append(f'schema_version is {meta.get("schema_version")!r}, expected {SCHEMA_VERSION}')
-                n_kf = c.execute('SELECT count(*) FROM keyframes').fetchone()[0]
-                if self._model is None:
-                    if n_kf:
-                        problems.append(f'{n_kf} keyframes but no model record')
-                    return problems
-                dim = int(self._model['descriptor_dim'])
-                if (
-                    meta.get('descriptor_dim') != str(dim)
-                    or meta.get('descriptor_space') != self._model['descriptor_space']
-                ):
-                    problems.append('meta descriptor_space/descriptor_dim disagree with the model record')
-                # the same scan the open runs (the node quarantines exactly these keyframes)
-                add(self._damaged(dim).values(), lambda p: f'{p} (quarantined: never answered)')
-                orphans = [
-                    r[0]
-                    for r in c.execute(
-                        'SELECT keyframe_id FROM landmarks WHERE keyframe_id NOT IN (SELECT id FROM keyframes)'
-                    )
-                ]
-                add(orphans, lambda i: f'landmarks row {i} has no keyframe')
-                problems.extend(self._faiss_problems())
-                problems.extend(self._landmark_problems(self._stored_counts()))
-            except sqlite3.DatabaseError as e:
-                problems.append(f'SQLite error while checking: {e}')
-        return problems
 
     def close(self) -> None:
         """Close the file (SQLite checkpoints the WAL when the last connection closes). Idempotent."""

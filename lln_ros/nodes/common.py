@@ -9,7 +9,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
-from ..counters import Counters, problem_kind
+from ..core.counters import Counters, problem_kind
 
 RELIABILITY = {'reliable': ReliabilityPolicy.RELIABLE, 'best_effort': ReliabilityPolicy.BEST_EFFORT}
 
@@ -36,7 +36,7 @@ def subscription_qos(reliability: str, depth: int) -> QoSProfile:
 
 
 class Health(Counters):
-    """A node's counters (lln_ros.counters: problems logged by kind, rate-limited) plus /diagnostics."""
+    """A node's counters (lln_ros.core.counters: problems logged by kind, rate-limited) plus /diagnostics."""
 
     def __init__(self, node: Node):
         super().__init__(log=node.get_logger().warning)
@@ -62,12 +62,12 @@ def run_node(make_node, name: str, args=None) -> int:
     """init / spin / shutdown. A node that cannot start (corrupt map, bad parameter, missing
     weights) logs one fatal line naming the problem and exits 1, without a traceback.
     At the end the node's own state is released first (node.close(): the map closed, the worker
-    joined); only then is the DDS teardown run, under a watchdog (lln_ros.dds.exit_if_teardown_hangs)."""
+    joined); only then is the DDS teardown run, under a watchdog (lln_ros.ros.dds.exit_if_teardown_hangs)."""
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
-    from ..dds import apply_large_data_profile, exit_if_teardown_hangs
     from ..errors import LLNError
+    from ..ros.dds import apply_large_data_profile, exit_if_teardown_hangs
 
     dds_level, dds_note = apply_large_data_profile()  # before rclpy.init: Fast DDS reads it then
     rclpy.init(args=args)
@@ -104,14 +104,14 @@ LOG_PERIOD_S = 60.0  # a diagnostics problem of one kind is logged at most once 
 class Diagnostics:
     """Health counters on /diagnostics every `period` seconds (0 = off), with a level and message
     from status(delta) -> (level, message, log text) (see worst), where delta = the counters' increases since the last
-    message (lln_ros.stream.Window): WARN for losses and refused input of the last period, ERROR
+    message (lln_ros.ros.stream.Window): WARN for losses and refused input of the last period, ERROR
     when the node refuses all input. The timer runs on the steady clock: with use_sim_time and a
     paused (or not yet started) bag, /clock stands still, and diagnostics must not."""
 
     def __init__(self, node: Node, health: Health, period: float, extra=lambda: {}, status=None):
         from rclpy.clock import Clock, ClockType
 
-        from ..stream import Window
+        from ..ros.stream import Window
 
         self.node, self.health, self.extra = node, health, extra
         self.status = status or (lambda delta: worst([]))

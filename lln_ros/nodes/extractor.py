@@ -1,8 +1,8 @@
 """lln_extractor: camera images in, landmark sets out (`ros2 run lln_ros extractor`).
 
 Subscribes  image (sensor_msgs/Image) or, with image_transport=compressed, image/compressed
-Publishes   landmarks (sensor_msgs/PointCloud2, see lln_ros.msgs), activation (sensor_msgs/Image,
-            bgr8, with publish_activation), model_info (std_msgs/String, JSON, latched),
+Publishes   lln/landmarks (sensor_msgs/PointCloud2, see lln_ros.ros.msgs), lln/activation (sensor_msgs/Image,
+            bgr8, with publish_activation), lln/model_info (std_msgs/String, JSON, latched),
             /diagnostics (counters)
 
 Only the newest frame waits for the network: when extraction falls behind, an older waiting frame
@@ -24,16 +24,16 @@ from rclpy.node import Node
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_msgs.msg import String
 
-from .. import msgs
 from ..core.backbones import BACKBONES
 from ..core.backbones import default_conf as BACKBONE
 from ..core.extractor import Extractor
 from ..core.extractor import default_conf as EXTRACTOR
 from ..core.landmarks import METHODS
+from ..core.limits import default_conf as LIMITS
 from ..errors import LLNError
 from ..io.image import check_image, heatmap_bgr
-from ..limits import default_conf as LIMITS
-from ..stream import StampGaps
+from ..ros import msgs, topics
+from ..ros.stream import StampGaps
 from .common import MODEL_QOS, Health, loss_events, run_node, start_diagnostics, subscription_qos, worst
 from .parameters import Param, declare_all
 
@@ -133,22 +133,23 @@ class ExtractorNode(Node):
             }
         )
         self.health = Health(self)
-        self.landmarks_pub = self.create_publisher(PointCloud2, 'landmarks', 10)
+        self.landmarks_pub = self.create_publisher(PointCloud2, topics.LANDMARKS, 10)
         self.activation_pub = None
         self.set_activation(p['publish_activation'])
         self.keypoints_pub, self.orb = None, None
         if p['publish_keypoints']:
-            from ..reloc import Relocalizer
+            from ..core.reloc import Relocalizer
 
             self.orb = Relocalizer({'detector': 'orb', 'max_keypoints': p['keypoints_max']})
-            self.keypoints_pub = self.create_publisher(PointCloud2, 'keypoints', 10)
-        model_pub = self.create_publisher(String, 'model_info', MODEL_QOS)
+            self.keypoints_pub = self.create_publisher(PointCloud2, topics.KEYPOINTS, 10)
+        model_pub = self.create_publisher(String, topics.MODEL_INFO, MODEL_QOS)
         model_pub.publish(String(data=json.dumps(self.extractor.model_info)))
         compressed = p['image_transport'] == 'compressed'
-        self.image_topic = self.resolve_topic_name('image/compressed' if compressed else 'image')
+        image_topic = topics.IMAGE + '/compressed' if compressed else topics.IMAGE
+        self.image_topic = self.resolve_topic_name(image_topic)
         self.create_subscription(
             CompressedImage if compressed else Image,
-            'image/compressed' if compressed else 'image',
+            image_topic,
             self.on_image,
             # a reader history shorter than the queue would overwrite a burst before we see it
             subscription_qos(p['reliability'], max(5, p['frame_queue'])),
@@ -177,7 +178,7 @@ class ExtractorNode(Node):
 
     def set_activation(self, on: bool) -> None:
         if on and self.activation_pub is None:
-            self.activation_pub = self.create_publisher(Image, 'activation', 2)
+            self.activation_pub = self.create_publisher(Image, topics.ACTIVATION, 2)
         elif not on and self.activation_pub is not None:
             pub, self.activation_pub = self.activation_pub, None
             self.destroy_publisher(pub)

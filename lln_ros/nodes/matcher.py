@@ -1,12 +1,12 @@
 """lln_matcher: the map server (`ros2 run lln_ros matcher`).
 
-Subscribes  keyframes (PointCloud2 landmark sets to store), query (landmark sets to localize),
-            model_info (std_msgs/String, the extractor's model, latched), keypoints (PointCloud2,
+Subscribes  lln/keyframes (PointCloud2 landmark sets to store), lln/query (landmark sets to localize),
+            lln/model_info (std_msgs/String, the extractor's model, latched), lln/keypoints (PointCloud2,
             the extractor's ORB keypoints; with verify)
-Publishes   candidates (PointCloud2: keyframe_id, score, holistic_score, stamp_sec, stamp_nanosec;
+Publishes   lln/candidates (PointCloud2: keyframe_id, score, holistic_score, stamp_sec, stamp_nanosec;
             with verify also inliers, NaN where the keyframe or query had no keypoints;
             with sequence_length > 0 also sequence_score),
-            matches (PointCloud2: the matched region pairs of the best candidate), /diagnostics
+            lln/matches (PointCloud2: the matched region pairs of the best candidate), /diagnostics
 Services    ~/save, ~/clear, ~/info (std_srvs/Trigger; info answers JSON)
 
 mode=localization answers queries and leaves the map alone; mode=mapping answers each query, then
@@ -15,7 +15,7 @@ never answers). A keyframe is committed to the SQLite map before its query's ans
 so whatever a subscriber has seen answered survives kill -9.
 
 verify=true: keypoints are paired with landmark sets by header stamp and stored per keyframe; the
-top candidates are re-ranked by region-constrained RANSAC inliers (lln_ros.reloc.verify_candidates).
+top candidates are re-ranked by region-constrained RANSAC inliers (lln_ros.core.reloc.verify_candidates).
 
 sequence_length L > 0 ranks keyframes by sequence agreement over the last L queries (lln_ros.core.sequence,
 the search lln-eval --sequence runs offline): candidates come best sequence_score first, min_score
@@ -24,9 +24,9 @@ not among this query's prefilter_k). Out-of-order stamps and gaps longer than se
 new sequence (counted as sequence_reset_out_of_order / sequence_reset_gap).
 
 What happens to each message is decided by lln_ros.core.localizer.Localizer (ROS-free, unit-tested
-without rclpy); this node decodes (lln_ros.msgs), calls it and publishes. Input limits
+without rclpy); this node decodes (lln_ros.ros.msgs), calls it and publishes. Input limits
 (max_image_pixels, max_landmarks, max_descriptor_dim, max_grid_side, max_keypoints) default to
-lln_ros.limits.default_conf.
+lln_ros.core.limits.default_conf.
 """
 
 from __future__ import annotations
@@ -39,14 +39,15 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from .. import msgs
 from ..core.landmark_index import PREFILTERS
-from ..core.localizer import Localizer, open_map
+from ..core.limits import default_conf as LIMITS
+from ..core.localizer import Localizer
 from ..core.localizer import default_conf as LOC
 from ..core.sequence import KeyframeSequence
 from ..errors import LLNError
-from ..limits import default_conf as LIMITS
-from ..stream import StampGaps
+from ..mapstore import open_for_matcher
+from ..ros import msgs, topics
+from ..ros.stream import StampGaps
 from .common import MODEL_QOS, Health, loss_events, run_node, start_diagnostics, subscription_qos, worst
 from .parameters import Param, declare_all
 
@@ -137,7 +138,7 @@ PARAMETERS = {
         dynamic=True,
         range=(1e-3, 1e6),
     ),
-    # input limits (lln_ros.limits): a message declaring more is refused and counted, never sized from
+    # input limits (lln_ros.core.limits): a message declaring more is refused and counted, never sized from
     'max_image_pixels': Param(
         LIMITS['max_image_pixels'], 'limit: image width x height a landmark cloud may declare', range=(1, 2**40)
     ),
@@ -180,31 +181,31 @@ class MatcherNode(Node):
         conf = {name: p[name] for name in LOCALIZER_KEYS}
         conf['limits'] = {name: p[name] for name in LIMITS}
         Localizer.check_conf(conf)  # a bad parameter ends the node before the map is touched
-        self.store, quarantined = open_map(p['map_path'], p['mode'], p['descriptor_space'])
+        self.store, quarantined = open_for_matcher(p['map_path'], p['mode'], p['descriptor_space'])
         self.loc = Localizer(self.store, conf, self.health, self.get_logger(), msgs.cloud_to_keypoints)
         qos = subscription_qos(p['reliability'], p['queue_depth'])
-        self.candidates_pub = self.create_publisher(PointCloud2, 'candidates', 10)
-        self.matches_pub = self.create_publisher(PointCloud2, 'matches', 10)
-        self.query_topic = self.resolve_topic_name('query')
+        self.candidates_pub = self.create_publisher(PointCloud2, topics.CANDIDATES, 10)
+        self.matches_pub = self.create_publisher(PointCloud2, topics.MATCHES, 10)
+        self.query_topic = self.resolve_topic_name(topics.QUERY)
         self.create_subscription(
             PointCloud2,
-            'keyframes',
+            topics.KEYFRAMES,
             self.on_keyframe,
             qos,
             event_callbacks=loss_events(self.health, 'keyframes subscription'),
         )
         self.create_subscription(
             PointCloud2,
-            'query',
+            topics.QUERY,
             self.on_query,
             qos,
             event_callbacks=loss_events(self.health, f'query subscription {self.query_topic}'),
         )
         self.gaps = StampGaps()
         self.last_query_age = None  # seconds, header stamp vs node clock (sim time with use_sim_time)
-        self.create_subscription(String, 'model_info', self.on_model_info, MODEL_QOS)
+        self.create_subscription(String, topics.MODEL_INFO, self.on_model_info, MODEL_QOS)
         if p['verify']:
-            self.create_subscription(PointCloud2, 'keypoints', self.on_keypoints, qos)
+            self.create_subscription(PointCloud2, topics.KEYPOINTS, self.on_keypoints, qos)
         self.create_service(Trigger, '~/save', self.on_save)
         self.create_service(Trigger, '~/clear', self.on_clear)
         self.create_service(Trigger, '~/info', self.on_info)

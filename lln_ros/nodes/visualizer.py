@@ -1,10 +1,10 @@
 """lln_visualizer: what the matcher decided, as pictures (`ros2 run lln_ros visualizer`).
 
 Subscribes  image (sensor_msgs/Image) or, with image_transport=compressed, image/compressed (the
-            camera stream the extractor sees), candidates and matches (the matcher's answers)
-Publishes   overlay (sensor_msgs/Image bgr8: the query beside its best keyframe, matched regions
+            camera stream the extractor sees), lln/candidates and lln/matches (the matcher's answers)
+Publishes   lln/overlay (sensor_msgs/Image bgr8: the query beside its best keyframe, matched regions
             outlined and linked, as `lln-match --plot` draws them; header = the query's),
-            markers (visualization_msgs/MarkerArray: a loop-closure timeline in frame
+            lln/markers (visualization_msgs/MarkerArray: a loop-closure timeline in frame
             `timeline_frame`: every answered query on the x axis at its time, an arc from it to its
             best keyframe, coloured by score)
 
@@ -28,9 +28,9 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
-from .. import msgs
-from ..drawing import draw_match_overlay, similarity_colours
 from ..errors import LLNError
+from ..ros import msgs, topics
+from ..viz.drawing import draw_match_overlay, similarity_colours
 from .common import Health, run_node, subscription_qos
 from .parameters import Param, declare_all
 
@@ -70,14 +70,14 @@ class VisualizerNode(Node):
         compressed = p['image_transport'] == 'compressed'
         self.create_subscription(
             CompressedImage if compressed else Image,
-            'image/compressed' if compressed else 'image',
+            topics.IMAGE + '/compressed' if compressed else topics.IMAGE,
             self.on_image,
             subscription_qos(p['reliability'], 5),
         )
-        self.create_subscription(PointCloud2, 'candidates', lambda m: self.on_answer(m, 'candidates'), 10)
-        self.create_subscription(PointCloud2, 'matches', lambda m: self.on_answer(m, 'matches'), 10)
-        self.overlay_pub = self.create_publisher(Image, 'overlay', 2)
-        self.markers_pub = self.create_publisher(MarkerArray, 'markers', 10)
+        self.create_subscription(PointCloud2, topics.CANDIDATES, lambda m: self.on_answer(m, 'candidates'), 10)
+        self.create_subscription(PointCloud2, topics.MATCHES, lambda m: self.on_answer(m, 'matches'), 10)
+        self.overlay_pub = self.create_publisher(Image, topics.OVERLAY, 2)
+        self.markers_pub = self.create_publisher(MarkerArray, topics.MARKERS, 10)
 
     def on_image(self, msg) -> None:
         try:

@@ -3,7 +3,7 @@ calls services and plays bags with back-pressure. lln-demo drives the nodes with
 
     probe = Probe(domain)
     probe.watch = [matcher, extractor]            # supervisor.NodeProcess: a dead one fails any wait
-    got = probe.collect(PointCloud2, '/candidates', msgs.cloud_to_candidates)
+    got = probe.collect(PointCloud2, '/lln/candidates', msgs.cloud_to_candidates)
     probe.collect_answers(); probe.collect_diagnostics()
     probe.spin_until(lambda: len(got) == 3, 30, 'three answers')
     probe.play_paced(bag, publisher, 'query', stamps, 120, '/lln_extractor_query', confirm)
@@ -196,8 +196,8 @@ class Probe:
         reliable = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
         for kind in ('keyframes', 'query'):
             self.node.create_subscription(PointCloud2, f'/{kind}', lambda m, k=kind: self._on_landmarks(k, m), reliable)
-        self.node.create_subscription(PointCloud2, '/candidates', self._on_candidates, reliable)
-        self.node.create_subscription(PointCloud2, '/matches', self._on_matches, reliable)
+        self.node.create_subscription(PointCloud2, '/lln/candidates', self._on_candidates, reliable)
+        self.node.create_subscription(PointCloud2, '/lln/matches', self._on_matches, reliable)
 
     def collect_diagnostics(self) -> None:
         """The latest /diagnostics status of every node, in self.diag; read with counter()."""
@@ -206,7 +206,7 @@ class Probe:
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 100)
 
     def _on_landmarks(self, kind: str, msg) -> None:
-        from .. import msgs
+        from . import msgs
 
         stamp = msgs.stamp_to_ns(msg.header)
         try:
@@ -227,7 +227,7 @@ class Probe:
         )
 
     def _on_candidates(self, msg) -> None:
-        from .. import msgs
+        from . import msgs
 
         stamp = msgs.stamp_to_ns(msg.header)
         if stamp in self.candidates:
@@ -240,7 +240,7 @@ class Probe:
             self.candidates[stamp] = None
 
     def _on_matches(self, msg) -> None:
-        from .. import msgs
+        from . import msgs
 
         stamp = msgs.stamp_to_ns(msg.header)
         try:
@@ -289,7 +289,7 @@ class Probe:
         frame 0, `confirm(stamp)` checks that it arrived downstream (the map counts a keyframe / the
         query is answered); if not, frame 0 is sent again (HANDSHAKE_TRIES times at most). Returns
         timing and the number of frames sent again."""
-        from ..io import bag
+        from ..ros import bag
 
         seen = self.landmarks[out_kind]
         self.spin_until(

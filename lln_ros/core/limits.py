@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 
-from .errors import MessageError, ModelError
+from ..errors import MessageError, ModelError
 
 GRID_STRIDE = 32  # every backbone here has a stride-32 feature grid (lln_ros.io.image)
 

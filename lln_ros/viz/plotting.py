@@ -16,8 +16,8 @@ from matplotlib.colors import Normalize  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import ConnectionPatch, Patch, Rectangle  # noqa: E402
 
-from .core.landmarks import LandmarkSet  # noqa: E402
-from .io.image import heatmap  # noqa: E402
+from ..core.landmarks import LandmarkSet  # noqa: E402
+from ..io.image import heatmap  # noqa: E402
 
 SIMILARITY_CMAP = 'viridis'  # matched pairs: cosine similarity of the two landmark descriptors
 ACTIVATION_CMAP = 'jet'  # score maps: the LLN head's activation (or the feature norm)

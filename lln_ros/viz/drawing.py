@@ -3,7 +3,7 @@ beside its best keyframe, matched regions outlined and linked, as `lln-match --p
 
     canvas = draw_match_overlay(query_bgr, keyframe_bgr, matches, caption=['query 12.3 s', ...])
 
-`matches` is the matcher's `matches` table (lln_ros.msgs.cloud_to_matches): query_u, query_v, map_u,
+`matches` is the matcher's `matches` table (lln_ros.ros.msgs.cloud_to_matches): query_u, query_v, map_u,
 map_v, cell_w, cell_h (pixels of each image), similarity, weight. Line colour = similarity
 (viridis, dark = low), thick lines = pairs consistent with the offset mode (weight >= 0.5).
 The panels are labelled (query / map keyframe) and a key strip under them gives the similarity

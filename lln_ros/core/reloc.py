@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .errors import LLNError
-from .io.image import check_image
+from ..errors import LLNError
+from ..io.image import check_image
 
 default_conf = {
     'detector': 'orb',  # orb | sift | akaze

@@ -1,0 +1,74 @@
+"""Two pipelines side by side on one DDS domain, each in its own namespace, as a fleet or a robot
+with two cameras runs them (`ros2 launch lln_ros lln.launch.py namespace:=robot1`): every topic of
+the nodes is relative (lln_ros.ros.topics), so /robot1/... and /robot2/... never meet. Real
+executables (colcon-installed), real DDS, real images: each pipeline answers exactly its own
+queries and stores exactly its own keyframes."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+from sensor_msgs.msg import Image, PointCloud2
+from std_srvs.srv import Trigger
+from test_nodes import TIMEOUT, header, rig  # noqa: F401  (rig: the fixture)
+
+from lln_ros.ros import msgs, topics
+
+ROBOTS = ('robot1', 'robot2')
+
+
+def test_two_namespaced_pipelines_answer_only_their_own_queries(rig, photo, tmp_path):
+    procs = {}
+    for ns in ROBOTS:
+        ros_ns = ['-r', f'__ns:=/{ns}']
+        procs[ns, 'extractor'] = rig.extractor(*ros_ns, '-p', 'input_height:=128', '-p', 'top_n:=10')
+        # what the launch file's feed:=query does: the extractor's landmarks are the matcher's queries
+        procs[ns, 'matcher'] = rig.matcher(
+            tmp_path / f'{ns}.db', *ros_ns, '-r', f'{topics.QUERY}:={topics.LANDMARKS}', '-p', 'mode:=mapping'
+        )
+    images = {ns: rig.probe.publisher(Image, f'/{ns}/{topics.IMAGE}') for ns in ROBOTS}
+    answers = {
+        ns: rig.probe.collect(PointCloud2, f'/{ns}/{topics.CANDIDATES}', lambda m: msgs.stamp_to_ns(m.header))
+        for ns in ROBOTS
+    }
+    rig.until(
+        lambda: all(
+            images[ns].get_subscription_count() == 1
+            and rig.probe.node.count_publishers(f'/{ns}/{topics.CANDIDATES}') == 1
+            and rig.probe.node.count_subscribers(f'/{ns}/{topics.LANDMARKS}') == 1
+            for ns in ROBOTS
+        ),
+        'both pipelines up, one node of each kind per namespace',
+    )
+
+    def info(ns: str) -> dict:
+        return json.loads(rig.probe.call(Trigger, f'/{ns}/lln_matcher/info', timeout=TIMEOUT).message)
+
+    # answers are volatile: wait until each matcher has matched our answer subscription too
+    rig.until(
+        lambda: all(info(ns).get('subscriptions', {}).get('candidates', 0) > 0 for ns in ROBOTS), 'answers reach us'
+    )
+    # real frames: robot1 sees crops of the left of the photograph, robot2 of its right half
+    h, w = photo.shape[:2]
+    frames = {
+        ns: [
+            np.ascontiguousarray(photo[y : y + h // 2, x0 + dx : x0 + dx + w // 3]) for y, dx in ((0, 0), (h // 3, 20))
+        ]
+        for ns, x0 in zip(ROBOTS, (0, w // 2))
+    }
+    sent = {ns: [] for ns in ROBOTS}
+    for i in range(2):
+        for k, ns in enumerate(ROBOTS):
+            hdr = header(10 * k + i, frame=f'{ns}_camera')
+            images[ns].publish(msgs.array_to_image(cv2.resize(frames[ns][i], (160, 120)), 'rgb8', hdr))
+            sent[ns].append(msgs.stamp_to_ns(hdr))
+            rig.until(lambda ns=ns: len(answers[ns]) >= len(sent[ns]), f'{ns} answer {i}', procs[ns, 'matcher'])
+    rig.probe.spin_for(1.0)  # a crossed answer would arrive by now
+    for ns in ROBOTS:
+        assert answers[ns] == sent[ns], f'{ns} answered stamps {answers[ns]}, it was sent {sent[ns]}'
+        stored = info(ns)
+        assert stored['keyframes'] == len(sent[ns]) and stored['path'] == str(tmp_path / f'{ns}.db')
+    for proc in procs.values():
+        assert proc.alive()
