@@ -1,4 +1,4 @@
-"""Metric loop closures (issue 27): the camera model and depth checks (core.camera), the TUM RGB-D
+"""Metric loop closures (issue 27): the camera model and depth checks (io.camera), the TUM RGB-D
 reader (io.rgbd), relative poses with covariance (core.geometry) on synthetic data made with real
 projection maths and on real tum_fr1rpy frames, and lln-eval --geometry end to end."""
 
@@ -13,9 +13,9 @@ import pytest
 
 from conftest import REPO, shared_data
 from lln_ros.core import geometry as G
-from lln_ros.core.camera import CameraModel, depth_metres
+from lln_ros.core.reloc import Keypoints, Matches
 from lln_ros.errors import CameraError, DatasetError
-from lln_ros.reloc import Keypoints, Matches
+from lln_ros.io.camera import CameraModel, depth_metres
 
 INFO = {'width': 640, 'height': 480, 'k': [525.0, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1], 'd': [0.0] * 5}
 CAM = CameraModel.from_camera_info({**INFO, 'distortion_model': 'plumb_bob'})
@@ -254,10 +254,10 @@ def test_real_tum_frames_relative_pose(extractor):
     """Two real frames of tum_fr1rpy 2.6 s apart: matches constrained to their matched landmark regions,
     PnP on the keyframe's real depth, against the motion-capture relative pose."""
     from lln_ros.core.landmarks import stack_landmarks
+    from lln_ros.core.reloc import Relocalizer, pair_boxes
     from lln_ros.core.similarity import match_batch
     from lln_ros.io.image import load_image
     from lln_ros.io.rgbd import read_tum
-    from lln_ros.reloc import Relocalizer, pair_boxes
 
     seq = read_tum(shared_data('tum_fr1rpy'))
     i, j = 231, 153  # query, keyframe 2.6 s earlier (the replay's answer for 231)

@@ -1,5 +1,5 @@
 """Where, not only which: the relative pose of a query camera in a candidate keyframe's camera frame,
-from keypoint matches constrained to the matched landmark regions (lln_ros.reloc, mLLN).
+from keypoint matches constrained to the matched landmark regions (lln_ros.core.reloc, mLLN).
 
     est = estimate_pose(query_kps, keyframe_kps, matches, query_cam, keyframe_cam, keyframe_depth_m)
     est.ok, est.reason, est.method            # 'pnp' (metric, keyframe depth) | 'essential' (no depth)
@@ -36,8 +36,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from ..reloc import _collinear
-from ..reloc import default_conf as reloc_conf
+from .reloc import _collinear
+from .reloc import default_conf as reloc_conf
 
 default_conf = {
     'ransac_px': 3.0,  # inlier threshold, pixels of the query image (PnP reprojection / E Sampson distance)
@@ -202,7 +202,7 @@ def estimate_pose(
     query, keyframe, matches, query_cam, keyframe_cam, keyframe_depth: np.ndarray | None = None, conf=None
 ) -> PoseEstimate:
     """T(keyframe <- query) from reloc.Matches between reloc.Keypoints query and keyframe, with
-    core.camera.CameraModel query_cam and keyframe_cam and the keyframe's depth (H, W) float32
+    io.camera.CameraModel query_cam and keyframe_cam and the keyframe's depth (H, W) float32
     metres (NaN = none) or None. PnP when at least min_points matches have a depth, else the
     essential matrix. Never raises for degenerate input (module doc)."""
     c = {**default_conf, **(conf or {})}

@@ -8,7 +8,7 @@ Per frame, in stamp order, as the matcher in mapping mode does it: the extractor
 as the extractor node's publish_keypoints), the Localizer's answer (core.localizer.Localizer on a
 real SQLite map in mapping mode: the query is stored as a keyframe after it is answered, keyframes
 newer than min_gap_s are excluded), keypoint matches constrained to the best candidate's matched
-landmark regions (reloc.region_boxes, Relocalizer.match) and core.geometry.estimate_pose twice:
+landmark regions (core.reloc.region_boxes, Relocalizer.match) and core.geometry.estimate_pose twice:
 with the keyframe's depth (PnP) and without it (essential matrix). The keyframe's stored pose and
 the query's odometry are the ground truth (what an odometry source with no drift would give; the
 Agreement check uses them).
@@ -44,9 +44,10 @@ eval_conf = {
 
 def replay(seq, extractor, conf: dict | None = None, progress: bool = False) -> tuple[list, dict]:
     """(records as geometry_score describes them, timing {stage: median ms}) for an RGBDSequence."""
-    from ..core.localizer import Localizer, open_map
+    from ..core.localizer import Localizer
+    from ..core.reloc import Relocalizer, region_boxes
     from ..io.image import load_image
-    from ..reloc import Relocalizer, region_boxes
+    from ..mapstore import open_for_matcher
 
     c = {**eval_conf, **(conf or {})}
     reloc = Relocalizer({'detector': 'orb', 'max_keypoints': int(c['max_keypoints']), 'margin': c['margin']})
@@ -58,7 +59,7 @@ def replay(seq, extractor, conf: dict | None = None, progress: bool = False) -> 
     records, ms = [], {'extract': [], 'detect': [], 'query': [], 'match': [], 'pnp': [], 'essential': []}
     keypoints, frame_of = {}, {}  # keyframe id -> reloc.Keypoints, frame index
     with tempfile.TemporaryDirectory(prefix='lln_geometry_') as tmp:
-        store, _ = open_map(str(Path(tmp) / 'map.db'), 'mapping', extractor.descriptor_space)
+        store, _ = open_for_matcher(str(Path(tmp) / 'map.db'), 'mapping', extractor.descriptor_space)
         with store:
             loc = Localizer(store, {'mode': 'mapping', 'exclude_recent': exclude, 'k': int(c['k'])})
             loc.model_info(json.dumps(extractor.model_info))
