@@ -20,6 +20,11 @@ act / rand / all / holistic do not depend on the head and get one row each. The 
 row per holistic/local row: its scores through the matcher's online sequence search (L queries),
 local rows over the rerank of --sequence-prefilter-k first-stage candidates (the matcher's default).
 
+--geometry (with --dataset poses:DIR, a TUM RGB-D folder with depth/ and camera_info.yaml) runs only the
+metric loop-closure evaluation instead (lln_ros.eval.geometry, docs/geometry.md): the sequence through
+extractor, localizer and core.geometry, thresholds chosen on one half and figures reported on the other,
+written as the `geometry` object of DIR/results.json (other keys of an existing file are kept).
+
 Every dataset is read and checked, and every head loaded, before any feature is computed. Bad input
 exits 2 with one line on stderr. Writes DIR/results.json, DIR/results.md and PNGs.
 """
