@@ -301,3 +301,26 @@ def test_lln_eval_geometry_writes_the_figures(tmp_path):
         [*cmd, '--dataset', 'loop:/x,/y', '--out', str(tmp_path)], cwd=REPO, capture_output=True, text=True
     )
     assert bad.returncode == 2 and 'poses:DIR' in bad.stderr
+
+
+@pytest.mark.parametrize(
+    'position, orientation, words',
+    [
+        ([0, 0, math.nan], [0, 0, 0, 1], 'NaN'),
+        ([0, 0, 0], [0, 0, 0, 0], 'norm 0'),
+        ([0, 0, 0], [0, 0, 0.5, 1], 'not 1'),
+        ([0, 0], [0, 0, 0, 1], '3 position'),
+    ],
+)
+def test_broken_odometry_is_refused(position, orientation, words):
+    from lln_ros.errors import PoseError
+
+    with pytest.raises(PoseError, match=words):
+        G.odometry_pose(position, orientation)
+
+
+def test_odometry_pose_matches_the_quaternion():
+    s = math.sin(math.pi / 4)
+    T = G.odometry_pose([1, 2, 3], [0, 0, s, s * (1 + 5e-4)])  # within the tolerance: renormalised
+    assert np.allclose(T[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-3) and np.allclose(T[:3, 3], [1, 2, 3])
+    assert np.allclose(G.quaternion(T[:3, :3]), [0, 0, s, s], atol=1e-3)
