@@ -217,6 +217,13 @@ def test_degenerate_input_is_a_reason_not_an_exception():
     assert not G.estimate_pose(same, k, m, CAM, CAM, depth).ok
 
 
+def test_bad_conf_is_an_error():
+    q, k, m, depth, _ = scene()
+    with pytest.raises(ValueError, match='essential_method'):
+        G.estimate_pose(q, k, m, CAM, CAM, None, {'essential_method': 'SOMETHING'})
+    assert G.keypoint_depth(depth, np.zeros((0, 2))).shape == (0,)
+
+
 def test_depth_edges_are_not_used():
     depth = np.full((20, 20), 2.0, np.float32)
     depth[:, 10:] = 3.0  # a step: a keypoint on it may belong to either surface

@@ -195,6 +195,8 @@ def keypoint_depth(depth_m: np.ndarray, uv: np.ndarray, conf: dict | None = None
     may belong to either surface)."""
     c = {**default_conf, **(conf or {})}
     h, w = depth_m.shape
+    if not len(uv):
+        return np.zeros(0)
     r = int(c['depth_window'])
     u = np.rint(np.asarray(uv, np.float64)[:, 0]).astype(np.int64)
     v = np.rint(np.asarray(uv, np.float64)[:, 1]).astype(np.int64)
@@ -225,6 +227,10 @@ def estimate_pose(
     metres (NaN = none) or None. PnP when at least min_points matches have a depth, else the
     essential matrix. Never raises for degenerate input (module doc)."""
     c = {**default_conf, **(conf or {})}
+    if not isinstance(getattr(cv2, str(c['essential_method']), None), int):
+        raise ValueError(
+            f'essential_method must name an OpenCV robust method (USAC_ACCURATE, RANSAC), got {c["essential_method"]!r}'
+        )
     t0 = time.perf_counter()
     m = len(matches)
     if m < int(c['min_matches']):
