@@ -364,3 +364,19 @@ def test_gate_makes_fewer_keyframes_on_tum():
     gate = KeyframeGate()
     kept = sum(gate.decide(f.stamp, seq.T_world_cam(i))[0] for i, f in enumerate(seq.frames))
     assert 0 < kept * 3 <= len(seq)
+
+
+def test_lln_eval_geometry_with_the_keyframe_gate(tmp_path):
+    root = shared_data('tum_fr1rpy')
+    run = subprocess.run(
+        [sys.executable, '-m', 'lln_ros.cli.eval', '--geometry', '--geometry-step', '10', '--threads', '1']
+        + ['--geometry-gate', '0.05', '10', '--dataset', f'poses:{root}', '--out', str(tmp_path), '--quiet'],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert run.returncode == 0, run.stderr
+    g = json.loads((tmp_path / 'results.json').read_text())['geometry']
+    assert 0 < g['keyframes'] < g['frames'] and 'KeyframeGate' in g['keyframes_from']
+    assert g['rot_err_deg_p50'] is not None and g['rot_err_deg_p50'] < 5
