@@ -58,6 +58,7 @@ import uuid
 
 import numpy as np
 
+from ..core.limits import stamp_problem
 from ..errors import DescriptorError, MapError
 from .base import FORMAT
 from .index import GlobalIndex
@@ -363,7 +364,8 @@ class SQLiteFile:
                 )
             else:
                 # a stamp an older version stored unchecked (issue 25) would fail every answer
-                out[kid] = f'keyframe {kid}: bad grid {rows_}x{cols_} or stamp ({sec}, {nsec}) out of int32 / [0, 1e9)'
+                stamp = stamp_problem(sec, nsec)
+                out[kid] = f'keyframe {kid}: ' + (stamp or f'bad grid {rows_}x{cols_}')
         return out
 
     def check(self, limit: int = 20) -> list[str]:
