@@ -28,3 +28,12 @@ class MessageError(LLNError):
 
 class DatasetError(LLNError):
     """A dataset that cannot be read: missing folders, unequal lengths, bad ground truth."""
+
+
+class CameraError(LLNError):
+    """Camera intrinsics or depth that cannot be used: uncalibrated (zeros), NaN, a size or encoding
+    that does not match the image."""
+
+
+class PoseError(LLNError):
+    """A pose that cannot be stored or used: NaN, infinity, a quaternion that is not unit-norm."""

@@ -22,6 +22,11 @@ act / rand / all / holistic do not depend on the head and get one row each. The 
 row per holistic/local row: its scores through the matcher's online sequence search (L queries),
 local rows over the rerank of --sequence-prefilter-k first-stage candidates (the matcher's default).
 
+--geometry (with --dataset poses:DIR, a TUM RGB-D folder with depth/ and camera_info.yaml) runs only the
+metric loop-closure evaluation instead (lln_ros.eval.geometry, docs/geometry.md): the sequence through
+extractor, localizer and core.geometry, thresholds chosen on one half and figures reported on the other,
+written as the `geometry` object of DIR/results.json (other keys of an existing file are kept).
+
 Every dataset is read and checked, and every head loaded, before any feature is computed. Bad input
 exits 2 with one line on stderr. Writes DIR/results.json, DIR/results.md and PNGs.
 """
@@ -164,6 +169,28 @@ def build_parser() -> argparse.ArgumentParser:
         help=f'ORB FAST threshold (default {conf["reloc_fast_threshold"]}; 5 for blurry upsampled '
         'images such as Nordland)',
     )
+    p.add_argument(
+        '--geometry',
+        action='store_true',
+        help='instead: metric loop closures on an RGB-D sequence (poses:DIR in the TUM layout with depth/ and '
+        'camera_info.yaml) replayed through extractor, localizer and core.geometry; writes results.json `geometry`',
+    )
+    p.add_argument(
+        '--geometry-step', type=int, default=3, help='--geometry: every N-th colour frame (default 3: 10 Hz of 30)'
+    )
+    p.add_argument(
+        '--geometry-swap',
+        action='store_true',
+        help='--geometry: choose the thresholds on the second half, report on the first (default: the other way)',
+    )
+    p.add_argument(
+        '--geometry-gate',
+        nargs=2,
+        type=float,
+        metavar=('M', 'DEG'),
+        help='--geometry: keyframes by an odometry gate (a new one after M metres or DEG degrees), held until '
+        '2 s old, queries in localization mode (default: mapping mode, every query a keyframe)',
+    )
     p.add_argument('--check', action='store_true', help='read and check every dataset and head, then stop')
     p.add_argument('--quiet', action='store_true', help='no progress output')
     return p
@@ -209,6 +236,8 @@ def run(args, argv) -> dict:
         raise UsageError(f'--sequence-prefilter-k must be at least 0 (0 = every ref), got {args.sequence_prefilter_k}')
     if args.sequence < 0:
         raise UsageError(f'--sequence must be 0 (off) or a length of at least 1, got {args.sequence}')
+    if args.geometry:
+        return run_geometry(args, argv, log)
     from ..io.datasets import parse_range
 
     frac = parse_range(args.range)
@@ -266,6 +295,41 @@ def run(args, argv) -> dict:
     return {'out': args.out, 'figures': result.figures}
 
 
+def run_geometry(args, argv, log) -> dict:
+    """lln-eval --geometry: every --dataset poses:DIR read as a TUM RGB-D sequence (io.rgbd), replayed
+    (eval.geometry), its `geometry` object written to --out/results.json (one dataset: the object
+    itself; several: keyed by name)."""
+    from ..core.extractor import Extractor
+    from ..eval.geometry import evaluate_geometry, write
+    from ..io.rgbd import read_tum
+
+    if args.geometry_step < 1:
+        raise UsageError(f'--geometry-step must be at least 1, got {args.geometry_step}')
+    roots = []
+    for spec in args.dataset:
+        kind, _, rest = spec.partition(':')
+        if kind != 'poses' or not rest:
+            raise UsageError(f'--geometry needs --dataset poses:DIR (a TUM RGB-D folder), got {spec!r}')
+        roots.append(rest.split(',')[0])
+    seqs = [read_tum(root, {'step': args.geometry_step}) for root in roots]  # every input checked first
+    for seq in seqs:
+        log(f'{PROG}: {seq.name}: {len(seq)} RGB-D frames ({seq.info["frames_without_depth"]} without depth)')
+    if args.check:
+        return {'checked': [s.name for s in seqs]}
+    extractor = Extractor(extractor_conf(args, num_threads=args.threads))
+    conf = {'swap': args.geometry_swap}
+    if args.geometry_gate:
+        if min(args.geometry_gate) < 0:
+            raise UsageError(f'--geometry-gate M DEG must not be negative, got {args.geometry_gate}')
+        conf.update(gate=True, gate_m=args.geometry_gate[0], gate_deg=args.geometry_gate[1])
+    results = {s.name: evaluate_geometry(s, extractor, conf, progress=not args.quiet) for s in seqs}
+    command = f'{PROG} ' + ' '.join(shlex.quote(a) for a in argv)
+    obj = next(iter(results.values())) if len(results) == 1 else results
+    path = write(args.out, obj, command)
+    log(f'{PROG}: geometry written to {path}')
+    return {'out': args.out, 'geometry': str(path)}
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
@@ -278,7 +342,9 @@ def main(argv=None) -> int:
 
     def go() -> int:
         out = run(args, argv)
-        if 'checked' in out:
+        if 'geometry' in out:
+            print(f'{PROG}: wrote {out["geometry"]}')
+        elif 'checked' in out:
             print(f'{PROG}: {len(out["checked"])} dataset(s) OK: {", ".join(out["checked"])}')
         else:
             out_dir = Path(out['out'])
