@@ -21,7 +21,7 @@ $PY scripts/shift_folds.py --data "$DATA" --out out/shift
 specs=()
 for f in $FOLDS; do specs+=(--dataset "vprbench:out/shift/$f"); done
 heads=shipped=shipped
-for a in $FUSIONS; do heads+=",f${a#0.}=shipped@act_fusion=$a"; done
+for a in $FUSIONS; do heads+=",f${a/./}=shipped@act_fusion=$a"; done  # f025, f05, f075
 run() {  # run DIR ARGS...: lln-eval on every fold, the shipped defaults but ARGS
   local dir=$1; shift
   [ -f "$OUT/$dir/results.json" ] && return 0
