@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from lln_ros.core import training
+from lln_ros.core import training, training_pairs
 from lln_ros.core.extractor import Extractor
 from lln_ros.core.lln import LLNHead, load_checkpoint
 from lln_ros.errors import DatasetError
@@ -46,7 +46,7 @@ def conf(**kw):
 
 def test_pairs_from_dataset_excludes_frames_beside_a_match(traverses):
     ds = datasets.aligned(traverses / 'ref', traverses / 'query', tol=0)
-    pairs = training.pairs_from_dataset(ds, neg_margin=2)
+    pairs = training_pairs.pairs_from_dataset(ds, neg_margin=2)
     assert pairs.positive[4].tolist() == [i == 4 for i in range(10)]
     assert pairs.negative[4].tolist() == [i not in (2, 3, 4, 5, 6) for i in range(10)]
     assert not (pairs.positive & pairs.negative).any()
@@ -57,28 +57,28 @@ def test_places_and_sfm_layouts(tmp_path, photo):
         (tmp_path / 'places' / place).mkdir(parents=True)
         for k in range(2):
             cv2.imwrite(str(tmp_path / 'places' / place / f'{k}.jpg'), photo[k * 10 : k * 10 + 64, :64])
-    p = training.pairs_from_places(tmp_path / 'places')
+    p = training_pairs.pairs_from_places(tmp_path / 'places')
     assert len(p.query_paths) == 6 and p.positive.sum() == 6 and not p.positive.diagonal().any()
     assert p.negative[0].sum() == 4
     # Retrieval-SfM-120k: pickle {'train': {cids, cluster, qidxs, pidxs}}, images under ims/ by cid
     cids = [f'{k:08x}abcdef{k}' for k in range(4)]
     for k, cid in enumerate(cids):
-        path = training.sfm_image_path(tmp_path / 'ims', cid)
+        path = training_pairs.sfm_image_path(tmp_path / 'ims', cid)
         path.parent.mkdir(parents=True, exist_ok=True)
         cv2.imwrite(str(path) + '.png', photo[k * 20 : k * 20 + 64, :64])
         (path.parent / (path.name + '.png')).rename(path)
     with open(tmp_path / 'db.pkl', 'wb') as f:
         pickle.dump({'train': {'cids': cids, 'cluster': [0, 0, 1, 1], 'qidxs': [0, 2], 'pidxs': [1, 3]}}, f)
-    s = training.pairs_from_sfm(tmp_path / 'db.pkl', tmp_path / 'ims')
+    s = training_pairs.pairs_from_sfm(tmp_path / 'db.pkl', tmp_path / 'ims')
     assert s.positive.tolist() == [[False, True, False, False], [False, False, False, True]]
     assert s.negative.tolist() == [[False, False, True, True], [True, True, False, False]]
-    both = training.combine([p, s])
+    both = training_pairs.combine([p, s])
     assert both.positive.shape == (8, 10) and both.positive.sum() == 8
     with pytest.raises(DatasetError, match='not a Retrieval-SfM-120k pickle'):
         (tmp_path / 'bad.pkl').write_bytes(pickle.dumps({'val': {}}))
-        training.pairs_from_sfm(tmp_path / 'bad.pkl', tmp_path / 'ims')
+        training_pairs.pairs_from_sfm(tmp_path / 'bad.pkl', tmp_path / 'ims')
     with pytest.raises(DatasetError, match='SfM images missing'):
-        training.pairs_from_sfm(tmp_path / 'db.pkl', tmp_path / 'elsewhere')
+        training_pairs.pairs_from_sfm(tmp_path / 'db.pkl', tmp_path / 'elsewhere')
 
 
 def test_loss_and_embedding():
@@ -96,7 +96,7 @@ def rerank_trainer(traverses, tmp_path):
     ds = datasets.aligned(traverses / 'ref', traverses / 'query', tol=0)
     t = training.Trainer(
         small_extractor(),
-        training.pairs_from_dataset(ds, neg_margin=1),
+        training_pairs.pairs_from_dataset(ds, neg_margin=1),
         ds,
         conf(val_prefilter_k=5, val_top_n=6),
         cache_dir=str(tmp_path / 'cache'),
@@ -172,7 +172,7 @@ def test_rerank_loss_prefers_positives():
 @pytest.mark.parametrize('objective', ['rerank', 'triplet'])
 def test_training_is_deterministic_resumable_and_ships_metadata(traverses, tmp_path, objective):
     ds = datasets.aligned(traverses / 'ref', traverses / 'query', tol=0)
-    pairs = training.pairs_from_dataset(ds, neg_margin=1)
+    pairs = training_pairs.pairs_from_dataset(ds, neg_margin=1)
 
     def run(out, epochs, resume=True):
         t = training.Trainer(
@@ -269,7 +269,9 @@ def test_datasets_of_different_grids_train_together_and_best_is_the_validation_m
 ):
     wide = datasets.aligned(traverses / 'ref', traverses / 'query', tol=0, name='wide')  # 4x3 cells
     square = datasets.aligned(square_traverses / 'ref', square_traverses / 'query', tol=0, name='square')  # 3x3
-    pairs = training.combine([training.pairs_from_dataset(wide, 1), training.pairs_from_dataset(square, 1)])
+    pairs = training_pairs.combine(
+        [training_pairs.pairs_from_dataset(wide, 1), training_pairs.pairs_from_dataset(square, 1)]
+    )
     t = training.Trainer(
         small_extractor(),
         pairs,
@@ -309,7 +311,7 @@ def test_balance_sets_gives_every_training_set_the_same_share(tmp_path):
             name, [f'{name}/q{i}' for i in range(q)], [f'{name}/r{i}' for i in range(q + 2)], pos, ~pos
         )
 
-    both = training.combine([pairs('big', 40), pairs('small', 5)])
+    both = training_pairs.combine([pairs('big', 40), pairs('small', 5)])
     assert both.source.tolist() == [0] * 40 + [1] * 5
 
     def chosen(**kw):

@@ -81,15 +81,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def load_pairs(spec: str, frac, neg_margin: int):
-    from ..core import training
+    from ..core import training_pairs
 
     kind, _, rest = spec.partition(':')
     if kind == 'places':
-        return training.pairs_from_places(rest)
+        return training_pairs.pairs_from_places(rest)
     if kind == 'sfm':
         pickle_path, _, ims = rest.partition(',')
-        return training.pairs_from_sfm(pickle_path, ims)
-    return training.pairs_from_dataset(load_dataset(spec, frac), neg_margin)
+        return training_pairs.pairs_from_sfm(pickle_path, ims)
+    return training_pairs.pairs_from_dataset(load_dataset(spec, frac), neg_margin)
 
 
 def load_dataset(spec: str, frac):
@@ -105,7 +105,7 @@ def load_dataset(spec: str, frac):
 
 
 def run(args) -> dict:
-    from ..core import training
+    from ..core import training, training_pairs
     from ..core.extractor import Extractor
     from ..io import datasets
 
@@ -131,7 +131,7 @@ def run(args) -> dict:
         conf['head'] = {'norm_prior': args.norm_prior}
     # every dataset is read and checked before any feature is computed
     frac, val_frac = datasets.parse_range(args.range), datasets.parse_range(args.val_range)
-    pairs = training.combine([load_pairs(s, frac, args.neg_margin) for s in args.data])
+    pairs = training_pairs.combine([load_pairs(s, frac, args.neg_margin) for s in args.data])
     val = [load_dataset(v, val_frac) for v in args.val or []]
     extractor = Extractor(
         {

@@ -49,7 +49,7 @@ from .landmarks import l2_normalize, stack_landmarks
 from .lln import LLNHead, embed, save_checkpoint
 from .retrieval import rank_all
 from .similarity import cross_match, offset_mode, offset_weights
-from .training_pairs import PairSet, combine, pairs_from_dataset, pairs_from_places, pairs_from_sfm  # noqa: F401
+from .training_pairs import PairSet
 
 default_conf = {
     'objective': 'rerank',  # rerank (train on the test-time score) | triplet (the paper's loss)
