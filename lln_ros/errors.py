@@ -28,3 +28,8 @@ class MessageError(LLNError):
 
 class DatasetError(LLNError):
     """A dataset that cannot be read: missing folders, unequal lengths, bad ground truth."""
+
+
+class CameraError(LLNError):
+    """Camera intrinsics or depth that cannot be used: uncalibrated (zeros), NaN, a size or encoding
+    that does not match the image."""
