@@ -394,13 +394,21 @@ def cloud_to_landmarks(
 
 def keypoints_to_cloud(kps, header: Header | None = None) -> PointCloud2:
     """ORB keypoints of one image (reloc.Keypoints, 32-byte descriptors), published beside its
-    landmarks with the same header."""
+    landmarks with the same header; with kps.depth (N,) also a FLOAT32 depth field (metres, NaN = none)."""
     desc = np.asarray(kps.descriptors)
     if desc.dtype != np.uint8 or desc.ndim != 2 or desc.shape[1] != 32 or len(desc) != len(kps.uv):
         raise MessageError(f'keypoints cloud: descriptors must be uint8 (N, 32) (ORB), got {desc.dtype} {desc.shape}')
+    depth = getattr(kps, 'depth', None)
+    if depth is not None and np.shape(depth) != (len(desc),):
+        raise MessageError(f'keypoints cloud: depth must be ({len(desc)},), got {np.shape(depth)}')
     table = np.zeros(
-        len(desc), [(n, _DATATYPES[dt]) for n, dt, _ in KEYPOINT_FIELDS[:-1]] + [('descriptor', 'u1', (32,))]
+        len(desc),
+        [(n, _DATATYPES[dt]) for n, dt, _ in KEYPOINT_FIELDS[:-1]]
+        + [('descriptor', 'u1', (32,))]
+        + [('depth', '<f4')] * (depth is not None),
     )
+    if depth is not None:
+        table['depth'] = depth
     table['u'], table['v'] = kps.uv[:, 0], kps.uv[:, 1]
     for name in ('size', 'angle', 'response', 'octave'):
         table[name] = getattr(kps, name)
@@ -420,6 +428,12 @@ def cloud_to_keypoints(msg: PointCloud2, image_size=(0, 0), scale: float = 1.0, 
     for name in ('u', 'v', 'size', 'angle', 'response'):
         if not np.isfinite(table[name]).all():
             raise MessageError(f'{what}: field {name!r} contains NaN or inf')
+    depth = None
+    if 'depth' in table.dtype.names:  # the extractor's registered depth (metres, NaN = none)
+        check_fields(msg, (('depth', PointField.FLOAT32, 1),), what)
+        depth = table['depth'].astype(np.float32)
+        if np.any(np.isinf(depth)) or np.any(depth <= 0):
+            raise MessageError(f'{what}: field depth must be positive metres or NaN')
     return Keypoints(
         uv=np.stack([table['u'], table['v']], axis=1).astype(np.float32),
         size=table['size'].astype(np.float32),
@@ -429,6 +443,7 @@ def cloud_to_keypoints(msg: PointCloud2, image_size=(0, 0), scale: float = 1.0, 
         descriptors=np.ascontiguousarray(table['descriptor'], np.uint8).reshape(len(table), 32),
         scale=float(scale),
         image_size=tuple(int(v) for v in image_size),
+        depth=depth,
     )
 
 
