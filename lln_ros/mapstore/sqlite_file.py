@@ -71,7 +71,8 @@ log = logging.getLogger(__name__)
 SCHEMA_VERSION = 2
 SQLITE_MAGIC = b'SQLite format 3\x00'
 
-SCHEMA = """
+SCHEMA = (
+    """
 CREATE TABLE meta (
     key   TEXT PRIMARY KEY,
     value TEXT NOT NULL
@@ -96,7 +97,10 @@ CREATE TABLE landmarks (
     scores      BLOB NOT NULL,
     descriptors BLOB NOT NULL
 );
-""" + GEOMETRY_TABLE + ';'
+"""
+    + GEOMETRY_TABLE
+    + ';'
+)
 
 # schema version v -> function(conn) that upgrades a v map to v + 1 (called inside a transaction)
 MIGRATIONS: dict = {1: migrate_1_to_2}

@@ -2,12 +2,20 @@
 
 Subscribes  lln/keyframes (PointCloud2 landmark sets to store), lln/query (landmark sets to localize),
             lln/model_info (std_msgs/String, the extractor's model, latched), lln/keypoints (PointCloud2,
-            the extractor's ORB keypoints; with verify)
+            the extractor's ORB keypoints, with depth when it has depth; with verify),
+            camera_info (sensor_msgs/CameraInfo; or the camera_info_file parameter), odom (nav_msgs/Odometry)
 Publishes   lln/candidates (PointCloud2: keyframe_id, score, holistic_score, stamp_sec, stamp_nanosec;
             with verify also inliers, NaN where the keyframe or query had no keypoints;
             with sequence_length > 0 also sequence_score),
-            lln/matches (PointCloud2: the matched region pairs of the best candidate), /diagnostics
-Services    ~/save, ~/clear, ~/info (std_srvs/Trigger; info answers JSON)
+            lln/matches (PointCloud2: the matched region pairs of the best candidate), /diagnostics,
+            lln/pose (geometry_msgs/PoseWithCovarianceStamped: localization mode, the camera in the
+            frame of the keyframes' odometry poses, for each accepted metric pose)
+Services    ~/save, ~/clear, ~/info, ~/relocalize (std_srvs/Trigger; info answers JSON; relocalize
+            forgets the pose-consistency state: a kidnapped robot)
+
+With verify and geometry (default on), the best candidate's T(keyframe <- query) and its 6x6
+covariance go in the candidates table as pose_* / tx..qw / cov_0..cov_35 fields (docs/interfaces.md;
+lln_ros.core.registration). Keyframes keep the camera model, keypoint depths and the odometry pose.
 
 mode=localization answers queries and leaves the map alone; mode=mapping answers each query, then
 stores it as a keyframe (online loop-closure detection; the newest `exclude_recent` keyframes are
@@ -34,8 +42,10 @@ from __future__ import annotations
 import json
 import sys
 
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
 from rclpy.node import Node
-from sensor_msgs.msg import PointCloud2
+from sensor_msgs.msg import CameraInfo, PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
@@ -50,6 +60,9 @@ from ..ros import msgs, topics
 from ..ros.stream import StampGaps
 from .common import MODEL_QOS, Health, loss_events, run_node, start_diagnostics, subscription_qos, worst
 from .parameters import Param, declare_all
+from .registration_params import KEYS as REG_KEYS
+from .registration_params import PARAMETERS as REGISTRATION_PARAMETERS
+from .registration_params import registration_conf
 
 # defaults come from the ROS-free confs (lln_ros.core.localizer / limits): one source each.
 # dynamic=True: settable at run time (ros2 param set), applied from the next message on
@@ -152,6 +165,7 @@ PARAMETERS = {
         range=(1, 2**31 - 1),
     ),
     'max_keypoints': Param(LIMITS['max_keypoints'], 'limit: rows per keypoints cloud (verify)', range=(1, 2**31 - 1)),
+    **REGISTRATION_PARAMETERS,
 }
 # the Localizer's own settings among them (updated in place at run time: it reads them per message)
 LOCALIZER_KEYS = (
@@ -180,6 +194,7 @@ class MatcherNode(Node):
         self.health = Health(self)
         conf = {name: p[name] for name in LOCALIZER_KEYS}
         conf['limits'] = {name: p[name] for name in LIMITS}
+        conf['registration'] = registration_conf(p)
         Localizer.check_conf(conf)  # a bad parameter ends the node before the map is touched
         self.store, quarantined = open_for_matcher(p['map_path'], p['mode'], p['descriptor_space'])
         self.loc = Localizer(self.store, conf, self.health, self.get_logger(), msgs.cloud_to_keypoints)
@@ -206,6 +221,16 @@ class MatcherNode(Node):
         self.create_subscription(String, topics.MODEL_INFO, self.on_model_info, MODEL_QOS)
         if p['verify']:
             self.create_subscription(PointCloud2, topics.KEYPOINTS, self.on_keypoints, qos)
+        sensor_qos = subscription_qos(p['sensor_reliability'], 50)
+        if p['camera_info_file']:
+            from ..core.camera import CameraModel
+
+            self.loc.reg.set_camera(CameraModel.from_camera_info(p['camera_info_file']))  # CameraError: fatal
+        else:
+            self.create_subscription(CameraInfo, topics.CAMERA_INFO, self.on_camera_info, sensor_qos)
+        self.create_subscription(Odometry, topics.ODOM, self.on_odometry, sensor_qos)
+        self.pose_pub = self.create_publisher(PoseWithCovarianceStamped, topics.POSE, 10)
+        self.create_service(Trigger, '~/relocalize', self.on_relocalize)
         self.create_service(Trigger, '~/save', self.on_save)
         self.create_service(Trigger, '~/clear', self.on_clear)
         self.create_service(Trigger, '~/info', self.on_info)
@@ -239,6 +264,9 @@ class MatcherNode(Node):
                 if conf['sequence_length'] > 0
                 else None
             )
+        reg = {k: v for k, v in changes.items() if k in REG_KEYS}
+        if reg:
+            self.loc.reg.update(reg)
         if 'diagnostics_period' in changes:
             self.diagnostics.set_period(changes['diagnostics_period'])
 
@@ -286,6 +314,8 @@ class MatcherNode(Node):
             'bad_keyframe',
             'bad_keypoints',
             'bad_model_info',
+            'bad_camera_info',
+            'bad_odometry',
             'queries_failed',
             'keyframes_failed',
         ):
@@ -316,6 +346,22 @@ class MatcherNode(Node):
             self.loc.refuse(counter, e)
             return None
 
+    def on_camera_info(self, msg: CameraInfo) -> None:
+        try:
+            camera = msgs.camera_info_to_model(msg)
+        except LLNError as e:  # zeros (uncalibrated), NaN, a principal point outside the size: not used
+            self.loc.refuse('bad_camera_info', e)
+            return
+        self.loc.reg.set_camera(camera)
+
+    def on_odometry(self, msg: Odometry) -> None:
+        try:
+            odom = msgs.odometry_to_pose(msg)
+        except LLNError as e:  # NaN, a non-unit quaternion: never buffered, so never stored with a keyframe
+            self.loc.refuse('bad_odometry', e)
+            return
+        self.loc.reg.add_odometry(odom)
+
     def on_keypoints(self, msg: PointCloud2) -> None:
         self.loc.keypoints(msg, msgs.stamp_to_ns(msg.header.stamp))
 
@@ -343,6 +389,10 @@ class MatcherNode(Node):
         self.matches_pub.publish(
             msgs.matches_to_cloud(msgs.match_rows(best.keyframe_id, best.pairs) if best else [], msg.header)
         )
+        pose = answer.pose
+        if self.params['mode'] == 'localization' and pose is not None and pose.T_map is not None:
+            self.pose_pub.publish(msgs.pose_to_message(pose.T_map, pose.cov_map, stamp, pose.frame_id))
+            self.health.count('poses_published')
         self.health.count('queries_answered')
 
     # ------------------------------------------------------------------ services
@@ -356,6 +406,18 @@ class MatcherNode(Node):
 
     def on_clear(self, request, response):
         return self._service(response, lambda: f'cleared {self.loc.clear()} keyframes from {self.store.path}')
+
+    def on_relocalize(self, request, response):
+        def relocalize():
+            self.loc.reg.reset()
+            c = self.loc.conf
+            if self.loc.sequence is not None:  # the sequence search starts afresh too
+                self.loc.sequence = KeyframeSequence(
+                    {'length': c['sequence_length'], 'max_gap_s': c['sequence_max_gap']}
+                )
+            return 'pose consistency state cleared: the next accepted pose starts from scratch'
+
+        return self._service(response, relocalize)
 
     def on_info(self, request, response):
         return self._service(
