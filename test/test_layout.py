@@ -107,3 +107,29 @@ def test_module_imports_counts_module_level_imports_only(tmp_path):
     (tmp_path / 'a.py').write_text('from .b import x\n\ndef f():\n    from .c import y\n')
     known = {'lln_ros.x.a': None, 'lln_ros.x.b': None, 'lln_ros.x.c': None}
     assert module_imports('lln_ros.x.a', tmp_path / 'a.py', False, known) == {'lln_ros.x.b'}
+
+
+def test_every_import_in_the_package_resolves():
+    """Imports inside functions too (lazy ones that only fail when called): each names a module
+    that exists and a name that module has."""
+    import importlib
+
+    known, missing = modules(), []
+    for name, (f, is_pkg) in known.items():
+        pkg = name.split('.') if is_pkg else name.split('.')[:-1]
+        for node in ast.walk(ast.parse(f.read_text())):
+            if not isinstance(node, ast.ImportFrom):
+                continue
+            base = pkg[: len(pkg) - node.level + 1] if node.level else []
+            mod = '.'.join(base + ([node.module] if node.module else []))
+            if not mod.startswith('lln_ros'):
+                continue
+            try:
+                module = importlib.import_module(mod)
+            except ImportError as e:
+                missing.append(f'{f.name}:{node.lineno}: {mod} ({e})')
+                continue
+            for alias in node.names:
+                if alias.name != '*' and not hasattr(module, alias.name) and f'{mod}.{alias.name}' not in known:
+                    missing.append(f'{f.name}:{node.lineno}: {mod} has no {alias.name}')
+    assert missing == []

@@ -162,6 +162,15 @@ def build_parser() -> argparse.ArgumentParser:
         help=f'ORB FAST threshold (default {conf["reloc_fast_threshold"]}; 5 for blurry upsampled '
         'images such as Nordland)',
     )
+    p.add_argument(
+        '--geometry',
+        action='store_true',
+        help='instead: metric loop closures on an RGB-D sequence (poses:DIR in the TUM layout with depth/ and '
+        'camera_info.yaml) replayed through extractor, localizer and core.geometry; writes results.json `geometry`',
+    )
+    p.add_argument(
+        '--geometry-step', type=int, default=3, help='--geometry: every N-th colour frame (default 3: 10 Hz of 30)'
+    )
     p.add_argument('--check', action='store_true', help='read and check every dataset and head, then stop')
     p.add_argument('--quiet', action='store_true', help='no progress output')
     return p
@@ -204,6 +213,8 @@ def run(args, argv) -> dict:
         raise UsageError(f'--sequence-prefilter-k must be at least 0 (0 = every ref), got {args.sequence_prefilter_k}')
     if args.sequence < 0:
         raise UsageError(f'--sequence must be 0 (off) or a length of at least 1, got {args.sequence}')
+    if args.geometry:
+        return run_geometry(args, argv, log)
     from ..io.datasets import parse_range
 
     frac = parse_range(args.range)
@@ -261,6 +272,36 @@ def run(args, argv) -> dict:
     return {'out': args.out, 'figures': result.figures}
 
 
+def run_geometry(args, argv, log) -> dict:
+    """lln-eval --geometry: every --dataset poses:DIR read as a TUM RGB-D sequence (io.rgbd), replayed
+    (eval.geometry), its `geometry` object written to --out/results.json (one dataset: the object
+    itself; several: keyed by name)."""
+    from ..core.extractor import Extractor
+    from ..eval.geometry import evaluate_geometry, write
+    from ..io.rgbd import read_tum
+
+    if args.geometry_step < 1:
+        raise UsageError(f'--geometry-step must be at least 1, got {args.geometry_step}')
+    roots = []
+    for spec in args.dataset:
+        kind, _, rest = spec.partition(':')
+        if kind != 'poses' or not rest:
+            raise UsageError(f'--geometry needs --dataset poses:DIR (a TUM RGB-D folder), got {spec!r}')
+        roots.append(rest.split(',')[0])
+    seqs = [read_tum(root, {'step': args.geometry_step}) for root in roots]  # every input checked first
+    for seq in seqs:
+        log(f'{PROG}: {seq.name}: {len(seq)} RGB-D frames ({seq.info["frames_without_depth"]} without depth)')
+    if args.check:
+        return {'checked': [s.name for s in seqs]}
+    extractor = Extractor(extractor_conf(args, num_threads=args.threads))
+    results = {s.name: evaluate_geometry(s, extractor, progress=not args.quiet) for s in seqs}
+    command = f'{PROG} ' + ' '.join(shlex.quote(a) for a in argv)
+    obj = next(iter(results.values())) if len(results) == 1 else results
+    path = write(args.out, obj, command)
+    log(f'{PROG}: geometry written to {path}')
+    return {'out': args.out, 'geometry': str(path)}
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
@@ -273,7 +314,9 @@ def main(argv=None) -> int:
 
     def go() -> int:
         out = run(args, argv)
-        if 'checked' in out:
+        if 'geometry' in out:
+            print(f'{PROG}: wrote {out["geometry"]}')
+        elif 'checked' in out:
             print(f'{PROG}: {len(out["checked"])} dataset(s) OK: {", ".join(out["checked"])}')
         else:
             out_dir = Path(out['out'])

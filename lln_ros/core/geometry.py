@@ -1,5 +1,5 @@
 """Where, not only which: the relative pose of a query camera in a candidate keyframe's camera frame,
-from keypoint matches constrained to the matched landmark regions (lln_ros.reloc, mLLN).
+from keypoint matches constrained to the matched landmark regions (lln_ros.core.reloc, mLLN).
 
     est = estimate_pose(query_kps, keyframe_kps, matches, query_cam, keyframe_cam, keyframe_depth_m)
     est.ok, est.reason, est.method            # 'pnp' (metric, keyframe depth) | 'essential' (no depth)
@@ -36,12 +36,17 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from .reloc import _collinear
+from .reloc import default_conf as reloc_conf
+
 default_conf = {
     'ransac_px': 3.0,  # inlier threshold, pixels of the query image (PnP reprojection / E Sampson distance)
     'confidence': 0.999,
     'max_iters': 1000,
     'min_matches': 8,  # fewer region-constrained matches: no pose
     'min_points': 8,  # fewer matches with a valid keyframe depth: the essential matrix instead of PnP
+    # inliers whose 2nd principal extent is below this fraction of the 1st lie on a line: degenerate
+    'min_spread': reloc_conf['min_spread'],
     'min_depth_m': 0.2,  # depth readings outside [min, max] are not used (Kinect: ~0.5-4.5 m)
     'max_depth_m': 8.0,
     'depth_window': 1,  # half-size (pixels) of the window a keypoint's depth is read from
@@ -197,7 +202,7 @@ def estimate_pose(
     query, keyframe, matches, query_cam, keyframe_cam, keyframe_depth: np.ndarray | None = None, conf=None
 ) -> PoseEstimate:
     """T(keyframe <- query) from reloc.Matches between reloc.Keypoints query and keyframe, with
-    core.camera.CameraModel query_cam and keyframe_cam and the keyframe's depth (H, W) float32
+    io.camera.CameraModel query_cam and keyframe_cam and the keyframe's depth (H, W) float32
     metres (NaN = none), or the keyframe keypoints' depths (N,) metres (NaN = none), or None. PnP
     when at least min_points matches have a depth, else the
     essential matrix. Never raises for degenerate input (module doc)."""
@@ -256,6 +261,11 @@ def _pnp(X: np.ndarray, nq: np.ndarray, valid: np.ndarray, thr: float, c: dict) 
         sel = np.flatnonzero(err < thr)
         if len(sel) < 6:
             return PoseEstimate(False, f'{len(sel)} PnP inliers after refinement', 'pnp')
+    X_q = (obj[sel] - T_kq[:3, 3]) @ T_kq[:3, :3]
+    if np.mean(X_q[:, 2] > 0) < 0.99:  # a pose that puts the scene behind the query camera
+        return PoseEstimate(False, 'PnP pose puts the points behind the query camera', 'pnp')
+    if _collinear(img[sel], c['min_spread']):
+        return PoseEstimate(False, 'PnP inliers lie on a line or a point in the query (degenerate)', 'pnp')
     mask = np.zeros(len(X), bool)
     mask[idx[sel]] = True
     cov = _covariance(lambda T: _reproject(T, obj[sel], img[sel]), T_kq)
@@ -292,6 +302,8 @@ def _essential(nq: np.ndarray, nk: np.ndarray, thr: float, c: dict) -> PoseEstim
     sel = np.flatnonzero(pose_mask.ravel() > 0)
     if n_good < 6 or len(sel) < 6:
         return PoseEstimate(False, f'{len(sel)} inliers in front of both cameras', 'essential')
+    if _collinear(nq[sel], c['min_spread']) or _collinear(nk[sel], c['min_spread']):
+        return PoseEstimate(False, 'essential inliers lie on a line or a point (degenerate)', 'essential')
     T_kq = rigid(R, t.ravel())
     res = np.abs(_sampson(T_kq, nq[sel], nk[sel]))
     cov = _covariance(lambda T: _sampson(T, nq[sel], nk[sel]), T_kq, rank=5)

@@ -289,7 +289,7 @@ class Registration:
     def estimate(self, query_kps, kf_kps, matches, kf_geom: dict | None, score: float, odom, image_size, keyframe_id):
         """PoseAnswer for the best candidate (module doc), or None when it cannot be estimated (no
         camera for the query or keyframe: counted as pose_no_camera)."""
-        from .camera import CameraModel
+        from ..io.camera import CameraModel
 
         qcam = self.camera_for(image_size)
         kcam = None

@@ -27,7 +27,7 @@ from .report import pct
 def _pyplot():
     import matplotlib.pyplot as plt
 
-    from .. import plotting  # noqa: F401  (selects the Agg backend first: files only, no display)
+    from ..viz import plotting  # noqa: F401  (selects the Agg backend first: files only, no display)
 
     return plt
 

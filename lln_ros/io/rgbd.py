@@ -2,7 +2,7 @@
 
     seq = read_tum('../shared/data/tum_fr1rpy', step=3)
     seq.frames[i].stamp, .rgb, .depth (Path or None), .pose (7,) tx ty tz qx qy qz qw
-    seq.camera                       # core.camera.CameraModel from DIR/camera_info.yaml
+    seq.camera                       # io.camera.CameraModel from DIR/camera_info.yaml
     seq.depth_m(i)                   # (H, W) float32 metres, NaN = no reading
     seq.T_world_cam(i)               # (4, 4) float64: x_world = T @ x_cam (optical frame)
 
@@ -22,8 +22,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..core.camera import CameraModel
 from ..errors import CameraError, DatasetError
+from .camera import CameraModel
 from .datasets import POSE_MAX_DT, _read_rows
 
 default_conf = {

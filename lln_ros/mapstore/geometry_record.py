@@ -33,7 +33,7 @@ def check(fields: dict, where: str) -> dict:
     if 'camera' in fields:
         cam = fields['camera']
         if cam is not None:
-            from ..core.camera import CameraModel
+            from ..io.camera import CameraModel
 
             try:
                 cam = CameraModel.from_camera_info(dict(cam), str(cam.get('frame_id', ''))).to_dict()

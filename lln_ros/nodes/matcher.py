@@ -223,7 +223,7 @@ class MatcherNode(Node):
             self.create_subscription(PointCloud2, topics.KEYPOINTS, self.on_keypoints, qos)
         sensor_qos = subscription_qos(p['sensor_reliability'], 50)
         if p['camera_info_file']:
-            from ..core.camera import CameraModel
+            from ..io.camera import CameraModel
 
             self.loc.reg.set_camera(CameraModel.from_camera_info(p['camera_info_file']))  # CameraError: fatal
         else:

@@ -47,7 +47,7 @@ def frame_images(folder: str | os.PathLike, pattern: str | None = None) -> tuple
     'other_kind': [names], 'kind': the frames' suffix or None}. DatasetError when nothing is left."""
     from collections import Counter
 
-    from .datasets import IMAGE_SUFFIXES, natural_key
+    from ..io.datasets import IMAGE_SUFFIXES, natural_key
 
     paths = list_images(folder, pattern)  # DatasetError: missing folder, no image at all
     files = Path(folder).glob(pattern) if pattern else Path(folder).iterdir()

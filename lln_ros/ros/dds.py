@@ -36,7 +36,7 @@ def shipped_profile() -> Path | None:
             pass
     except ImportError:
         pass
-    candidates.append(Path(__file__).resolve().parents[1] / 'config' / PROFILE_NAME)
+    candidates.append(Path(__file__).resolve().parents[2] / 'config' / PROFILE_NAME)
     return next((p for p in candidates if p.is_file()), None)
 
 

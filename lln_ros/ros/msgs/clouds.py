@@ -407,10 +407,8 @@ def keypoints_to_cloud(kps, header: Header | None = None) -> PointCloud2:
         + [('descriptor', 'u1', (32,))]
         + [('depth', '<f4')] * (depth is not None),
     )
-    if depth is not None:
-        table['depth'] = depth
     table['u'], table['v'] = kps.uv[:, 0], kps.uv[:, 1]
-    for name in ('size', 'angle', 'response', 'octave'):
+    for name in ('size', 'angle', 'response', 'octave') + ('depth',) * (depth is not None):
         table[name] = getattr(kps, name)
     table['descriptor'] = desc
     return array_to_cloud(table, header)
@@ -428,11 +426,10 @@ def cloud_to_keypoints(msg: PointCloud2, image_size=(0, 0), scale: float = 1.0, 
     for name in ('u', 'v', 'size', 'angle', 'response'):
         if not np.isfinite(table[name]).all():
             raise MessageError(f'{what}: field {name!r} contains NaN or inf')
-    depth = None
-    if 'depth' in table.dtype.names:  # the extractor's registered depth (metres, NaN = none)
+    depth = table['depth'].astype(np.float32) if 'depth' in table.dtype.names else None  # metres, NaN = none
+    if depth is not None:
         check_fields(msg, (('depth', PointField.FLOAT32, 1),), what)
-        depth = table['depth'].astype(np.float32)
-        if np.any(np.isinf(depth)) or np.any(depth <= 0):
+        if np.any(np.isinf(depth) | (depth <= 0)):
             raise MessageError(f'{what}: field depth must be positive metres or NaN')
     return Keypoints(
         uv=np.stack([table['u'], table['v']], axis=1).astype(np.float32),

@@ -1,13 +1,13 @@
 """The metric inputs and outputs of issue 27 as ROS messages: sensor_msgs/CameraInfo, REP 118 depth
 images (sensor_msgs/Image 16UC1 mm / 32FC1 m), nav_msgs/Odometry and geometry_msgs/PoseWithCovarianceStamped.
 
-    cam = camera_info_to_model(msg)                   # core.camera.CameraModel; CameraError when unusable
+    cam = camera_info_to_model(msg)                   # io.camera.CameraModel; CameraError when unusable
     depth_m = depth_image_to_metres(msg, (w, h))      # (H, W) float32 metres, NaN = none; CameraError
     odom = odometry_to_pose(msg)                      # core.registration.OdomPose; MessageError (NaN, |q| != 1)
     msg = pose_to_message(T, covariance, stamp_ns, frame_id)   # PoseWithCovarianceStamped
     camera_model_to_info / depth_to_image / pose_to_odometry    # the other way (bags, tests)
 
-Validation itself is ROS-free (core.camera.check_intrinsics / depth_metres, core.registration.pose_from_parts):
+Validation itself is ROS-free (io.camera.check_intrinsics / depth_metres, core.registration.pose_from_parts):
 these functions only move fields between messages and arrays.
 """
 
@@ -18,7 +18,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import CameraInfo, Image
 
-from ...core.camera import DEPTH_ENCODINGS, CameraModel, depth_metres
+from ...io.camera import DEPTH_ENCODINGS, CameraModel, depth_metres
 from ...core.geometry import quaternion
 from ...core.registration import OdomPose, pose_from_parts
 from ...errors import CameraError, MessageError
@@ -36,7 +36,7 @@ __all__ = [
 
 
 def camera_info_to_model(msg: CameraInfo) -> CameraModel:
-    """core.camera.CameraModel from a sensor_msgs/CameraInfo (frame_id from its header). An
+    """io.camera.CameraModel from a sensor_msgs/CameraInfo (frame_id from its header). An
     uncalibrated camera's all-zero K, NaN, a principal point outside width x height and distortion
     coefficients its model does not define raise CameraError."""
     if not isinstance(msg, CameraInfo):

@@ -57,6 +57,10 @@ class CameraModel:
             source = {
                 k: getattr(source, k) for k in ('width', 'height', 'k', 'd', 'distortion_model') if hasattr(source, k)
             }
+        header = source.get('header')
+        frame_id = (
+            frame_id or source.get('frame_id') or (header.get('frame_id', '') if isinstance(header, dict) else '')
+        )
         width = source.get('image_width', source.get('width'))
         height = source.get('image_height', source.get('height'))
         k = _field(source, ('camera_matrix', 'k', 'K'), 'camera matrix')

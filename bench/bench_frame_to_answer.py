@@ -1,0 +1,154 @@
+"""Frame to answer: a camera image in, the matcher's candidates out, through the code the nodes run.
+
+    python bench/bench_frame_to_answer.py [--sizes 1000,10000,100000] [--frames 60] [--threads 2]
+                                          [--sequence 0] [--dir /tmp/lln_bench_f2a] [--json]
+
+Per frame, in this process and in the nodes' order: Extractor.__call__ (the extractor node's
+runtime and threads: ONNX Runtime by default) on a 384x288 RGB frame, then Localizer.query (the
+matcher node's decision code: first stage, rerank by S, sequence search with --sequence L > 0) on an
+SQLite map of each --sizes keyframes. DDS transport is not in it (bench/bench_node_rate.py measures
+the nodes over DDS; a 20 KB landmark cloud costs well under a millisecond on loopback).
+
+The map: 200 real keyframes (views of the photograph matplotlib ships, extracted by the same
+Extractor), then synthetic keyframes with the default model's shapes (bench_map.synthetic_set: n=50
+unit descriptors, D=192) up to each size; one map grows through --sizes. The queries are the real
+keyframes' images again, brightened by 20% and with Gaussian pixel noise (sigma 6), so `top-1`
+says the map still answers.
+
+Each size is measured twice in one run, quiet (no process of ours besides this one) and beside one
+competing CPU-bound process this script starts and stops: p50 / p90 / p99 wall ms per frame, the
+CPU ms per frame (process time, all threads), and the p50 of each stage. The load average at the
+start of each row is printed: on a shared machine "quiet" means "nothing else of ours".
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_core import competing_load, photo_views  # noqa: E402
+from bench_map import synthetic_set  # noqa: E402
+
+from lln_ros.core.extractor import Extractor  # noqa: E402
+from lln_ros.core.localizer import Localizer  # noqa: E402
+from lln_ros.mapstore import MapStore  # noqa: E402
+
+REAL_KEYFRAMES = 200
+T0 = 1_700_000_000 * 10**9
+
+
+def query_images(images: list[np.ndarray], count: int, seed: int = 0) -> list[np.ndarray]:
+    """`count` photometrically changed copies of `images` (cycled): 1.2x brighter, noise sigma 6."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(count):
+        img = images[i % len(images)].astype(np.float32) * 1.2 + rng.normal(0, 6, images[0].shape)
+        out.append(np.clip(img, 0, 255).astype(np.uint8))
+    return out
+
+
+def grow(store, size: int, rng) -> None:
+    """Synthetic keyframes until the map holds `size` (bulk, 1000 per transaction)."""
+    while len(store) < size:
+        batch = [synthetic_set(rng) for _ in range(min(1000, size - len(store)))]
+        start = len(store)
+        store.add_many(batch, [divmod(T0 + (start + i) * 10**8, 10**9) for i in range(len(batch))])
+
+
+def percentiles(values: list[float]) -> dict:
+    a = np.asarray(values)
+    return {f'p{q}': float(np.percentile(a, q)) for q in (50, 90, 99)}
+
+
+def measure(extractor, loc, images: list, truth: list[int]) -> dict:
+    """Per-frame wall and CPU ms, stage p50s and top-1 of the real keyframe each query shows."""
+    wall, cpu, extract, query, hits = [], [], [], [], 0
+    for i, img in enumerate(images):
+        w0, c0 = time.perf_counter(), time.process_time()
+        lset = extractor(img)
+        w1 = time.perf_counter()
+        answer = loc.query(lset, T0 + 10**12 + i * 33_000_000)
+        w2, c2 = time.perf_counter(), time.process_time()
+        wall.append((w2 - w0) * 1e3)
+        cpu.append((c2 - c0) * 1e3)
+        extract.append((w1 - w0) * 1e3)
+        query.append((w2 - w1) * 1e3)
+        hits += bool(answer and answer.rows and int(answer.rows[0]['keyframe_id']) == truth[i])
+    return {
+        **percentiles(wall),
+        'cpu_ms_p50': float(np.median(cpu)),
+        'extract_ms_p50': float(np.median(extract)),
+        'query_ms_p50': float(np.median(query)),
+        'top1': hits / len(images),
+        'frames': len(images),
+    }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('--sizes', default='1000,10000', help='map sizes, keyframes (100000: ~2 GB in --dir)')
+    ap.add_argument('--frames', type=int, default=60, help='frames timed per row')
+    ap.add_argument('--threads', type=int, default=2, help="the extractor's runtime threads")
+    ap.add_argument('--sequence', type=int, default=0, help="the matcher's sequence_length (0 = single frame)")
+    ap.add_argument('--dir', default='/tmp/lln_bench_f2a')
+    ap.add_argument('--json', action='store_true')
+    args = ap.parse_args(argv)
+    sizes = sorted(int(s) for s in args.sizes.split(','))
+    folder = Path(args.dir)
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+
+    extractor = Extractor({'num_threads': args.threads})
+    rng = np.random.default_rng(0)
+    views = photo_views(REAL_KEYFRAMES, 384)
+    rows = []
+    with MapStore.open(folder / 'map.db', model=extractor.model_info) as store:
+        real_ids = store.add_many(
+            [extractor(v) for v in views], [divmod(T0 + i * 10**8, 10**9) for i in range(len(views))]
+        )
+        queries = query_images(views, args.frames)
+        truth = [real_ids[i % len(views)] for i in range(args.frames)]
+        for size in sizes:
+            grow(store, size, rng)
+            loc = Localizer(store, {'sequence_length': args.sequence})
+            loc.query(extractor(queries[0]), T0)  # first query builds what the open left lazy
+            for load in (False, True):
+                start_load = os.getloadavg()[0]
+                with competing_load(load):
+                    r = measure(extractor, loc, queries, truth)
+                rows.append({'keyframes': len(store), 'competing': load, 'load_avg': start_load, **r})
+    if args.json:
+        print(json.dumps(rows, indent=1))
+    print(table(rows, args))
+    return 0
+
+
+def table(rows: list[dict], args) -> str:
+    lines = [
+        f'frame to answer, 384x288, {args.threads} runtime threads, sequence_length {args.sequence}, '
+        f'{args.frames} frames per row ({os.cpu_count()} cores)',
+        f'{"keyframes":>9} {"beside":>10} {"load":>5} {"p50 ms":>7} {"p90 ms":>7} {"p99 ms":>7} '
+        f'{"cpu ms":>7} {"extract":>8} {"query":>7} {"top-1":>6} {"p50/quiet":>9}',
+    ]
+    quiet = {r['keyframes']: r['p50'] for r in rows if not r['competing']}
+    for r in rows:
+        lines.append(
+            f'{r["keyframes"]:>9} {"1 busy" if r["competing"] else "nothing":>10} {r["load_avg"]:>5.1f} '
+            f'{r["p50"]:>7.1f} {r["p90"]:>7.1f} {r["p99"]:>7.1f} {r["cpu_ms_p50"]:>7.1f} '
+            f'{r["extract_ms_p50"]:>8.1f} {r["query_ms_p50"]:>7.1f} {r["top1"]:>6.2f} '
+            f'{r["p50"] / quiet[r["keyframes"]]:>9.2f}'
+        )
+    return '\n'.join(lines)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
