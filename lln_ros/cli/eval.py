@@ -171,6 +171,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         '--geometry-step', type=int, default=3, help='--geometry: every N-th colour frame (default 3: 10 Hz of 30)'
     )
+    p.add_argument(
+        '--geometry-swap',
+        action='store_true',
+        help='--geometry: choose the thresholds on the second half, report on the first (default: the other way)',
+    )
     p.add_argument('--check', action='store_true', help='read and check every dataset and head, then stop')
     p.add_argument('--quiet', action='store_true', help='no progress output')
     return p
@@ -294,7 +299,8 @@ def run_geometry(args, argv, log) -> dict:
     if args.check:
         return {'checked': [s.name for s in seqs]}
     extractor = Extractor(extractor_conf(args, num_threads=args.threads))
-    results = {s.name: evaluate_geometry(s, extractor, progress=not args.quiet) for s in seqs}
+    conf = {'swap': args.geometry_swap}
+    results = {s.name: evaluate_geometry(s, extractor, conf, progress=not args.quiet) for s in seqs}
     command = f'{PROG} ' + ' '.join(shlex.quote(a) for a in argv)
     obj = next(iter(results.values())) if len(results) == 1 else results
     path = write(args.out, obj, command)

@@ -55,11 +55,12 @@ default_conf = {
     # where plain RANSAC's unrefined minimal solution gave 0.8 / 6.6 deg
     'essential_method': 'USAC_ACCURATE',
     'unknown_scale_variance': 1e6,  # m^2 along t for essential-matrix poses (scale unobservable)
-    # acceptance (accept()): chosen on the first half of tum_fr1rpy, see docs/geometry.md
-    'min_score': 0.0,  # landmark similarity S of the candidate
-    'min_inliers': 30,
+    # acceptance (accept()): the rule lln-eval --geometry chose with depth on the first half of
+    # tum_fr1rpy (docs/geometry.md); S is the shipped head's landmark similarity
+    'min_score': 10.0,  # landmark similarity S of the candidate
+    'min_inliers': 20,
     'min_inlier_ratio': 0.0,  # inliers / region-constrained matches
-    'max_reproj_px': 1.5,  # median inlier residual, pixels
+    'max_reproj_px': 2.0,  # median inlier residual, pixels
     'max_rot_std_deg': 0.0,  # largest rotation standard deviation from the covariance; 0 = off
     'max_trans_std_m': 0.0,  # largest translation standard deviation (PnP only); 0 = off
     # Agreement: the last agree_frames estimates (consecutive queries) must agree, after odometry

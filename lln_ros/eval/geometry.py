@@ -36,6 +36,7 @@ eval_conf = {
     'revisit_deg': 15.0,  # a query is a true revisit when an allowed keyframe is within these
     'revisit_m': 0.3,
     'split': 0.5,  # fraction of the frames whose queries choose the thresholds; the rest report
+    'swap': False,  # True: the later part chooses, the first part reports (the same check the other way)
     'k': 5,  # candidates the Localizer answers; the geometry runs on the best
     'max_keypoints': 1000,  # ORB keypoints per image (reloc's default)
     'margin': 1.0,  # region growth in cells (reloc's default)
@@ -138,14 +139,17 @@ def evaluate_geometry(seq, extractor, conf: dict | None = None, progress: bool =
     c = {**eval_conf, **gs.score_conf, **(conf or {})}
     records, timing = replay(seq, extractor, c, progress)
     cut = int(round(float(c['split']) * len(records)))
+    first = f'queries of frames 0-{cut - 1} (the first {c["split"]:g} of {seq.name}, step {seq.info.get("step")})'
+    rest = f'queries of frames {cut}-{len(records) - 1} (the rest; answers may be any earlier keyframe)'
     parts = {'choose': records[:cut], 'report': records[cut:]}
+    if c['swap']:
+        parts, first, rest = {'choose': parts['report'], 'report': parts['choose']}, rest, first
     out = {
         'dataset': seq.name,
         'frames': len(seq),
         'step': seq.info.get('step'),
-        'choose_part': f'queries of frames 0-{cut - 1} (the first {c["split"]:g} of {seq.name}, '
-        f'step {seq.info.get("step")})',
-        'report_part': f'queries of frames {cut}-{len(records) - 1} (the rest; answers may be any earlier keyframe)',
+        'choose_part': first,
+        'report_part': rest,
         'revisit': {'max_deg': c['revisit_deg'], 'max_m': c['revisit_m'], 'min_gap_s': c['min_gap_s']},
         'false_fix': {'max_m': c['false_m'], 'max_deg': c['false_deg']},
         'odometry': 'ground truth (the keyframe poses and the Agreement check)',
