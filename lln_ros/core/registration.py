@@ -137,14 +137,21 @@ def pose_vector(T: np.ndarray) -> np.ndarray:
 
 class OdometryBuffer:
     """The newest `capacity` odometry poses, sorted by stamp; a new frame_id starts it afresh (poses
-    of two frames cannot be compared)."""
+    of two frames cannot be compared). Thread-safe: a node may add from a sensor thread."""
 
     def __init__(self, capacity: int, max_dt_s: float):
+        import threading
+
         self.capacity, self.max_dt_ns = int(capacity), int(float(max_dt_s) * 1e9)
         self.stamps: list[int] = []
         self.poses: list[OdomPose] = []
+        self._lock = threading.Lock()
 
     def add(self, odom: OdomPose) -> None:
+        with self._lock:
+            self._add(odom)
+
+    def _add(self, odom: OdomPose) -> None:
         if self.poses and odom.frame_id != self.poses[-1].frame_id:
             self.stamps, self.poses = [], []
         i = bisect.bisect_left(self.stamps, odom.stamp_ns)
@@ -159,6 +166,10 @@ class OdometryBuffer:
     def at(self, stamp_ns: int) -> OdomPose | None:
         """The pose nearest in time to stamp_ns, when within max_dt (no interpolation: at 30-100 Hz
         odometry the nearest sample is within 5-17 ms of any frame)."""
+        with self._lock:
+            return self._at(stamp_ns)
+
+    def _at(self, stamp_ns: int) -> OdomPose | None:
         i = bisect.bisect_left(self.stamps, int(stamp_ns))
         best = None
         for j in (i - 1, i):
@@ -175,7 +186,7 @@ class Registration:
         self.conf = c = {**default_conf, **(conf or {})}
         check_conf(c)
         self.counters = counters
-        self.camera = None
+        self.camera, self.image_size = None, None  # image_size (w, h): of the latest landmark set
         self.odometry = OdometryBuffer(c['odom_buffer'], c['odom_max_dt'])
         self.base_to_camera = pose_from_parts(c['base_to_camera'][:3], c['base_to_camera'][3:])
         self.agreement = Agreement(self._geometry_conf())
@@ -205,20 +216,42 @@ class Registration:
             self.counters.count(key)
 
     def set_camera(self, camera) -> None:
+        """Use this camera model from now on; CameraError (and the previous model kept) when it is
+        for another image size than the landmark sets seen so far."""
+        if self.image_size is not None and (camera.width, camera.height) != self.image_size:
+            from ..errors import CameraError
+
+            raise CameraError(
+                f'camera info is for {camera.width}x{camera.height} images, the images are '
+                f'{self.image_size[0]}x{self.image_size[1]}'
+            )
         self.camera = camera
 
     def add_odometry(self, odom: OdomPose) -> None:
         self.odometry.add(odom)
 
     def odometry_at(self, stamp_ns: int) -> OdomPose | None:
-        return self.odometry.at(stamp_ns) if self.odometry.poses else None
+        """The odometry pose of a frame; None without odometry, or (counted as odometry_missing)
+        when odometry comes but none is within odom_max_dt of this stamp."""
+        if not self.odometry.poses:
+            return None
+        found = self.odometry.at(stamp_ns)
+        if found is None and self.counters is not None:
+            st = self.odometry.stamps
+            self.counters.problem(
+                'odometry_missing',
+                f'no odometry within {self.conf["odom_max_dt"]} s of the frame at {stamp_ns * 1e-9:.3f} s '
+                f'(odometry buffered from {st[0] * 1e-9:.3f} to {st[-1] * 1e-9:.3f} s, {len(st)} poses)',
+            )
+        return found
 
     def camera_for(self, image_size) -> object | None:
         """The camera model when it describes images of image_size (w, h), else None (counted as
         camera_size_mismatch: a camera_info of another camera or resolution must not be used)."""
+        w, h = (int(round(float(v))) for v in image_size)
+        self.image_size = (w, h)
         if self.camera is None:
             return None
-        w, h = (int(round(float(v))) for v in image_size)
         if (w, h) != (self.camera.width, self.camera.height):
             self._count('camera_size_mismatch')
             return None

@@ -139,13 +139,13 @@ class DepthBuffer:
     stamp. take() waits up to WAIT_S for a depth image as new as the colour image: the two topics
     are not ordered, and the depth of this frame may still be on its way."""
 
-    SIZE, WAIT_S = 30, 0.15
+    WAIT_S = 0.15
 
-    def __init__(self, max_dt_s: float):
+    def __init__(self, max_dt_s: float, size: int):
         from collections import deque
 
         self.max_dt_ns = int(float(max_dt_s) * 1e9)
-        self._msgs = deque(maxlen=self.SIZE)
+        self._msgs = deque(maxlen=int(size))
         self._cond = threading.Condition()
 
     def put(self, msg) -> None:
@@ -205,7 +205,8 @@ class ExtractorNode(Node):
             subscription_qos(p['reliability'], max(5, p['frame_queue'])),
             event_callbacks=loss_events(self.health, f'image subscription {self.image_topic}'),
         )
-        self.depths = DepthBuffer(p['depth_max_dt'])
+        # as many depth images as colour frames may wait (+ a margin for depth arriving first)
+        self.depths = DepthBuffer(p['depth_max_dt'], p['frame_queue'] + 10)
         if p['depth']:
             self.create_subscription(
                 Image, topics.DEPTH, self.depths.put, subscription_qos(p['reliability'], max(5, p['frame_queue']))

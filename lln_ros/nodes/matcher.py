@@ -44,6 +44,7 @@ import sys
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, PointCloud2
 from std_msgs.msg import String
@@ -202,6 +203,8 @@ class MatcherNode(Node):
         self.candidates_pub = self.create_publisher(PointCloud2, topics.CANDIDATES, 10)
         self.matches_pub = self.create_publisher(PointCloud2, topics.MATCHES, 10)
         self.query_topic = self.resolve_topic_name(topics.QUERY)
+        if p['verify']:  # before the landmark subscriptions: a round of the executor takes it first
+            self.create_subscription(PointCloud2, topics.KEYPOINTS, self.on_keypoints, qos)
         self.create_subscription(
             PointCloud2,
             topics.KEYFRAMES,
@@ -219,16 +222,20 @@ class MatcherNode(Node):
         self.gaps = StampGaps()
         self.last_query_age = None  # seconds, header stamp vs node clock (sim time with use_sim_time)
         self.create_subscription(String, topics.MODEL_INFO, self.on_model_info, MODEL_QOS)
-        if p['verify']:
-            self.create_subscription(PointCloud2, topics.KEYPOINTS, self.on_keypoints, qos)
-        sensor_qos = subscription_qos(p['sensor_reliability'], 50)
+        # odometry at 100 Hz must not overflow the reader while a query is being answered: 10 s of it
+        sensor_qos = subscription_qos(p['sensor_reliability'], 1000)
+        # their own thread (make_executor): one take per subscription and executor round would let
+        # 100 Hz odometry fall seconds behind the queries it must pose
+        sensors = MutuallyExclusiveCallbackGroup()
         if p['camera_info_file']:
             from ..io.camera import CameraModel
 
             self.loc.reg.set_camera(CameraModel.from_camera_info(p['camera_info_file']))  # CameraError: fatal
         else:
-            self.create_subscription(CameraInfo, topics.CAMERA_INFO, self.on_camera_info, sensor_qos)
-        self.create_subscription(Odometry, topics.ODOM, self.on_odometry, sensor_qos)
+            self.create_subscription(
+                CameraInfo, topics.CAMERA_INFO, self.on_camera_info, sensor_qos, callback_group=sensors
+            )
+        self.create_subscription(Odometry, topics.ODOM, self.on_odometry, sensor_qos, callback_group=sensors)
         self.pose_pub = self.create_publisher(PoseWithCovarianceStamped, topics.POSE, 10)
         self.create_service(Trigger, '~/relocalize', self.on_relocalize)
         self.create_service(Trigger, '~/save', self.on_save)
@@ -247,6 +254,13 @@ class MatcherNode(Node):
             f'map {self.store.path}: {len(self.store)} keyframes, model '
             f'{model["descriptor_space"] if model else "(none yet)"}; mode {p["mode"]}'
         )
+
+    def make_executor(self):
+        """Two threads: the node's default group (every answer, serialised: the Localizer is used by
+        one caller at a time) and the sensors group (odometry, camera_info)."""
+        from rclpy.executors import MultiThreadedExecutor
+
+        return MultiThreadedExecutor(num_threads=2)
 
     # ------------------------------------------------------------------ parameters and health
 
@@ -348,11 +362,10 @@ class MatcherNode(Node):
 
     def on_camera_info(self, msg: CameraInfo) -> None:
         try:
-            camera = msgs.camera_info_to_model(msg)
-        except LLNError as e:  # zeros (uncalibrated), NaN, a principal point outside the size: not used
+            # zeros (uncalibrated), NaN, a principal point outside the size, a size not the images': not used
+            self.loc.reg.set_camera(msgs.camera_info_to_model(msg))
+        except LLNError as e:
             self.loc.refuse('bad_camera_info', e)
-            return
-        self.loc.reg.set_camera(camera)
 
     def on_odometry(self, msg: Odometry) -> None:
         try:

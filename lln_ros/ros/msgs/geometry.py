@@ -18,10 +18,10 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import CameraInfo, Image
 
-from ...io.camera import DEPTH_ENCODINGS, CameraModel, depth_metres
 from ...core.geometry import quaternion
 from ...core.registration import OdomPose, pose_from_parts
 from ...errors import CameraError, MessageError
+from ...io.camera import DEPTH_ENCODINGS, CameraModel, depth_metres
 from .headers import make_header, stamp_to_ns
 
 __all__ = [
