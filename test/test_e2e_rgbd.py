@@ -267,7 +267,8 @@ def test_loop_closure_transforms_against_ground_truth(rgbd_run):
     print(f'\nphase 1: essential-matrix poses (rotation, direction error, deg): {np.round(essential, 2).tolist()}')
     assert all(r < FALSE_FIX_DEG for r, _ in essential)
     print(
-        f'\nphase 1: {answered} accepted poses of {len(run["map_answers"])} answers ({len(rot)} metric); rotation error p50 '
+        f'\nphase 1: {answered} accepted poses of {len(run["map_answers"])} answers ({len(rot)} metric); '
+        'rotation error p50 '
         f'{np.median(rot):.2f} max {rot.max():.2f} deg, translation p50 {np.median(trans):.3f} max {trans.max():.3f} m'
     )
     assert answered >= 10
