@@ -102,3 +102,16 @@ def test_loop_closure_filter_passes_the_pose_on():
     table['pose_accepted'] = 0.0
     f = LoopClosureFilter({'require_pose': True})
     assert f(5 * S, table) is None and f.rejected == {'no_pose': 1}
+
+
+def test_pose_graph_example_closes_the_loop():
+    """docs/slam_integration.md's plain-numpy pose graph: one loop closure takes a drifting square back."""
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / 'scripts' / 'pose_graph.py'
+    out = subprocess.run([sys.executable, str(script), '--demo'], capture_output=True, text=True, check=True).stdout
+    before, after = (float(v) for v in re.findall(r'([\d.]+) m', out))
+    assert before > 0.3 and after < 0.02, out
