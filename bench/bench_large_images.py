@@ -5,7 +5,7 @@
 A camera stand-in process (test/camera_publisher.py: sensor-data QoS, bgr8 frames of a real photo)
 streams each size at --hz into `.venv/bin/extractor` (the packaged extractor.yaml, best effort),
 once with the camera's environment as it comes (Fast DDS defaults: 512 KiB shared-memory segment)
-and once with FASTRTPS_DEFAULT_PROFILES_FILE = config/fastdds_large_data.xml, as the README tells a
+and once with FASTRTPS_DEFAULT_PROFILES_FILE = config/fastdds_large_data.xml, as docs/robot_integration.md tells a
 camera user to set. Prints frames received by the extractor's subscription (its /diagnostics
 `received`) and how many of those it extracted / skipped under its newest-frame policy.
 """

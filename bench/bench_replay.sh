@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The README's bag replay, counted: rtabmap_loop as a 4 Hz bag, the extractor with the packaged
+# The bag replay of docs/robot_integration.md, counted: rtabmap_loop as a 4 Hz bag, the extractor with the packaged
 # extractor.yaml (best effort), the matcher in mapping mode, `lln-bag play` with its defaults.
 # Prints the keyframes stored (of 84) and the WARN lines that say why any frame was not stored.
 #   bash bench/bench_replay.sh [PLAYER_PROFILE.xml]   # a profile for the player (default: lln-bag's own)

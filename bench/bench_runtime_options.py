@@ -7,7 +7,7 @@ one competing CPU-bound process (started and stopped here), all in one run so ra
 Tried: ONNX Runtime intra-op threads 1/2, spinning on/off, sequential vs parallel execution, graph
 optimisation basic vs all; OpenVINO (when the `openvino` package is installed) with 1/2 inference
 threads and the latency hint; torch at 1/2 threads as the reference. lln_ros.core.runtime keeps the
-winner (ORT_SESSION_CONFIG, the extractor's default threads); README quotes this table.
+winner (ORT_SESSION_CONFIG, the extractor's default threads); docs/benchmarks.md quotes this table.
 """
 
 from __future__ import annotations

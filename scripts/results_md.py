@@ -279,7 +279,8 @@ def main(
         f'{", ".join(f"{x:.1f}" for x in os.getloadavg())}; {time.strftime("%Y-%m-%d")}. '
         'Times are CPU times on this machine.',
         '',
-        '`lln[trained]` is the head shipped in `lln_ros/weights/` (see README, "The shipped head"), trained on',
+        '`lln[trained]` is the head shipped in `lln_ros/weights/` (see [training.md](training.md#the-shipped-head)), '
+        'trained on',
         f'`{shipped.get("train_data")}` and validated on `{", ".join(shipped.get("val_data") or [])}`',
         f'(its checkpoint metadata; epoch {shipped.get("epoch")} kept);',
         '`lln[untrained]` is the same architecture at its seeded initialisation'

@@ -1,7 +1,7 @@
 """A stand-in camera driver for the tests: its own process, sensor-data QoS (best effort, keep last 5)
 as usb_cam / v4l2_camera publish, bgr8 frames of a real photograph (matplotlib's grace_hopper.jpg)
 resized to W x H, at HZ, on `image`. Starts once a subscriber is matched, then prints
-`published N` and exits. It knows nothing about lln_ros: the environment it gets is what the README
+`published N` and exits. It knows nothing about lln_ros: the environment it gets is what docs/robot_integration.md
 tells a camera user to set.
 
     python camera_publisher.py W H COUNT HZ [--stamp-start SEC]

@@ -2,7 +2,7 @@
 1280x720 bgr8 frames of a real photograph at 30 Hz with sensor-data QoS (best effort), and the
 colcon-installed extractor with the configuration the package ships, in another process.
 
-The camera process gets exactly what the README tells a usb_cam / v4l2_camera user to export
+The camera process gets exactly what docs/robot_integration.md tells a usb_cam / v4l2_camera user to export
 (FASTRTPS_DEFAULT_PROFILES_FILE = share/lln_ros/config/fastdds_large_data.xml). Without it, Fast DDS
 sends every frame over 512 KiB as UDP fragments and most are lost (measured: 26/60 at 640x480,
 11/60 at 1280x720); with it, frames go through shared memory. Arrivals are the extractor's own
@@ -27,7 +27,7 @@ EXTRACTOR = '/lln_extractor'
 
 
 def camera_env(share: Path, env: dict) -> dict:
-    """The README's camera-side setting: the shipped Fast DDS profile for the publishing process."""
+    """The camera-side setting of docs/robot_integration.md: the shipped Fast DDS profile for the publishing process."""
     profile = share / 'config' / 'fastdds_large_data.xml'
     assert profile.is_file(), f'{profile} is not installed'
     return {**env, 'FASTRTPS_DEFAULT_PROFILES_FILE': str(profile), 'FASTDDS_DEFAULT_PROFILES_FILE': str(profile)}

@@ -1,6 +1,6 @@
 """What every lln-* command shares: the exit contract, the model flags, the data folder, datasets.
 
-Exit contract (README): bad input = exit 2 and one line `PROG: error: ...` on stderr, checked before
+Exit contract (docs/architecture.md): bad input = exit 2 and one line `PROG: error: ...` on stderr, checked before
 anything long runs; a failure while running (a node died, a timeout) = exit 1 and `PROG: failed: ...`;
 Ctrl-C (and SIGTERM / SIGHUP where asked) = exit 130. Flag defaults come from the core confs
 (extractor / backbones / retrieval / similarity `default_conf`), never from literals here.

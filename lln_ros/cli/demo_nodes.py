@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 from ..eval.online import stored_stamps
+from ..ros import topics
 from ..ros.probe import HANDSHAKE_WAIT, ProbeTimeout, free_domain_probe
 from ..ros.supervisor import NodeProcess, localhost_discovery, ros_env, stop_all
 from .common import RunError
@@ -135,14 +136,17 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
         )
         # one extractor per traverse, wired by remaps as a user would (the matcher stores /keyframes and
         # answers /query)
-        for role, image, landmarks in (('map', MAP_IMAGE, '/lln/keyframes'), ('query', QUERY_IMAGE, '/lln/query')):
+        for role, image, landmarks in (
+            ('map', MAP_IMAGE, '/' + topics.KEYFRAMES),
+            ('query', QUERY_IMAGE, '/' + topics.QUERY),
+        ):
             remaps = [
                 '-r',
                 f'__node:=lln_extractor_{role}',
                 '-r',
                 f'image:={image}',
                 '-r',
-                f'lln/landmarks:={landmarks}',
+                f'{topics.LANDMARKS}:={landmarks}',
             ]
             procs.append(
                 NodeProcess(
@@ -167,11 +171,11 @@ def run_online(ds, args, out: Path, exes: dict, log) -> dict:
             return (
                 node.count_subscribers(MAP_IMAGE) >= 1
                 and node.count_subscribers(QUERY_IMAGE) >= 1
-                and node.count_publishers('/lln/keyframes') >= 1
-                and node.count_publishers('/lln/query') >= 1
-                and node.count_subscribers('/lln/keyframes') >= 2
-                and node.count_subscribers('/lln/query') >= 2
-                and node.count_publishers('/lln/candidates') >= 1
+                and node.count_publishers('/' + topics.KEYFRAMES) >= 1
+                and node.count_publishers('/' + topics.QUERY) >= 1
+                and node.count_subscribers('/' + topics.KEYFRAMES) >= 2
+                and node.count_subscribers('/' + topics.QUERY) >= 2
+                and node.count_publishers('/' + topics.CANDIDATES) >= 1
             )
 
         graph.spin_until(ready, args.timeout, 'the extractors and the matcher to come up')

@@ -94,7 +94,7 @@ def main(argv=None) -> int:
             f'offset (dx, dy) = {tuple(out["offset"])} grid cells'
         )
         if not out['model']['head_trained']:
-            print('note: the LLN head is untrained (seeded Xavier init); see README', file=sys.stderr)
+            print('note: the LLN head is untrained (seeded Xavier init); see docs/training.md', file=sys.stderr)
         if out['plot']:
             print(f'plot written to {out["plot"]}')
         return 0

@@ -45,7 +45,7 @@ RUNTIMES = ('torch', 'onnxruntime')
 GRAPH_VERSION = 2
 OPSET = 17
 
-# ONNX Runtime session settings, chosen by measurement (bench/bench_runtime_options.py; README):
+# ONNX Runtime session settings, chosen by measurement (bench/bench_runtime_options.py; docs/benchmarks.md):
 # no spinning, because on shared cores a spinning worker only takes time from the thread that has
 # work; parallel execution, although the graph is one chain of convolutions, because at 2 threads it
 # ran 9.6-10.2 ms per 384x288 frame where sequential ran 11.7-12.8 (four runs, 2026-12-02, quiet),

@@ -266,7 +266,7 @@ class ExtractorNode(Node):
                 (
                     S.WARN,
                     f'{delta["frames_missing"]} frames missing upstream (gaps in the image stamps: '
-                    f"lost by DDS or the driver; README 'Camera-sized images')",
+                    f"lost by DDS or the driver; docs/robot_integration.md 'Camera-sized images')",
                 )
             )
         if delta.get('dds_lost'):
@@ -292,7 +292,7 @@ class ExtractorNode(Node):
                     S.WARN,
                     f'{publishers} publisher(s) on {self.image_topic} but no image for '
                     f'{idle:.0f} s (QoS mismatch, or frames too large for the middleware: '
-                    f"README 'Camera-sized images')",
+                    f"docs/robot_integration.md 'Camera-sized images')",
                 )
             )
         return worst(problems)

@@ -3,7 +3,7 @@ before rclpy.init, because Fast DDS reads its profile file when the first partic
 
 Fast DDS passes a message between processes of one host through the writer's shared-memory segment
 (512 KiB by default); bigger messages fall back to UDP fragments on loopback, which best-effort
-readers lose (README "Camera-sized images"). config/fastdds_large_data.xml enlarges the segment.
+readers lose (docs/robot_integration.md "Camera-sized images"). config/fastdds_large_data.xml enlarges the segment.
 
     note = apply_large_data_profile()   # in a process that publishes images, before rclpy.init
     exit_if_teardown_hangs('lln-bag', 10.0)  # work done: a stuck participant deletion must not hang us
@@ -63,7 +63,7 @@ def apply_large_data_profile(environ=os.environ) -> tuple[str, str]:
     if not uses_fastdds(environ):
         return 'info', (
             f"RMW {environ['RMW_IMPLEMENTATION']}: lln_ros's Fast DDS profile does not apply; see "
-            "README 'Camera-sized images' for that middleware's large-message settings"
+            "docs/robot_integration.md 'Camera-sized images' for that middleware's large-message settings"
         )
     chosen = next((environ[v] for v in PROFILE_VARIABLES if environ.get(v)), None)
     if chosen is None:

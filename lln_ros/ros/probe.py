@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import topics
 from .supervisor import SupervisorError, run_to_end
 
 BAG_TOPIC = '/camera/image_raw'
@@ -189,15 +190,18 @@ class Probe:
     # ------------------------------------------------------------------------------- collecting answers
 
     def collect_answers(self) -> None:
-        """Subscribe to /keyframes, /query (landmark clouds), /candidates and /matches, keyed by stamp."""
+        """Subscribe to /lln/keyframes, /lln/query (landmark clouds), /lln/candidates and /lln/matches (the
+        root namespace, where lln-demo runs the nodes), keyed by stamp."""
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import PointCloud2
 
         reliable = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-        for kind in ('keyframes', 'query'):
-            self.node.create_subscription(PointCloud2, f'/{kind}', lambda m, k=kind: self._on_landmarks(k, m), reliable)
-        self.node.create_subscription(PointCloud2, '/lln/candidates', self._on_candidates, reliable)
-        self.node.create_subscription(PointCloud2, '/lln/matches', self._on_matches, reliable)
+        for kind, topic in (('keyframes', topics.KEYFRAMES), ('query', topics.QUERY)):
+            self.node.create_subscription(
+                PointCloud2, '/' + topic, lambda m, k=kind: self._on_landmarks(k, m), reliable
+            )
+        self.node.create_subscription(PointCloud2, '/' + topics.CANDIDATES, self._on_candidates, reliable)
+        self.node.create_subscription(PointCloud2, '/' + topics.MATCHES, self._on_matches, reliable)
 
     def collect_diagnostics(self) -> None:
         """The latest /diagnostics status of every node, in self.diag; read with counter()."""
