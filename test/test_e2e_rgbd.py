@@ -25,6 +25,7 @@ from std_srvs.srv import Trigger
 
 from conftest import shared_data
 from lln_ros.core.geometry import invert, rotation_deg
+from lln_ros.core.loop_closure import LoopClosureFilter
 from lln_ros.core.registration import pose_from_parts
 from lln_ros.ros import bag, msgs
 from lln_ros.ros.rgbd_bag import TOPICS, rgbd_records
@@ -272,6 +273,14 @@ def test_loop_closure_transforms_against_ground_truth(rgbd_run):
         f'{np.median(rot):.2f} max {rot.max():.2f} deg, translation p50 {np.median(trans):.3f} max {trans.max():.3f} m'
     )
     assert answered >= 10
+    # the client's filter (scripts/loop_closure_client.py) on the same answers passes the pose on
+    select = LoopClosureFilter({'require_pose': True, 'min_gap_s': 1.0})
+    closures = [c for c in (select(stamp, cands) for stamp, cands in run['map_answers']) if c is not None]
+    assert len(closures) == answered and all(c.transform is not None for c in closures)
+    line = closures[0].as_dict()
+    line['regions'], line['covariance'] = line['regions'][:1], line['covariance'][:3]
+    line['transform'] = [[round(v, 3) for v in r] for r in line['transform'][:2]]
+    print('\nfirst closure (regions, covariance and transform cut):', json.dumps(line))
     assert np.median(rot) <= 4.0 and np.median(trans) <= 0.07
     assert rot.max() < FALSE_FIX_DEG and trans.max() < FALSE_FIX_M, 'no false fix'
 

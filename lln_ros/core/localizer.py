@@ -17,7 +17,9 @@ docs/interfaces.md §3.6) keep these sums for every input:
     queries_received                  = queries_answered + queries_stale + bad_query + queries_failed
     keyframes_received + queries_stored = keyframes_stored + bad_keyframe + keyframes_failed
 
-(queries_stored: mapping mode's queries stored as keyframes.)
+(queries_stored: mapping mode's queries stored as keyframes; with odometry, queries too near the last
+keyframe are not stored: queries_not_stored. The metric side, camera, odometry, poses and gating, is
+lln_ros.core.registration's: loc.reg.)
 
 *_failed: the map, not the message, was at fault (a keyframe damaged after start, a write that
 failed, or an internal error): the message is not blamed as bad_*.
