@@ -33,3 +33,7 @@ class DatasetError(LLNError):
 class CameraError(LLNError):
     """Camera intrinsics or depth that cannot be used: uncalibrated (zeros), NaN, a size or encoding
     that does not match the image."""
+
+
+class PoseError(LLNError):
+    """A pose that cannot be stored or used: NaN, infinity, a quaternion that is not unit-norm."""

@@ -217,6 +217,13 @@ def test_degenerate_input_is_a_reason_not_an_exception():
     assert not G.estimate_pose(same, k, m, CAM, CAM, depth).ok
 
 
+def test_bad_conf_is_an_error():
+    q, k, m, depth, _ = scene()
+    with pytest.raises(ValueError, match='essential_method'):
+        G.estimate_pose(q, k, m, CAM, CAM, None, {'essential_method': 'SOMETHING'})
+    assert G.keypoint_depth(depth, np.zeros((0, 2))).shape == (0,)
+
+
 def test_depth_edges_are_not_used():
     depth = np.full((20, 20), 2.0, np.float32)
     depth[:, 10:] = 3.0  # a step: a keypoint on it may belong to either surface
@@ -301,3 +308,75 @@ def test_lln_eval_geometry_writes_the_figures(tmp_path):
         [*cmd, '--dataset', 'loop:/x,/y', '--out', str(tmp_path)], cwd=REPO, capture_output=True, text=True
     )
     assert bad.returncode == 2 and 'poses:DIR' in bad.stderr
+
+
+@pytest.mark.parametrize(
+    'position, orientation, words',
+    [
+        ([0, 0, math.nan], [0, 0, 0, 1], 'NaN'),
+        ([0, 0, 0], [0, 0, 0, 0], 'norm 0'),
+        ([0, 0, 0], [0, 0, 0.5, 1], 'not 1'),
+        ([0, 0], [0, 0, 0, 1], '3 position'),
+    ],
+)
+def test_broken_odometry_is_refused(position, orientation, words):
+    from lln_ros.errors import PoseError
+
+    with pytest.raises(PoseError, match=words):
+        G.odometry_pose(position, orientation)
+
+
+def test_odometry_pose_matches_the_quaternion():
+    s = math.sin(math.pi / 4)
+    T = G.odometry_pose([1, 2, 3], [0, 0, s, s * (1 + 5e-4)])  # within the tolerance: renormalised
+    assert np.allclose(T[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-3) and np.allclose(T[:3, 3], [1, 2, 3])
+    assert np.allclose(G.quaternion(T[:3, :3]), [0, 0, s, s], atol=1e-3)
+
+
+def test_keyframe_gate_and_held_keyframes():
+    from lln_ros.core.gating import HeldKeyframes, KeyframeGate
+
+    gate = KeyframeGate({'min_distance_m': 0.1, 'min_angle_deg': 10})
+    still = np.eye(4)
+    assert gate.decide(0.0, still) == (True, 'first frame')
+    # a camera standing still for 2 minutes at 30 Hz makes no keyframe
+    assert not any(gate.decide(t / 30, still)[0] for t in range(1, 3600))
+    assert gate.decide(121.0, G.perturb(still, np.array([0.11, 0, 0, 0, 0, 0]))) == (True, 'distance')
+    moved = G.perturb(still, np.array([0.11, 0, 0, 0, 0, math.radians(11)]))
+    assert gate.decide(122.0, moved) == (True, 'angle')
+    novelty = KeyframeGate({'novelty_max_score': 15})
+    assert novelty.decide(0.0)[0] and not novelty.decide(0.1, best_score=20.0)[0] and novelty.decide(0.2, None)[0]
+    with pytest.raises(ValueError, match='min_angle_deg'):
+        KeyframeGate({'min_angle_deg': -1})
+    held = HeldKeyframes(2.0)
+    for t in (0.0, 0.5, 1.0):
+        held.add(t, t)
+    assert held.ready(1.9) == [] and held.ready(2.6) == [0.0, 0.5] and held.ready(100) == [1.0]
+
+
+def test_gate_makes_fewer_keyframes_on_tum():
+    """The shipped gate (5 cm / 10 deg) on tum_fr1rpy's ground-truth odometry at 30 Hz: at least 3x
+    fewer keyframes than frames (123 of 723 when measured)."""
+    from lln_ros.core.gating import KeyframeGate
+    from lln_ros.io.rgbd import read_tum
+
+    seq = read_tum(shared_data('tum_fr1rpy'))
+    gate = KeyframeGate()
+    kept = sum(gate.decide(f.stamp, seq.T_world_cam(i))[0] for i, f in enumerate(seq.frames))
+    assert 0 < kept * 3 <= len(seq)
+
+
+def test_lln_eval_geometry_with_the_keyframe_gate(tmp_path):
+    root = shared_data('tum_fr1rpy')
+    run = subprocess.run(
+        [sys.executable, '-m', 'lln_ros.cli.eval', '--geometry', '--geometry-step', '10', '--threads', '1']
+        + ['--geometry-gate', '0.05', '10', '--dataset', f'poses:{root}', '--out', str(tmp_path), '--quiet'],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert run.returncode == 0, run.stderr
+    g = json.loads((tmp_path / 'results.json').read_text())['geometry']
+    assert 0 < g['keyframes'] < g['frames'] and 'KeyframeGate' in g['keyframes_from']
+    assert g['rot_err_deg_p50'] is not None and g['rot_err_deg_p50'] < 5

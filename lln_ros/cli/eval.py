@@ -20,6 +20,11 @@ act / rand / all / holistic do not depend on the head and get one row each. The 
 row per holistic/local row: its scores through the matcher's online sequence search (L queries),
 local rows over the rerank of --sequence-prefilter-k first-stage candidates (the matcher's default).
 
+--geometry (with --dataset poses:DIR, a TUM RGB-D folder with depth/ and camera_info.yaml) runs only the
+metric loop-closure evaluation instead (lln_ros.eval.geometry, docs/geometry.md): the sequence through
+extractor, localizer and core.geometry, thresholds chosen on one half and figures reported on the other,
+written as the `geometry` object of DIR/results.json (other keys of an existing file are kept).
+
 Every dataset is read and checked, and every head loaded, before any feature is computed. Bad input
 exits 2 with one line on stderr. Writes DIR/results.json, DIR/results.md and PNGs.
 """
@@ -176,6 +181,14 @@ def build_parser() -> argparse.ArgumentParser:
         action='store_true',
         help='--geometry: choose the thresholds on the second half, report on the first (default: the other way)',
     )
+    p.add_argument(
+        '--geometry-gate',
+        nargs=2,
+        type=float,
+        metavar=('M', 'DEG'),
+        help='--geometry: keyframes by an odometry gate (a new one after M metres or DEG degrees), held until '
+        '2 s old, queries in localization mode (default: mapping mode, every query a keyframe)',
+    )
     p.add_argument('--check', action='store_true', help='read and check every dataset and head, then stop')
     p.add_argument('--quiet', action='store_true', help='no progress output')
     return p
@@ -300,6 +313,10 @@ def run_geometry(args, argv, log) -> dict:
         return {'checked': [s.name for s in seqs]}
     extractor = Extractor(extractor_conf(args, num_threads=args.threads))
     conf = {'swap': args.geometry_swap}
+    if args.geometry_gate:
+        if min(args.geometry_gate) < 0:
+            raise UsageError(f'--geometry-gate M DEG must not be negative, got {args.geometry_gate}')
+        conf.update(gate=True, gate_m=args.geometry_gate[0], gate_deg=args.geometry_gate[1])
     results = {s.name: evaluate_geometry(s, extractor, conf, progress=not args.quiet) for s in seqs}
     command = f'{PROG} ' + ' '.join(shlex.quote(a) for a in argv)
     obj = next(iter(results.values())) if len(results) == 1 else results

@@ -36,6 +36,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from ..errors import PoseError
+from ..io.rgbd import pose_matrix
 from .reloc import _collinear
 from .reloc import default_conf as reloc_conf
 
@@ -167,6 +169,22 @@ def pose_with_covariance(T: np.ndarray, covariance: np.ndarray) -> dict:
     }
 
 
+def odometry_pose(position, orientation, tolerance: float = 1e-3) -> np.ndarray:
+    """(4, 4) T(odom <- camera) from a nav_msgs/Odometry-like position (3,) and orientation (4,)
+    x y z w. PoseError for NaN or infinity, or a quaternion whose norm is off 1 by more than
+    tolerance (renormalised within it): a keyframe is never stored with a broken pose."""
+    p = np.asarray(position, np.float64).ravel()
+    q = np.asarray(orientation, np.float64).ravel()
+    if p.shape != (3,) or q.shape != (4,):
+        raise PoseError(f'a pose needs 3 position and 4 quaternion values, got {p.size} and {q.size}')
+    if not (np.isfinite(p).all() and np.isfinite(q).all()):
+        raise PoseError(f'pose holds NaN or infinity: position {p.tolist()}, orientation {q.tolist()}')
+    n = float(np.linalg.norm(q))
+    if abs(n - 1.0) > tolerance:
+        raise PoseError(f'orientation quaternion has norm {n:.6g}, not 1 (x y z w = {q.tolist()})')
+    return pose_matrix(np.r_[p, q / n])
+
+
 # ------------------------------------------------------------------------------------------ depth
 
 
@@ -177,6 +195,8 @@ def keypoint_depth(depth_m: np.ndarray, uv: np.ndarray, conf: dict | None = None
     may belong to either surface)."""
     c = {**default_conf, **(conf or {})}
     h, w = depth_m.shape
+    if not len(uv):
+        return np.zeros(0)
     r = int(c['depth_window'])
     u = np.rint(np.asarray(uv, np.float64)[:, 0]).astype(np.int64)
     v = np.rint(np.asarray(uv, np.float64)[:, 1]).astype(np.int64)
@@ -208,6 +228,10 @@ def estimate_pose(
     when at least min_points matches have a depth, else the
     essential matrix. Never raises for degenerate input (module doc)."""
     c = {**default_conf, **(conf or {})}
+    if not isinstance(getattr(cv2, str(c['essential_method']), None), int):
+        raise ValueError(
+            f'essential_method must name an OpenCV robust method (USAC_ACCURATE, RANSAC), got {c["essential_method"]!r}'
+        )
     t0 = time.perf_counter()
     m = len(matches)
     if m < int(c['min_matches']):

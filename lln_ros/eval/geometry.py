@@ -40,11 +40,18 @@ eval_conf = {
     'k': 5,  # candidates the Localizer answers; the geometry runs on the best
     'max_keypoints': 1000,  # ORB keypoints per image (reloc's default)
     'margin': 1.0,  # region growth in cells (reloc's default)
+    # gate: instead of mapping mode (every query stored, the newest N keyframes excluded), queries in
+    # localization mode and keyframes chosen by core.gating.KeyframeGate on the odometry, held back
+    # until min_gap_s old (core.gating.HeldKeyframes): the matcher's keyframes topic fed by a gate
+    'gate': False,
+    'gate_m': 0.05,
+    'gate_deg': 10.0,
 }
 
 
 def replay(seq, extractor, conf: dict | None = None, progress: bool = False) -> tuple[list, dict]:
     """(records as geometry_score describes them, timing {stage: median ms}) for an RGBDSequence."""
+    from ..core.gating import HeldKeyframes, KeyframeGate
     from ..core.localizer import Localizer
     from ..core.reloc import Relocalizer, region_boxes
     from ..io.image import load_image
@@ -62,7 +69,11 @@ def replay(seq, extractor, conf: dict | None = None, progress: bool = False) -> 
     with tempfile.TemporaryDirectory(prefix='lln_geometry_') as tmp:
         store, _ = open_for_matcher(str(Path(tmp) / 'map.db'), 'mapping', extractor.descriptor_space)
         with store:
-            loc = Localizer(store, {'mode': 'mapping', 'exclude_recent': exclude, 'k': int(c['k'])})
+            gated = bool(c['gate'])
+            mode = {'mode': 'localization'} if gated else {'mode': 'mapping', 'exclude_recent': exclude}
+            loc = Localizer(store, {**mode, 'k': int(c['k'])})
+            gate = KeyframeGate({'min_distance_m': c['gate_m'], 'min_angle_deg': c['gate_deg']})
+            held = HeldKeyframes(c['min_gap_s'])
             loc.model_info(json.dumps(extractor.model_info))
             items = range(len(seq))
             if progress:
@@ -76,13 +87,19 @@ def replay(seq, extractor, conf: dict | None = None, progress: bool = False) -> 
                 lset = extractor(rgb)
                 t1 = time.perf_counter()
                 kq = reloc.detect(rgb)
+                ms['detect'].append((time.perf_counter() - t1) * 1e3)
+                for j_lset, j_kps, j in held.ready(stamps[i]):  # old enough to answer now
+                    kid = loc.keyframe(j_lset, int(round(stamps[j] * 1e9)))
+                    keypoints[kid], frame_of[kid] = j_kps, j
                 t2 = time.perf_counter()
                 answer = loc.query(lset, int(round(stamps[i] * 1e9)))
                 ms['extract'].append((t1 - t0) * 1e3)
-                ms['detect'].append((t2 - t1) * 1e3)
                 ms['query'].append((time.perf_counter() - t2) * 1e3)
-                kid = store.ids()[-1]  # mapping mode stored this query as the newest keyframe
-                keypoints[kid], frame_of[kid] = kq, i
+                if not gated:
+                    kid = store.ids()[-1]  # mapping mode stored this query as the newest keyframe
+                    keypoints[kid], frame_of[kid] = kq, i
+                elif gate.decide(stamps[i], poses[i])[0]:
+                    held.add(stamps[i], (lset, kq, i))
                 allowed = stamps[i] - stamps >= float(c['min_gap_s'])
                 rec = {
                     'frame': i,
@@ -121,8 +138,9 @@ def replay(seq, extractor, conf: dict | None = None, progress: bool = False) -> 
                         est_mono=est_m,
                     )
                 records.append(rec)
+            n_keyframes = len(store)
     timing = {k: float(np.median(v)) if v else None for k, v in ms.items()}
-    return records, {**timing, 'exclude_recent_frames': exclude}
+    return records, {**timing, 'exclude_recent_frames': exclude, 'keyframes': n_keyframes}
 
 
 def _revisit(poses: list, i: int, allowed: np.ndarray, c: dict) -> bool:
@@ -153,6 +171,12 @@ def evaluate_geometry(seq, extractor, conf: dict | None = None, progress: bool =
         'revisit': {'max_deg': c['revisit_deg'], 'max_m': c['revisit_m'], 'min_gap_s': c['min_gap_s']},
         'false_fix': {'max_m': c['false_m'], 'max_deg': c['false_deg']},
         'odometry': 'ground truth (the keyframe poses and the Agreement check)',
+        'keyframes': timing.pop('keyframes'),
+        'keyframes_from': (
+            f'KeyframeGate on the odometry ({c["gate_m"]:g} m / {c["gate_deg"]:g} deg), held {c["min_gap_s"]:g} s'
+            if c['gate']
+            else f'mapping mode: every query, the newest {timing["exclude_recent_frames"]} excluded'
+        ),
         'timing_ms_median': timing,
         'answered': sum(r['est_depth'] is not None for r in records),
     }

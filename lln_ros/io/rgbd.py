@@ -63,22 +63,15 @@ class RGBDSequence:
         return pose_matrix(self.frames[i].pose)
 
 
-def quat_to_R(q: np.ndarray) -> np.ndarray:
-    """Unit quaternion (4,) x y z w -> rotation matrix (3, 3)."""
-    x, y, z, w = np.asarray(q, np.float64) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def pose_matrix(pose: np.ndarray) -> np.ndarray:
-    """(7,) tx ty tz qx qy qz qw -> (4, 4) homogeneous transform."""
+    """(7,) tx ty tz qx qy qz qw -> (4, 4) homogeneous transform (x_world = T @ x_cam)."""
     T = np.eye(4)
-    T[:3, :3] = quat_to_R(pose[3:7])
+    x, y, z, w = np.asarray(pose[3:7], np.float64) / np.linalg.norm(pose[3:7])
+    T[:3, :3] = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ]
     T[:3, 3] = pose[:3]
     return T
 
