@@ -208,7 +208,7 @@ def test_stored_keyframes_have_true_poses_and_gating(rgbd_run):
         ids = store.ids()
         stored = [(store.get(k), store.geometry(k)) for k in ids]
     n = len(ids)
-    print(f'\nphase 1: {n} keyframes stored of {len(MAP_FRAMES)} frames (odometry gating, default 0.10 m / 10 deg)')
+    print(f'\nphase 1: {n} keyframes stored of {len(MAP_FRAMES)} frames (odometry gating, default 0.05 m / 10 deg)')
     assert n * 2 <= len(MAP_FRAMES), 'gating keeps at most one frame in two on this slow traverse'
     bad_depth = {int(round(run['seq'].frames[i].stamp * 1e9)) for i in BAD_DEPTH_AT}
     without_pose = 0

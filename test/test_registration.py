@@ -10,7 +10,7 @@ import pytest
 from lln_ros.core.counters import Counters
 from lln_ros.core.loop_closure import LoopClosureFilter
 from lln_ros.core.registration import POSE_FIELDS, OdomPose, Registration, nan_fields, pose_from_parts
-from lln_ros.errors import CameraError, MessageError
+from lln_ros.errors import CameraError, PoseError
 from lln_ros.io.camera import CameraModel
 
 S = 1_000_000_000
@@ -27,7 +27,7 @@ def odom(t_s, x=0.0, yaw_deg=0.0, frame='odom'):
     [([math.nan, 0, 0], [0, 0, 0, 1]), ([0, 0, 0], [0, 0, 0, 2]), ([0, 0, 0], [0, 0, 0, 0]), ([0, 0], [0, 0, 0, 1])],
 )
 def test_broken_poses_refused(position, orientation):
-    with pytest.raises(MessageError):
+    with pytest.raises(PoseError):
         pose_from_parts(position, orientation)
 
 
@@ -45,10 +45,11 @@ def test_odometry_nearest_within_max_dt_and_frame_change():
 
 def test_gating_and_recent_exclusion():
     reg = Registration({'keyframe_min_distance': 0.1, 'keyframe_min_angle': 10.0, 'exclude_recent_s': 1.0})
-    assert reg.gate(None) and reg.gate(odom(0))  # nothing stored yet
+    assert reg.gate(0, odom(0))  # the first frame
     reg.stored(0, odom(0))
-    assert not reg.gate(odom(0.5, x=0.05, yaw_deg=5))  # still here
-    assert reg.gate(odom(0.5, x=0.12)) and reg.gate(odom(0.5, yaw_deg=11))
+    assert not reg.gate(S // 2, odom(0.5, x=0.05, yaw_deg=5))  # still here
+    assert reg.gate(S // 2, odom(0.5, x=0.12))  # moved (and now the gate's last keyframe)
+    assert reg.gate(S // 2, odom(0.5, x=0.12, yaw_deg=11))  # turned
     for t in (1, 2, 3):
         reg.stored(t * S, odom(t, x=0.2 * t))
     assert reg.recent(int(3.5 * S), odom(3.5, x=0.6)) == 1  # only the keyframe at 3 s is under 1 s old
@@ -115,3 +116,12 @@ def test_pose_graph_example_closes_the_loop():
     out = subprocess.run([sys.executable, str(script), '--demo'], capture_output=True, text=True, check=True).stdout
     before, after = (float(v) for v in re.findall(r'([\d.]+) m', out))
     assert before > 0.3 and after < 0.02, out
+
+
+def test_novelty_gating_without_odometry():
+    """core.gating.KeyframeGate's novelty rule: without odometry a query is stored only when its best
+    S is below keyframe_novelty_max_score (nothing alike in the map)."""
+    reg = Registration({'keyframe_novelty_max_score': 15.0})
+    assert reg.gate(0, None, None)  # the first frame
+    assert not reg.gate(S, None, 20.0)  # seen before
+    assert reg.gate(2 * S, None, 5.0) and reg.gate(3 * S, None, None)  # new, or nothing answered

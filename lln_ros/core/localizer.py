@@ -323,7 +323,7 @@ class Localizer:
             found, inliers, results = self.verify(lset, kps, found)
         pose = self.pose(lset, kps, found[0], results, odom) if found and self.geometry else None
         if self.mapping:  # committed before the answer goes out: an answered keyframe is never lost
-            if self.reg.gate(odom):
+            if self.reg.gate(stamp_ns, odom, found[0].score if found else None):
                 self._store_keyframe(lset, stamp_ns, kps, odom)
                 self.count('queries_stored')
             else:  # odometry says it has not moved enough since the last keyframe

@@ -26,9 +26,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import MessageError
+from ..errors import LLNError
 from . import geometry
-from .geometry import Agreement, accept, estimate_pose, in_parent, invert, rotation_deg
+from .gating import KeyframeGate
+from .gating import default_conf as GATE
+from .geometry import Agreement, accept, estimate_pose, in_parent, invert, odometry_pose
 
 IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
@@ -37,9 +39,11 @@ default_conf = {
     'odom_max_dt': 0.05,  # s: an odometry pose further in time from a frame is not its pose
     'odom_buffer': 2000,  # odometry poses kept (100 Hz odometry: 20 s)
     'base_to_camera': IDENTITY_POSE,  # T(odometry child frame <- camera optical frame), x y z qx qy qz qw
-    # mapping mode, with odometry: a query is stored only this far from the last stored keyframe
-    'keyframe_min_distance': 0.10,  # metres; a keyframe when either threshold is passed
-    'keyframe_min_angle': 10.0,  # degrees
+    # mapping mode: which queries become keyframes (core.gating.KeyframeGate; its defaults)
+    'keyframe_min_distance': GATE['min_distance_m'],  # with odometry: metres moved since the last keyframe
+    'keyframe_min_angle': GATE['min_angle_deg'],  # ... or degrees turned
+    'keyframe_max_interval_s': GATE['max_interval_s'],  # and at least every this many seconds; 0 = off
+    'keyframe_novelty_max_score': GATE['novelty_max_score'],  # without odometry: only when S is below; 0 = off
     'exclude_recent_s': 0.0,  # mapping mode: keyframes this recent (stamp) are never answers; 0 = off
     'exclude_recent_m': 0.0,  # ... nor those within this path length (odometry); 0 = off
     # the per-frame acceptance (core.geometry.accept) and consecutive-frame agreement
@@ -107,27 +111,10 @@ def nan_fields() -> dict:
 
 
 def pose_from_parts(position, orientation, tolerance: float = QUATERNION_TOLERANCE) -> np.ndarray:
-    """T (4, 4) from a position (3,) and a quaternion (4,) x y z w. MessageError for NaN or infinity,
-    or a quaternion whose norm is not 1 within `tolerance` (normalising it would hide a broken
-    source)."""
-    p = np.asarray(position, np.float64).ravel()
-    q = np.asarray(orientation, np.float64).ravel()
-    if p.shape != (3,) or q.shape != (4,):
-        raise MessageError(f'pose needs 3 + 4 numbers, got {p.shape} + {q.shape}')
-    if not (np.isfinite(p).all() and np.isfinite(q).all()):
-        raise MessageError(f'pose holds NaN or infinity: position {p.tolist()}, orientation {q.tolist()}')
-    n = float(np.linalg.norm(q))
-    if abs(n - 1.0) > tolerance:
-        raise MessageError(f'pose orientation is not a unit quaternion (norm {n:.6g}): {q.tolist()}')
-    x, y, z, w = q / n
-    T = np.eye(4)
-    T[:3, :3] = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ]
-    T[:3, 3] = p
-    return T
+    """T (4, 4) from a position (3,) and a quaternion (4,) x y z w: core.geometry.odometry_pose, which
+    raises PoseError (an LLNError) for NaN or infinity, or a quaternion whose norm is not 1 within
+    `tolerance` (normalising a broken one would hide a broken source)."""
+    return odometry_pose(position, orientation, tolerance)
 
 
 def pose_vector(T: np.ndarray) -> np.ndarray:
@@ -193,6 +180,18 @@ class Registration:
         self.history: list[tuple[int, np.ndarray | None]] = []  # this session's stored keyframes: stamp, position
         self.path_m = 0.0  # odometry path length of the stored keyframes, for exclude_recent_m
         self.last_stored: OdomPose | None = None
+        self.gate_ = self._make_gate()
+
+    def _make_gate(self) -> KeyframeGate:
+        c = self.conf
+        return KeyframeGate(
+            {
+                'min_distance_m': c['keyframe_min_distance'],
+                'min_angle_deg': c['keyframe_min_angle'],
+                'max_interval_s': c['keyframe_max_interval_s'],
+                'novelty_max_score': c['keyframe_novelty_max_score'],
+            }
+        )
 
     def _geometry_conf(self) -> dict:
         c = self.conf
@@ -210,6 +209,8 @@ class Registration:
         self.conf.update(changes)
         if any(k.startswith('pose_agree') for k in changes):
             self.agreement = Agreement(self._geometry_conf())
+        if any(k.startswith('keyframe_') for k in changes):
+            self.gate_ = self._make_gate()
 
     def _count(self, key: str) -> None:
         if self.counters is not None:
@@ -269,18 +270,15 @@ class Registration:
 
     # ------------------------------------------------------------------ mapping mode
 
-    def gate(self, odom: OdomPose | None) -> bool:
-        """Store this query as a keyframe? Without odometry always; with it, when it moved at least
-        keyframe_min_distance or turned keyframe_min_angle since the last stored keyframe."""
-        c = self.conf
-        last = self.last_stored
-        if odom is None or last is None or last.frame_id != odom.frame_id:
-            return True
-        if c['keyframe_min_distance'] <= 0 and c['keyframe_min_angle'] <= 0:
-            return True
-        d = float(np.linalg.norm(odom.T[:3, 3] - last.T[:3, 3]))
-        a = rotation_deg(last.T[:3, :3].T @ odom.T[:3, :3])
-        return d >= c['keyframe_min_distance'] > 0 or a >= c['keyframe_min_angle'] > 0
+    def gate(self, stamp_ns: int, odom: OdomPose | None, best_score: float | None = None) -> bool:
+        """Store this query as a keyframe? core.gating.KeyframeGate on the camera's odometry pose
+        (moved keyframe_min_distance or turned keyframe_min_angle since the last keyframe), or
+        without odometry on novelty (the best answer's S below keyframe_novelty_max_score; 0 = every
+        frame). Odometry in a new frame_id starts the gate afresh (poses of two frames do not compare)."""
+        if odom is not None and self.last_stored is not None and odom.frame_id != self.last_stored.frame_id:
+            self.gate_ = self._make_gate()
+        T = odom.T @ self.base_to_camera if odom is not None else None
+        return self.gate_.decide(stamp_ns * 1e-9, T, best_score)[0]
 
     def stored(self, stamp_ns: int, odom: OdomPose | None) -> None:
         if odom is not None and self.last_stored is not None and self.last_stored.frame_id == odom.frame_id:
@@ -312,6 +310,7 @@ class Registration:
     def forget(self) -> None:
         """~/clear: the stored keyframes are gone."""
         self.history, self.path_m, self.last_stored = [], 0.0, None
+        self.gate_ = self._make_gate()
 
     # ------------------------------------------------------------------ the answer's pose
 
@@ -362,7 +361,15 @@ class Registration:
 
 def check_conf(c: dict) -> None:
     """ValueError naming a bad registration setting."""
-    for key in ('odom_max_dt', 'keyframe_min_distance', 'keyframe_min_angle', 'exclude_recent_s', 'exclude_recent_m'):
+    for key in (
+        'odom_max_dt',
+        'keyframe_min_distance',
+        'keyframe_min_angle',
+        'keyframe_max_interval_s',
+        'keyframe_novelty_max_score',
+        'exclude_recent_s',
+        'exclude_recent_m',
+    ):
         if not (isinstance(c[key], (int, float)) and math.isfinite(c[key]) and c[key] >= 0):
             raise ValueError(f'{key} must be a number >= 0, got {c[key]!r}')
     if int(c['odom_buffer']) < 1:
@@ -372,7 +379,7 @@ def check_conf(c: dict) -> None:
         raise ValueError(f'base_to_camera needs 7 numbers (x y z qx qy qz qw), got {list(b)}')
     try:
         pose_from_parts(b[:3], b[3:])
-    except MessageError as e:
+    except LLNError as e:
         raise ValueError(f'base_to_camera: {e}') from None
 
 

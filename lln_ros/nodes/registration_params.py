@@ -52,6 +52,18 @@ PARAMETERS = {
         dynamic=True,
         range=(0.0, 360.0),
     ),
+    'keyframe_max_interval_s': Param(
+        REG['keyframe_max_interval_s'],
+        'mapping mode: a query is stored at least every this many seconds, whatever the gate says; 0 = off',
+        dynamic=True,
+        range=(0.0, 1e9),
+    ),
+    'keyframe_novelty_max_score': Param(
+        REG['keyframe_novelty_max_score'],
+        'mapping mode without odometry: a query is stored only when its best S is below this; 0 = every query',
+        dynamic=True,
+        range=(0.0, 1e6),
+    ),
     'exclude_recent_s': Param(
         REG['exclude_recent_s'],
         'mapping mode: keyframes stored less than this many seconds before the query are never answers; 0 = off',
