@@ -125,3 +125,34 @@ def test_novelty_gating_without_odometry():
     assert reg.gate(0, None, None)  # the first frame
     assert not reg.gate(S, None, 20.0)  # seen before
     assert reg.gate(2 * S, None, 5.0) and reg.gate(3 * S, None, None)  # new, or nothing answered
+
+
+@pytest.mark.parametrize('exclusion, loops', [({'exclude_recent_m': 0.5}, False), ({'exclude_recent_s': 1.0}, True)])
+def test_a_camera_standing_still_closes_no_loop_with_itself(tmp_path, exclusion, loops):
+    """The Localizer in mapping mode on a real SQLite map, fed 4 s of one view with sensor noise at
+    10 Hz and constant odometry: the gate stores one keyframe, and exclude_recent_m keeps it from
+    answering however old it gets (exclude_recent in frames or seconds alone would let it answer)."""
+    import json
+
+    from test_mapstore import MODEL, make_set
+
+    from lln_ros.core.localizer import Localizer
+    from lln_ros.mapstore import open_for_matcher
+
+    rng = np.random.default_rng(7)
+    base = make_set(rng)
+    store, _ = open_for_matcher(str(tmp_path / 'still.db'), 'mapping', '')
+    conf = {'mode': 'mapping', 'exclude_recent': 0, 'registration': exclusion}
+    loc = Localizer(store, conf)
+    loc.model_info(json.dumps({**MODEL, 'input_height': 288}))
+    answers = []
+    for i in range(40):
+        t = 10 * S + i * S // 10
+        loc.reg.add_odometry(OdomPose(t, pose_from_parts([1.0, 2.0, 0.0], [0, 0, 0, 1]), 'odom'))
+        answers.append(loc.query(make_set(rng, base=base, noise=0.05), t))
+    assert len(store) == 1 and loc.counters.counts['queries_not_stored'] == 39
+    assert all(a is not None for a in answers)
+    # seconds alone: the one keyframe answers once it is 1 s old; metres of path: never while still
+    assert any(a.rows for a in answers) == loops
+    assert not any(a.rows for a in answers[:10])
+    store.close()
