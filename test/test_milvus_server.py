@@ -4,8 +4,8 @@ migration, keypoints, two readers with one writer, a server restart under a writ
 matcher over DDS in mapping mode.
 
 The server listens on every interface, so it only runs in a network namespace that has nothing but
-lo: test_real_server_suite (in the normal run) re-runs every `milvus_server` test, this file's and
-test_map_backends.py's, in a child pytest inside such a namespace (test/milvus_loopback.py); there
+lo: test_real_server_suite (in the normal run) re-runs every `milvus_server` test, this file's,
+test_map_backends.py's and test_map_geometry.py's, in a child pytest inside such a namespace (test/milvus_loopback.py); there
 the `milvus_server` fixture starts one server for the whole child run. Outside it those tests skip.
 """
 
@@ -74,6 +74,7 @@ def test_real_server_suite(tmp_path):
         '-o',
         'addopts=-ra',
         str(REPO / 'test' / 'test_map_backends.py'),
+        str(REPO / 'test' / 'test_map_geometry.py'),
         str(REPO / 'test' / 'test_milvus_server.py'),
     ]
     t = time.monotonic()

@@ -137,9 +137,10 @@ class NewestFrame:
 class DepthBuffer:
     """The newest depth images (sensor_msgs/Image, undecoded), for pairing with colour images by
     stamp. take() waits up to WAIT_S for a depth image as new as the colour image: the two topics
-    are not ordered, and the depth of this frame may still be on its way."""
+    are not ordered, and the depth of this frame may still be on its way. It does not wait when no
+    depth image came for LIVE_S (no depth publisher: frames must not be slowed down for nothing)."""
 
-    WAIT_S = 0.15
+    WAIT_S, LIVE_S = 0.15, 1.0
 
     def __init__(self, max_dt_s: float, size: int):
         from collections import deque
@@ -147,10 +148,12 @@ class DepthBuffer:
         self.max_dt_ns = int(float(max_dt_s) * 1e9)
         self._msgs = deque(maxlen=int(size))
         self._cond = threading.Condition()
+        self.last_put = -1e9  # time.monotonic() of the newest depth image
 
     def put(self, msg) -> None:
         with self._cond:
             self._msgs.append(msg)
+            self.last_put = time.monotonic()
             self._cond.notify_all()
 
     def take(self, stamp_ns: int):
@@ -162,7 +165,8 @@ class DepthBuffer:
                 if near:
                     return self._msgs[min(near, key=lambda i: abs(stamps[i] - stamp_ns))]
                 left = deadline - time.monotonic()
-                if (stamps and max(stamps) > stamp_ns + self.max_dt_ns) or left <= 0:
+                stale = time.monotonic() - self.last_put > self.LIVE_S
+                if (stamps and max(stamps) > stamp_ns + self.max_dt_ns) or left <= 0 or stale:
                     return None
                 self._cond.wait(left)
 
