@@ -5,8 +5,9 @@ matcher over DDS in mapping mode.
 
 The server listens on every interface, so it only runs in a network namespace that has nothing but
 lo: test_real_server_suite (in the normal run) re-runs every `milvus_server` test, this file's,
-test_map_backends.py's and test_map_geometry.py's, in a child pytest inside such a namespace (test/milvus_loopback.py); there
-the `milvus_server` fixture starts one server for the whole child run. Outside it those tests skip.
+test_map_backends.py's and test_map_geometry.py's, in a child pytest inside such a namespace
+(test/milvus_loopback.py); there the `milvus_server` fixture starts one server for the whole child
+run. Outside it those tests skip.
 """
 
 from __future__ import annotations
