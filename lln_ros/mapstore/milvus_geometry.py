@@ -70,6 +70,8 @@ class MilvusGeometry:
         kid = int(keyframe_id)
         with self._lock, self._errors('reading geometry'):
             self._ready()
+            if kid in self._deleted:  # Session consistency: a query may still see a deleted row for a while
+                return None
             rows = self._client.query(self._geometry_ready(), filter=f'keyframe_id == {kid}', output_fields=['data'])
         if not rows:
             return None
