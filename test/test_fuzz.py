@@ -261,3 +261,114 @@ def test_localizer_any_decoded_query(served_map, cloud, prefilter_k):
     counts = loc.counters.snapshot()
     assert 'queries_failed' not in counts, counts
     invariants(counts)
+
+
+# --------------------------------------------------------------------------------------------
+# issue 25: stamps, nesting depth, field counts and landmark counts at the limits
+
+
+@FUZZ
+@given(sec=st.integers(-(2**31), 2**31 - 1) | st.sampled_from([2**31 - 1, -(2**31), 0]), nsec=U32)
+def test_any_stamp_is_refused_or_answered_exactly(sec, nsec):
+    """Every builtin_interfaces/Time a sender can put in a header: refused with a MessageError, or
+    carried to the answer's stamp_sec / stamp_nanosec bit for bit (never renormalised)."""
+    header = msgs.make_header()
+    header.stamp.sec, header.stamp.nanosec = sec, nsec
+    try:
+        ns = msgs.header_stamp_ns(header, 'query cloud')
+    except MessageError:
+        assert nsec >= 10**9
+        return
+    row = {'keyframe_id': 1, 'score': 1.0, 'holistic_score': 1.0}
+    row['stamp_sec'], row['stamp_nanosec'] = divmod(ns, 10**9)
+    table = msgs.cloud_to_candidates(msgs.candidates_to_cloud([row]))
+    assert (int(table['stamp_sec'][0]), int(table['stamp_nanosec'][0])) == (sec, nsec)
+
+
+@FUZZ
+@given(depth=st.integers(0, 20) | st.integers(0, 20_000), kind=st.sampled_from(['list', 'dict', 'mixed']))
+def test_model_info_any_nesting_depth(served_map, depth, kind):
+    """A model_info with one value nested `depth` deep: recorded-or-refused, never an exception, and
+    refused (bad_model_info) exactly when deeper than MODEL_JSON_MAX_DEPTH or larger than its bound."""
+    from lln_ros.core.limits import MODEL_JSON_MAX_BYTES, MODEL_JSON_MAX_DEPTH
+
+    opener, closer = {'list': ('[', ']'), 'dict': ('{"a": ', '}'), 'mixed': ('[{"a": ', '}]')}[kind]
+    per = 2 if kind == 'mixed' else 1
+    text = json.dumps(MODEL)[:-1] + ', "extra": ' + opener * depth + '1' + closer * depth + '}'
+    store, _ = served_map
+    loc = Localizer(store)
+    loc.model_info(text)
+    refused = loc.counters.snapshot().get('bad_model_info', 0) == 1
+    assert refused == (1 + per * depth > MODEL_JSON_MAX_DEPTH or len(text) > MODEL_JSON_MAX_BYTES), (depth, kind)
+
+
+@SMALL
+@given(extra=st.integers(0, 120) | st.sampled_from([57, 58, 59, 40_000]))
+def test_point_field_count_at_the_limit(extra):
+    """A landmarks cloud with `extra` more valid PointFields: decoded up to max_point_fields, refused
+    (LimitError) above it, whichever decoder gets it."""
+    msg = msgs.landmarks_to_cloud(make_set(np.random.default_rng(0)))
+    msg.fields = list(msg.fields) + [
+        PointField(name=f'x{i}', offset=0, datatype=PointField.UINT8, count=1) for i in range(extra)
+    ]
+    over = len(msg.fields) > default_conf['max_point_fields']
+    for decode in (msgs.cloud_to_landmarks, msgs.cloud_to_array, msgs.cloud_to_candidates):
+        try:
+            decode(msg)
+        except LimitError:
+            assert over
+        except MessageError:
+            assert not over and decode is msgs.cloud_to_candidates  # not a candidates table
+        else:
+            assert not over
+
+
+def grid_set(rng, n: int, dim: int = 8, side: int = 64):
+    from lln_ros.core.landmarks import LandmarkSet
+
+    desc = rng.standard_normal((n, dim)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    flat = rng.choice(side * side, n, replace=False)
+    cells = np.stack([flat % side, flat // side], axis=1).astype(np.int32)
+    return LandmarkSet(
+        global_descriptor=desc[0],
+        descriptors=desc,
+        cells=cells,
+        centers=(cells * 32 + 16).astype(np.float32),
+        scores=np.ones(n, np.float32),
+        cell_size=np.array([32, 32], np.float32),
+        image_size=np.array([side * 32, side * 32], np.float32),
+        grid=(side, side),
+    )
+
+
+@settings(FUZZ, max_examples=10)
+@given(
+    counts=st.lists(st.sampled_from([1, 50, 1152, 4095, 4096]) | st.integers(1, 4096), min_size=1, max_size=5),
+    n_q=st.sampled_from([1, 50, 4096]) | st.integers(1, 4096),
+    seed=st.integers(0, 100),
+)
+def test_batched_match_at_the_landmark_limit(counts, n_q, seed):
+    """Candidates of any landmark counts up to max_landmarks (4096) against a query of up to 4096:
+    every chunk the match works on stays within MATCH_CHUNK_ELEMENTS (or is one candidate), and
+    each score equals the candidate matched alone."""
+    from lln_ros.core import similarity
+
+    rng = np.random.default_rng(seed)
+    sets, query = [grid_set(rng, n) for n in counts], grid_set(rng, n_q)
+    seen, inner = [], similarity._match_chunk
+
+    def recording(q, batch, scale):
+        k, n_b, d = batch.descriptors.shape
+        seen.append((k, n_b, d))
+        return inner(q, batch, scale)
+
+    similarity._match_chunk = recording
+    try:
+        result = similarity.match_sets(query, sets)
+    finally:
+        similarity._match_chunk = inner
+    cap = similarity.MATCH_CHUNK_ELEMENTS
+    assert all(k == 1 or k * n_b * d <= cap for k, n_b, d in seen), seen
+    alone = [similarity.match_pair(query, s).scores[0] for s in sets]
+    np.testing.assert_allclose(result.scores, alone, rtol=1e-4, atol=1e-4)

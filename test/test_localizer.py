@@ -149,7 +149,7 @@ def test_bad_model_info_changes_nothing(map_path, text, problem):
     with store:
         loc = Localizer(store, log=log)
         loc.model_info(text)
-        assert loc.counters.snapshot() == {'bad_model_info': 1}
+        assert loc.counters.snapshot() == {'model_info_received': 1, 'bad_model_info': 1}
         assert problem in log.lines[0][1], log.lines
         assert store.model is None and loc.refusing == ''
         loc.model_info(json.dumps(MODEL))

@@ -13,7 +13,9 @@ frames to drop: flat (the default), blank, frozen, '+'-joined, or none; Nordland
 --range START:END (fractions) selects that part of every `aligned:` dataset (e.g. 0.7:1 = the last 30%
 of the route); other kinds are used whole. Each head named by --weights / --heads is its own row
 `lln[LABEL]`: `--heads trained=best.pt,untrained=` compares a trained head with the untrained
-(seeded Xavier) head in one run. An empty CKPT (or `xavier`) is the untrained head, `shipped` the head
+(seeded Xavier) head in one run; `LABEL=CKPT@act_fusion=A` ranks that row's cells by the head's
+logits fused with ACT's feature norm (extractor act_fusion, docs/generalisation.md).
+An empty CKPT (or `xavier`) is the untrained head, `shipped` the head
 shipped with the package; without any, the row `lln` uses the shipped head (untrained if none ships).
 act / rand / all / holistic do not depend on the head and get one row each. The classic peers
 `sad` and `seqslam` (SeqSLAM, Milford and Wyeth 2012) are methods too; --sequence L adds an `X+seq`
@@ -200,12 +202,15 @@ def head_specs(args):
     weights, labels = args.weights or [], args.label or []
     if len(labels) > len(weights):
         raise UsageError(f'--label given {len(labels)} times but --weights only {len(weights)} times')
-    heads = [parse_head(w, labels[i] if i < len(labels) else None) for i, w in enumerate(weights)]
-    for group in args.heads or []:
-        for item in group.split(','):
-            if '=' not in item:
-                raise UsageError(f'--heads items must be LABEL=CKPT (CKPT may be empty), got {item!r}')
-            heads.append(parse_head(item))
+    try:
+        heads = [parse_head(w, labels[i] if i < len(labels) else None) for i, w in enumerate(weights)]
+        for group in args.heads or []:
+            for item in group.split(','):
+                if '=' not in item:
+                    raise UsageError(f'--heads items must be LABEL=CKPT (CKPT may be empty), got {item!r}')
+                heads.append(parse_head(item))
+    except ValueError as e:
+        raise UsageError(f'--weights/--heads: {e}') from None
     if len(heads) == 1 and not labels and not args.heads and '=' not in weights[0]:
         heads[0].label = ''  # one unlabelled head: its row is plain `lln`
     if any(h.label and not h.label.replace('_', '').replace('-', '').replace('.', '').isalnum() for h in heads):

@@ -32,6 +32,11 @@ default_conf = {
     'input_height': 288,
     'method': 'lln',
     'rand_seed': 0,
+    # lln only: rank cells by (1 - a) rank(head logits) + a rank(|f|) (rank fusion with ACT's feature
+    # norm, per image), a in [0, 1]: 0 = the head alone, 1 = ACT. Pulls the selection toward the
+    # untrained choice where the head meets kinds of place it never trained on
+    # (docs/generalisation.md, "Unseen kinds of place")
+    'act_fusion': 0.0,
     'runtime': 'onnxruntime',  # torch | onnxruntime (falls back to torch when not installed)
     'num_threads': 0,  # intra-op threads of the runtime; 0 = the runtime's default
 }
@@ -43,6 +48,26 @@ def shipped_weights(backbone: str, layer: str) -> str | None:
     return str(path) if path.is_file() else None
 
 
+def _unit_ranks(x: np.ndarray) -> np.ndarray:
+    """Ranks of x's cells scaled to [0, 1] (0 = lowest); equal values: the lower index ranks lower."""
+    flat = x.ravel()
+    r = np.empty(flat.size, np.float32)
+    r[np.argsort(flat, kind='stable')] = np.arange(flat.size, dtype=np.float32) / max(flat.size - 1, 1)
+    return r.reshape(x.shape)
+
+
+def fused_logits(logits: np.ndarray, norms: np.ndarray, a: float) -> np.ndarray:
+    """(rows, cols) head logits and feature norms -> the map lln ranks by: the head's logits at a = 0,
+    else the rank fusion (1 - a) rank(logits) + a rank(|f|) (ranks scaled to [0, 1] per image).
+
+    Ranks, not values: a trained head's logits are thousands (the shipped head's span 2,000-25,000
+    on one image) against log |f| of 3.7-4.7, so a convex mix of values is the head alone for any
+    a < 0.999; ranks put the two on one scale whatever the head's."""
+    if not a:
+        return logits
+    return (1.0 - a) * _unit_ranks(logits) + a * _unit_ranks(norms)
+
+
 class Extractor:
     def __init__(self, conf: dict | None = None):
         conf = dict(conf or {})
@@ -52,6 +77,8 @@ class Extractor:
             raise ModelError(f'unknown method {conf["method"]!r}; choose one of {METHODS}')
         if int(conf['top_n']) < 1:
             raise ModelError(f'top_n must be at least 1, got {conf["top_n"]}')
+        if not 0.0 <= float(conf['act_fusion']) <= 1.0:
+            raise ModelError(f'act_fusion must be in [0, 1], got {conf["act_fusion"]}')
         if conf['runtime'] not in RUNTIMES:
             raise ModelError(f'unknown runtime {conf["runtime"]!r}; choose one of {list(RUNTIMES)}')
         if int(conf['num_threads']):
@@ -130,7 +157,8 @@ class Extractor:
         # LLN ranks by the logits: the same order as the ReLU activation where it is positive, and
         # a meaningful order among the many cells the ReLU sets to exactly 0 (by index they would
         # fall back to the top rows of the image: ceiling and sky)
-        rank_by = np.linalg.norm(local, axis=1).reshape(rows, cols) if method == 'act' else logits
+        norms = np.linalg.norm(local, axis=1).reshape(rows, cols)
+        rank_by = norms if method == 'act' else fused_logits(logits, norms, float(self.conf.get('act_fusion', 0.0)))
         cells_flat = select_landmarks(rank_by, int(self.conf['top_n']), method, int(self.conf['rand_seed']))
         cells = np.stack([cells_flat % cols, cells_flat // cols], axis=1).astype(np.int32)
         cell_size = np.array([image_size[0] / cols, image_size[1] / rows], np.float32)
@@ -141,7 +169,10 @@ class Extractor:
             descriptors=l2_normalize(local[cells_flat]).astype(np.float16).astype(np.float32),
             cells=cells,
             centers=centers,
-            scores=(rank_by if method == 'act' else activation).ravel()[cells_flat].astype(np.float32),
+            # lln with act_fusion: the fused rank score the cells are ordered by, in [0, 1]
+            scores=(rank_by if method == 'act' or rank_by is not logits else activation)
+            .ravel()[cells_flat]
+            .astype(np.float32),
             cell_size=cell_size,
             image_size=np.array(image_size, np.float32),
             grid=(rows, cols),

@@ -6,7 +6,8 @@ A `LandmarkSet` holds, for one image with a (rows, cols) feature grid and n land
     descriptors        (n, D)    local features f_ij of the landmarks, L2-normalised, by descending score
     cells              (n, 2)    grid cell of each landmark as (col, row) integers
     centers            (n, 2)    region centre (u, v) in ORIGINAL image pixels
-    scores             (n,)      selection score (LLN activation, or feature norm for `act`)
+    scores             (n,)      selection score (LLN activation; feature norm for `act`; fused rank
+                                 in [0, 1] for lln with act_fusion > 0)
     cell_size          (2,)      (w, h) of one grid cell in original image pixels
     image_size         (2,)      (width, height) of the original image
     activation         (rows, cols)  the full LLN activation map (for plots and the `score` of row 0)

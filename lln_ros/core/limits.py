@@ -8,6 +8,8 @@ amount of memory and time. The nodes declare each limit as a parameter whose def
 count as a refused message (bad_image / bad_keyframe / bad_query / bad_keypoints).
 
     validate_model(model) -> dict            # Extractor.model_info / a map's model record
+    parse_model_json(text) -> object          # model_info text, size- and depth-bounded, then json.loads
+    stamp_problem(sec, nanosec) -> str        # '' when a stamp fits every type it is written to
     check_landmark_set(lset, model, conf)     # declared sizes of a decoded landmark set
     check_pixels(width, height, conf, what)   # an image, before it is decoded or copied
 
@@ -37,7 +39,25 @@ default_conf = {
     'max_grid_side': 128,
     # ORB keypoint rows per keypoints cloud (the extractor's keypoints_max is 500 by default)
     'max_keypoints': 20_000,
+    # PointFields per cloud: every table here has at most 11 (candidates with inliers and
+    # sequence_score); 40,000 fields once stalled the decoder for 15 s (issue 25)
+    'max_point_fields': 64,
 }
+
+# A stamp travels as builtin_interfaces/Time (int32 sec, uint32 nanosec) and is written back as the
+# candidates' stamp_sec (INT32) and stamp_nanosec (UINT32), and into the map (SQLite INTEGER, Milvus
+# INT64). The narrowest of them bounds it; nanosec must be normalised (< 1e9): a stamp is refused,
+# never renormalised, so an answer's stamps are exactly the sender's.
+STAMP_SEC_RANGE = (-(2**31), 2**31 - 1)
+KEYFRAME_ID_MAX = 2**32 - 1  # the candidates' and matches' keyframe_id is UINT32
+NANOSEC_PER_SEC = 1_000_000_000
+
+# model_info (and a map's model record) is a small flat JSON object (Extractor.model_info: depth 2,
+# ~20 keys). Anything far larger or deeper is refused before it is parsed further or recorded:
+# a 2 KB list nested 1,000 deep raised RecursionError past the handler on every restart (issue 25)
+MODEL_JSON_MAX_BYTES = 65_536
+MODEL_JSON_MAX_DEPTH = 8
+MODEL_JSON_MAX_ITEMS = 4_096  # values (keys, list items, scalars) in the whole document
 
 
 class LimitError(MessageError):
@@ -54,6 +74,86 @@ def limits(conf: Mapping | None = None) -> dict:
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f'limit {name} must be a positive integer, got {value!r}')
     return out
+
+
+def stamp_problem(sec, nanosec) -> str:
+    """'' when (sec, nanosec) fits every type a stamp is written to (STAMP_SEC_RANGE, nanosec in
+    [0, 1e9)); else the reason, for a MessageError or a quarantine note."""
+    try:
+        sec, nanosec = int(sec), int(nanosec)
+    except (TypeError, ValueError, OverflowError):
+        return f'stamp ({sec!r}, {nanosec!r}) is not a pair of integers'
+    low, high = STAMP_SEC_RANGE
+    if not low <= sec <= high:
+        return f'stamp sec {sec} does not fit int32 [{low}, {high}] (builtin_interfaces/Time, candidates stamp_sec)'
+    if not 0 <= nanosec < NANOSEC_PER_SEC:
+        return f'stamp nanosec {nanosec} is not in [0, 1e9) (refused, not renormalised)'
+    return ''
+
+
+def json_shape_problem(value, max_depth: int = MODEL_JSON_MAX_DEPTH, max_items: int = MODEL_JSON_MAX_ITEMS) -> str:
+    """'' when a parsed JSON value nests at most max_depth containers and holds at most max_items
+    values; else the reason. Iterative: a deep value cannot exhaust the Python stack here."""
+    stack, items = [(value, 1)], 0
+    while stack:
+        node, depth = stack.pop()
+        items += 1
+        if items > max_items:
+            return f'more than {max_items} values'
+        if isinstance(node, (dict, list)):
+            if depth > max_depth:
+                return f'nested more than {max_depth} deep'
+            children = node.values() if isinstance(node, dict) else node
+            stack.extend((child, depth + 1) for child in children)
+            items += len(node) if isinstance(node, dict) else 0  # the keys
+    return ''
+
+
+def parse_model_json(text, what: str = 'model_info'):
+    """json.loads of a model record, bounded: ModelError (a ValueError) for text longer than
+    MODEL_JSON_MAX_BYTES, nesting deeper than MODEL_JSON_MAX_DEPTH (checked on the raw text before
+    parsing, so the parser's own recursion is never reached), or more than MODEL_JSON_MAX_ITEMS
+    values. Then validate_model decides whether it is a model."""
+    if isinstance(text, (bytes, bytearray)):
+        text = bytes(text).decode('utf-8', errors='replace')
+    if not isinstance(text, str):
+        raise ModelError(f'{what} must be JSON text, got {type(text).__name__}')
+    if len(text) > MODEL_JSON_MAX_BYTES:
+        raise ModelError(f'{what} is {len(text)} characters, more than {MODEL_JSON_MAX_BYTES}')
+    if _bracket_depth(text) > MODEL_JSON_MAX_DEPTH:
+        raise ModelError(f'{what} is nested more than {MODEL_JSON_MAX_DEPTH} deep')
+    import json
+
+    try:
+        value = json.loads(text)
+    except RecursionError:  # not reachable after the depth check; kept as a ModelError all the same
+        raise ModelError(f'{what} is nested too deep to parse') from None
+    problem = json_shape_problem(value)
+    if problem:
+        raise ModelError(f'{what} is {problem}')
+    return value
+
+
+def _bracket_depth(text: str) -> int:
+    """Deepest [ / { nesting of JSON text, outside strings (a linear scan)."""
+    depth = deepest = 0
+    in_string = escaped = False
+    for ch in text:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif ch == '\\':
+                escaped = True
+            elif ch == '"':
+                in_string = False
+        elif ch == '"':
+            in_string = True
+        elif ch in '[{':
+            depth += 1
+            deepest = max(deepest, depth)
+        elif ch in ']}':
+            depth -= 1
+    return deepest
 
 
 def _int_field(model: Mapping, name: str, low: int, high: int, required: bool) -> int | None:
@@ -86,6 +186,9 @@ def validate_model(model, conf: Mapping | None = None) -> dict:
     input_height      optional; an integer multiple of 32 in [32, 32 * max_grid_side]
     """
     lim = limits(conf)
+    problem = json_shape_problem(model)
+    if problem:  # a dict built in Python can nest as deep as text can: checked here too
+        raise ModelError(f'model is {problem}')
     if not isinstance(model, Mapping):
         raise ModelError(
             f'model must be a JSON object with descriptor_space and descriptor_dim '

@@ -27,7 +27,6 @@ failed, or an internal error): the message is not blamed as bad_*.
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
 
@@ -35,7 +34,8 @@ from ..errors import DescriptorError, LLNError, MapError
 from . import limits as limits_mod
 from . import registration as registration_mod
 from .landmark_index import check_prefilter
-from .limits import LimitError, check_landmark_set, validate_model
+from .limits import LimitError, check_landmark_set, parse_model_json, stamp_problem, validate_model
+from .pending import Pending
 from .retrieval import candidates_k
 from .retrieval import default_conf as retrieval_conf
 from .sequence import KeyframeSequence
@@ -57,11 +57,16 @@ default_conf = {
     'verify_margin': 1.0,
     'sequence_length': 0,  # 0 = single-frame ranking
     'sequence_max_gap': 1.0,
+    # verify: bytes of keypoints messages waiting for their landmark set (the oldest are evicted,
+    # counted as keypoints_evicted): 100 default messages of 500 keypoints are 2.8 MB; before
+    # (issue 25) 100 messages declaring 1 row and carrying 8 MB each stayed resident, 816 MB
+    'pending_keypoints_bytes': 16 * 2**20,
     'limits': limits_mod.default_conf,
     # the metric side (camera, depth, odometry, poses, gating): lln_ros.core.registration.default_conf
     'registration': registration_mod.default_conf,
 }
 PENDING = 100  # keypoints messages / keyframes waiting for their partner (by stamp), newest kept
+KEYPOINT_ROW_BYTES = 56  # one keypoints cloud row (msgs.KEYPOINT_FIELDS: 5 float32, int32, 32 uint8)
 
 
 @dataclass
@@ -97,7 +102,8 @@ class Localizer:
         )
         self.refusing = ''  # set when the extractor's model differs from the map's
         self.extractor_model = None  # the last valid model_info: its input_height fixes the grid rows
-        self.reloc, self.pending_keypoints, self.unmatched_keyframes = None, {}, {}
+        self.reloc, self.unmatched_keyframes = None, {}
+        self.pending_keypoints = Pending(PENDING, conf['pending_keypoints_bytes'])
         # decode_keypoints(payload, image_size (w, h), scale, max_rows) -> reloc.Keypoints
         self.decode_keypoints = decode_keypoints or (lambda kps, *_: kps)
         if conf['verify']:
@@ -138,11 +144,15 @@ class Localizer:
         """The extractor's model (JSON). Validated completely first (limits.validate_model): a bad
         one is counted as bad_model_info and changes nothing, neither the map nor the refusal state.
         A valid one is declared to the map: recorded on a new map, or the refusal is set/lifted."""
+        self.count('model_info_received')
         try:
-            model = validate_model(json.loads(text), self.limits)
+            # bounded in size and depth before it is parsed (limits.parse_model_json): nothing
+            # recorded in the map can fail to be written or read back
+            model = validate_model(parse_model_json(text), self.limits)
         except (ValueError, RecursionError) as e:  # JSONDecodeError and ModelError are ValueErrors
             self.counters.problem('bad_model_info', f'cannot use model_info: {e}')
             return
+        self._say_height_change(model)
         self.extractor_model = model
         try:
             self.store.use_model(model)
@@ -151,6 +161,24 @@ class Localizer:
             if str(e) != self.refusing:
                 self.log.error(f'{e}; landmark input is refused until the models agree')
             self.refusing = str(e)
+
+    def _say_height_change(self, model: dict) -> None:
+        """One ERROR line, per change, when a model_info of the same descriptor space brings another
+        input_height than the one landmark clouds were checked against until now (the previous
+        model_info, else the map's record): every cloud of the old height is refused from now on
+        (bad_query / bad_keyframe: grid rows), and this says why, once, in plain words."""
+        before = self.extractor_model or self.store.model or {}
+        old, new = before.get('input_height'), model.get('input_height')
+        if old is None or new is None or int(old) == int(new):
+            return
+        if before.get('descriptor_space') != model.get('descriptor_space'):
+            return  # another model: the map's own refusal (use_model) says so
+        self.log.error(
+            f'model_info of the same model {model["descriptor_space"]!r} changes input_height from '
+            f'{int(old)} to {int(new)}: landmark clouds must now have a grid of {int(new) // 32} rows, '
+            f'so clouds of an extractor still at input_height {int(old)} ({int(old) // 32} rows) are '
+            f'refused as bad_query / bad_keyframe until the extractor and its model_info agree'
+        )
 
     def landmark_decoding(self, counter: str) -> dict | None:
         """kwargs for msgs.cloud_to_landmarks (expected_dim, descriptor_space, limits), or None when
@@ -204,13 +232,28 @@ class Localizer:
             self._failed('keyframes_failed', e)
         return None
 
-    def keypoints(self, payload, stamp_ns: int) -> None:
-        """Keypoints are held until the landmark set with the same stamp arrives (the newest 100 are
-        kept); two topics are not ordered, so keypoints of a keyframe already stored are attached."""
+    def keypoints(self, payload, stamp_ns: int, nbytes: int = 0) -> None:
+        """Keypoints are held until the landmark set with the same stamp arrives (the newest 100, at
+        most pending_keypoints_bytes in all, are kept); two topics are not ordered, so keypoints of a
+        keyframe already stored are attached. nbytes: the payload's size (the node's len(msg.data));
+        a message larger than max_keypoints rows can be is refused (bad_keypoints) before it is kept."""
+        most = self.limits['max_keypoints'] * KEYPOINT_ROW_BYTES
+        if nbytes > most:
+            self.counters.problem(
+                'bad_keypoints',
+                f'keypoints cloud: {nbytes} bytes is more than max_keypoints {self.limits["max_keypoints"]} '
+                f'rows of {KEYPOINT_ROW_BYTES} bytes ({most}); not kept',
+            )
+            return
         kid = self.unmatched_keyframes.pop(stamp_ns, None)
         if kid is None:
-            self.pending_keypoints[stamp_ns] = payload
-            _bound(self.pending_keypoints)
+            if self.pending_keypoints.put(stamp_ns, payload, nbytes):
+                self.counters.problem(
+                    'keypoints_evicted',
+                    f'verify: keypoints waiting for their landmark set exceed {PENDING} messages or '
+                    f'pending_keypoints_bytes {self.conf["pending_keypoints_bytes"]}; the oldest dropped',
+                    kind='evicted',
+                )
             return
         try:
             kps = self._decode_keypoints(payload, self.store.get(kid))
@@ -223,7 +266,7 @@ class Localizer:
 
     def _take_keypoints(self, stamp_ns: int, lset):
         """The keypoints sent with this landmark set (by stamp), decoded, or None."""
-        payload = self.pending_keypoints.pop(stamp_ns, None) if self.reloc else None
+        payload = self.pending_keypoints.take(stamp_ns) if self.reloc else None
         if payload is None:
             if self.reloc:
                 self.count('verify_missing_keypoints')
@@ -280,11 +323,20 @@ class Localizer:
     # ------------------------------------------------------------------ queries
 
     def query_fresh(self, stamp_ns: int, now_ns: int) -> bool:
-        """Count a received query; False (counted as queries_stale) when older than max_query_age."""
+        """Count a received query; False (counted as queries_stale) when its stamp is more than
+        max_query_age from the node's clock either way: older, or ahead (a future stamp is no
+        fresher than an old one; those are counted as queries_future too)."""
         self.count('queries_received')
         max_age = self.conf['max_query_age']
-        if max_age > 0 and (now_ns - stamp_ns) * 1e-9 > max_age:
+        age = (now_ns - stamp_ns) * 1e-9
+        if max_age > 0 and abs(age) > max_age:
             self.count('queries_stale')
+            if age < 0:
+                self.counters.problem(
+                    'queries_future',
+                    f"query stamped {-age:.3f} s ahead of this node's clock, more than max_query_age "
+                    f'{max_age:g} s: dropped as stale (clocks apart? use_sim_time on one node only?)',
+                )
             return False
         return True
 
@@ -326,8 +378,9 @@ class Localizer:
             if self.reg.gate(stamp_ns, odom, found[0].score if found else None):
                 self._store_keyframe(lset, stamp_ns, kps, odom)
                 self.count('queries_stored')
-            else:  # odometry says it has not moved enough since the last keyframe
+            else:  # the gate (odometry motion, or novelty) says it is not a new keyframe
                 self.count('queries_not_stored')
+        found = [m for m in found if self._stamp_ok(m.keyframe_id, m.stamp)]
         rows = [
             {
                 'keyframe_id': m.keyframe_id,
@@ -378,6 +431,18 @@ class Localizer:
             best.keyframe_id,
         )
 
+    def _stamp_ok(self, keyframe_id: int, stamp) -> bool:
+        """Whether a stored keyframe fits the answer's keyframe_id (UINT32), stamp_sec (INT32) and
+        stamp_nanosec (< 1e9). One stored out of range by an older version (SQLite quarantines bad
+        stamps at open; this covers any backend) is left out of the answer, counted as
+        bad_stored_stamp, and never fails the encoder."""
+        problem = stamp_problem(*stamp)
+        if not 0 <= int(keyframe_id) <= limits_mod.KEYFRAME_ID_MAX:
+            problem = f"id does not fit the answers' keyframe_id (UINT32, at most {limits_mod.KEYFRAME_ID_MAX})"
+        if problem:
+            self.counters.problem('bad_stored_stamp', f'map keyframe {keyframe_id}: {problem}; not answered')
+        return not problem
+
     def verify(self, lset, kps, found):
         """Candidates re-ranked by region-constrained inliers, {keyframe_id: inliers} and
         {keyframe_id: reloc.RelocResult} (its matches: what the pose is estimated from)."""
@@ -414,6 +479,8 @@ class Localizer:
                 continue
             m = by_id.get(kf)
             stamp = m.stamp if m else self.store.get(kf).meta['stamp']
+            if m is None and not self._stamp_ok(kf, stamp):
+                continue
             rows.append(
                 {
                     'keyframe_id': kf,

@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 
 from ..errors import LLNError
+from ..io.camera import load_yaml
 from ..io.image import check_image
 
 default_conf = {
@@ -184,19 +185,8 @@ def camera_matrix(source) -> np.ndarray:
 
 
 def load_camera_yaml(path) -> dict:
-    """A ROS camera-calibration YAML (camera_calibration / camera_info_manager format) as a dict."""
-    import yaml
-
-    try:
-        with open(path) as f:
-            data = yaml.safe_load(f)
-    except OSError as e:
-        raise RelocError(f'cannot read camera intrinsics {str(path)!r}: {e.strerror}') from None
-    except yaml.YAMLError as e:
-        raise RelocError(f'camera intrinsics {str(path)!r} are not valid YAML: {e}') from None
-    if not isinstance(data, dict):
-        raise RelocError(f'camera intrinsics {str(path)!r} must be a YAML mapping')
-    return data
+    """A ROS camera-calibration YAML as a dict (io.camera.load_yaml), RelocError when unusable."""
+    return load_yaml(path, 'camera intrinsics', RelocError)
 
 
 # ------------------------------------------------------------------------------------------ regions

@@ -21,8 +21,8 @@ import numpy as np
 from ..errors import DescriptorError
 from . import landmark_index
 from .landmark_index import LandmarkIndex, check_prefilter
-from .landmarks import LandmarkBatch, LandmarkSet, stack_landmarks
-from .similarity import match_batch
+from .landmarks import LandmarkBatch, LandmarkSet
+from .similarity import match_batch, match_sets
 
 default_conf = {
     'prefilter': 'landmarks',  # first stage: landmarks | holistic | exhaustive (the one default of all paths)
@@ -51,15 +51,17 @@ class Candidate:
 
 def rerank(
     query: LandmarkSet,
-    batch: LandmarkBatch,
+    batch: LandmarkBatch | list,
     indices: np.ndarray,
     holistic: np.ndarray,
     scale: float = 1.0,
     limit: int | None = None,
 ) -> list[Candidate]:
-    """Score `batch` (the prefiltered candidates, in `indices` order) against the query; sort by S.
-    limit: only the best `limit` come back (their pair tables are what costs, per candidate)."""
-    result = match_batch(query, batch, scale)
+    """Score `batch` (the prefiltered candidates, in `indices` order: a LandmarkBatch, or a list of
+    LandmarkSets, matched by similarity.match_sets in bounded chunks grouped by landmark count)
+    against the query; sort by S. limit: only the best `limit` come back (their pair tables are
+    what costs, per candidate)."""
+    result = match_sets(query, batch, scale) if isinstance(batch, list) else match_batch(query, batch, scale)
     order = np.argsort(-result.scores, kind='stable')[:limit]
     return [
         Candidate(
@@ -322,8 +324,7 @@ class LandmarkDatabase:
             return [Candidate(int(i), float(f), float(h)) for i, f, h in zip(idx, first, hol)]
         if len(idx) == 0:
             return []
-        batch = stack_landmarks([self.sets[i] for i in idx])
-        return rerank(query, batch, idx, hol, self.conf['scale'])
+        return rerank(query, [self.sets[i] for i in idx], idx, hol, self.conf['scale'])
 
     def _check_query(self, query: LandmarkSet) -> None:
         query.validate()

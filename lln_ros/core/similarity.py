@@ -5,7 +5,8 @@ For a query set A and K candidate sets B_k:
   2. offset_mode: the most frequent grid-cell offset (dx, dy) = cell(A_i) - cell(B_j) over the pairs;
   3. offset_weights: w_ij = exp(-1/2 * |offset_ij - mode|^2 / scale^2), offsets in grid cells;
   4. S = sum_ij w_ij * s_ij.
-All K candidates are done at once with array operations (no Python loop per candidate).
+All K candidates are done with array operations (no Python loop per candidate), in chunks whose
+similarity tensor is bounded (MATCH_CHUNK_ELEMENTS): memory per query does not grow with K x n_max.
 """
 
 from __future__ import annotations
@@ -57,15 +58,30 @@ def cross_match(
     Returns match (K, n_a) int (-1 = no mutual partner) and sims (K, n_a) cosine to the partner.
     """
     k, n_b, d = cands.shape
-    # one GEMM for all candidates: (K*n_b, D) @ (D, n_a)
-    sims = (cands.reshape(k * n_b, d) @ query.T).reshape(k, n_b, query.shape[0]).transpose(0, 2, 1)
-    sims = np.where(valid_c[:, None, :] & valid_q[None, :, None], sims, -np.inf)  # (K, n_a, n_b)
-    nn_ab = sims.argmax(axis=2)  # (K, n_a)
-    nn_ba = sims.argmax(axis=1)  # (K, n_b)
+    n_a = query.shape[0]
+    flat = cands.reshape(k * n_b, d)
+    # the query in row blocks, so the similarity block (K, n_b, rows) stays within
+    # MATCH_CHUNK_ELEMENTS floats whatever n_a; nn_ba is kept as a running max / first argmax over
+    # the blocks, which is exactly the argmax of the whole (ties go to the first row, as argmax's)
+    step = max(1, MATCH_CHUNK_ELEMENTS // max(1, k * n_b))
+    nn_ab, best = np.zeros((k, n_a), np.int64), np.zeros((k, n_a), np.float32)
+    col_max, nn_ba = np.full((k, n_b), -np.inf, np.float32), np.zeros((k, n_b), np.int64)
+    for start in range(0, n_a, step):
+        stop = min(n_a, start + step)
+        sims = (flat @ query[start:stop].T).reshape(k, n_b, stop - start)  # one GEMM per block
+        np.copyto(sims, -np.inf, where=~valid_c[:, :, None])  # in place: broadcast mask, no temporary
+        if not valid_q[start:stop].all():
+            sims[:, :, ~valid_q[start:stop]] = -np.inf
+        block_ab = sims.argmax(axis=1)  # (K, rows)
+        nn_ab[:, start:stop] = block_ab
+        best[:, start:stop] = np.take_along_axis(sims, block_ab[:, None, :], axis=1)[:, 0, :]
+        block_max, block_arg = sims.max(axis=2), sims.argmax(axis=2)  # (K, n_b)
+        better = block_max > col_max
+        col_max = np.where(better, block_max, col_max)
+        nn_ba = np.where(better, block_arg + start, nn_ba)
     rows = np.arange(k)[:, None]
-    mutual = nn_ba[rows, nn_ab] == np.arange(query.shape[0])[None, :]
+    mutual = nn_ba[rows, nn_ab] == np.arange(n_a)[None, :]
     mutual &= valid_q[None, :] & valid_c[rows, nn_ab]
-    best = np.take_along_axis(sims, nn_ab[:, :, None], axis=2)[:, :, 0]
     return np.where(mutual, nn_ab, -1), np.where(mutual, best, 0.0).astype(np.float32)
 
 
@@ -116,12 +132,79 @@ def offset_weights(offsets: np.ndarray, mode: np.ndarray, scale: float = 1.0) ->
     return np.exp(-0.5 * d2 / float(scale) ** 2).astype(np.float32)
 
 
+# float32 elements one step of the match may hold: a chunk of K_c candidates stacked to its own
+# longest n_b (K_c x n_b x D descriptors <= this), and the similarity block of that chunk against a
+# block of query rows (K_c x n_b x rows <= this; cross_match). 2^22 floats = 16 MiB; with argmax's
+# copy of a block the match needs ~2-3 x 16 MiB beyond the sets it matches, whatever K, n_a and the
+# landmark counts (bench/bench_hostile.py, docs/interfaces.md "worst-case cost of one message").
+# Before (issue 25) one 4,096-landmark keyframe and query padded all 100 candidates to 4096 x 4096
+# similarities: 6.3 GB.
+MATCH_CHUNK_ELEMENTS = 1 << 22
+
+
+def chunk_size(n_a: int, n_b: int, d: int, cap: int | None = None) -> int:
+    """Candidates of n_b landmarks (D-dim) stacked and matched at once (>= 1); n_a is blocked inside
+    cross_match, so it does not size the chunk."""
+    cap = MATCH_CHUNK_ELEMENTS if cap is None else cap
+    return max(1, cap // max(1, n_b * d))
+
+
 def match_batch(query: LandmarkSet, batch: LandmarkBatch, scale: float = 1.0) -> MatchResult:
-    """Similarity S of one query against every set in a LandmarkBatch."""
-    if batch.descriptors.shape[2] != query.dim:
-        raise DescriptorError(
-            f'descriptor size mismatch: query has D={query.dim}, candidates have D={batch.descriptors.shape[2]}'
-        )
+    """Similarity S of one query against every set in a LandmarkBatch (an already padded stack),
+    in chunks of chunk_size() candidates, each cut to its own longest set."""
+    k, n_b, d = batch.descriptors.shape
+    if d != query.dim:
+        raise DescriptorError(f'descriptor size mismatch: query has D={query.dim}, candidates have D={d}')
+    step = chunk_size(len(query), n_b, d)
+    if k <= step:
+        return _match_chunk(query, batch, scale)
+    parts = []
+    for start in range(0, k, step):
+        part = batch.take(np.arange(start, min(k, start + step)))
+        used = int(part.valid.any(axis=0).nonzero()[0].max(initial=-1)) + 1
+        parts.append(_match_chunk(query, _cut(part, max(used, 1)), scale))
+    return _concat(parts)
+
+
+def match_sets(query: LandmarkSet, sets: list[LandmarkSet], scale: float = 1.0) -> MatchResult:
+    """match_batch against a list of sets (results in list order) without padding them all to the
+    longest: the sets are grouped by landmark count (sorted) and stacked chunk by chunk, so the
+    stacked descriptors and the similarity blocks stay within MATCH_CHUNK_ELEMENTS floats (one
+    candidate at least), and a long keyframe costs only its own candidates' time. Beyond that the
+    results are K x n_a (match, similarity, weight, offsets: ~40 bytes per query landmark and
+    candidate)."""
+    if not sets:
+        raise DescriptorError('no landmark sets to match')
+    order = np.argsort([len(s) for s in sets], kind='stable')
+    parts, idx, start = [], [], 0
+    while start < len(order):
+        # sorted ascending: the chunk's longest set is its last; grow while it fits
+        stop = start + 1
+        while stop < len(order):
+            n_b = len(sets[order[stop]])
+            if stop + 1 - start > chunk_size(len(query), n_b, query.dim):
+                break
+            stop += 1
+        chunk = order[start:stop]
+        parts.append(match_batch(query, stack_landmarks([sets[i] for i in chunk]), scale))
+        idx.append(chunk)
+        start = stop
+    merged = _concat(parts)
+    inverse = np.empty(len(sets), np.int64)
+    inverse[np.concatenate(idx)] = np.arange(len(sets))
+    return MatchResult(*(getattr(merged, f)[inverse] for f in ('scores', 'offsets', 'match', 'similarity', 'weight')))
+
+
+def _cut(batch: LandmarkBatch, n: int) -> LandmarkBatch:
+    return LandmarkBatch(batch.descriptors[:, :n], batch.cells[:, :n], batch.valid[:, :n], batch.globals)
+
+
+def _concat(parts: list[MatchResult]) -> MatchResult:
+    fields = ('scores', 'offsets', 'match', 'similarity', 'weight')
+    return MatchResult(*(np.concatenate([getattr(p, f) for p in parts]) for f in fields))
+
+
+def _match_chunk(query: LandmarkSet, batch: LandmarkBatch, scale: float) -> MatchResult:
     q = np.asarray(query.descriptors, np.float32)
     valid_q = np.ones(len(q), bool)
     match, sims = cross_match(q, np.asarray(batch.descriptors, np.float32), valid_q, batch.valid)

@@ -22,6 +22,9 @@ REPORT_KEYS = METRIC_KEYS + ('extract_ms', 'match_ms_per_pair', 'n')
 
 UNTRAINED_WORDS = ('', 'xavier', 'untrained', 'none')
 SHIPPED_WORDS = ('shipped', 'default')
+# extractor settings a head row may override (`LABEL=CKPT@act_fusion=0.5`): how its cells are
+# chosen from its logits, so one run compares selection rules of the same head
+SELECT_KEYS = ('act_fusion',)
 
 
 @dataclass
@@ -30,12 +33,13 @@ class Head:
 
     weights: a checkpoint path; None (or '', 'xavier', 'untrained') = a seeded Xavier-init head (the
     untrained baseline); 'shipped' = the head shipped for this backbone/layer; 'extractor' = the
-    extractor's own head as configured."""
+    extractor's own head as configured. select: extractor settings (SELECT_KEYS) for this row only."""
 
     label: str
     weights: str | None
     module: LLNHead | None = None
     meta: dict = field(default_factory=dict)
+    select: dict = field(default_factory=dict)
 
     @property
     def trained(self) -> bool:
@@ -59,16 +63,33 @@ class Head:
         return {**out, 'status': status, 'trained': trained, 'validated': validated}
 
 
+def parse_select(items: list[str]) -> dict:
+    """['act_fusion=0.5', ...] -> {'act_fusion': 0.5}; ValueError naming a bad item."""
+    out = {}
+    for item in items:
+        key, _, value = item.partition('=')
+        if key not in SELECT_KEYS:
+            raise ValueError(f'unknown head setting {key!r} in @{item}; choose from {SELECT_KEYS}')
+        try:
+            out[key] = float(value)
+        except ValueError:
+            raise ValueError(f'head setting @{item}: {value!r} is not a number') from None
+    return out
+
+
 def parse_head(text: str, label: str | None = None) -> Head:
-    """'LABEL=PATH' or 'PATH' -> Head (not loaded). PATH '' / 'xavier' / 'untrained' = untrained."""
-    if label is None and '=' in text:
+    """'LABEL=PATH[@KEY=VALUE...]' or 'PATH' -> Head (not loaded). PATH '' / 'xavier' / 'untrained'
+    = untrained; @KEY=VALUE: a selection setting of this row (SELECT_KEYS)."""
+    if label is None and '=' in text.split('@')[0]:
         label, _, text = text.partition('=')
+    text, *opts = text.split('@')
+    select = parse_select(opts)
     weights = None if text.strip().lower() in UNTRAINED_WORDS else text
     if label is None:
         label = (
             'untrained' if weights is None else ('shipped' if weights.lower() in SHIPPED_WORDS else Path(weights).stem)
         )
-    return Head(label.strip(), weights)
+    return Head(label.strip(), weights, select=select)
 
 
 def load_heads(extractor, heads: list[Head] | None) -> list[Head]:
@@ -94,7 +115,11 @@ def load_heads(extractor, heads: list[Head] | None) -> list[Head]:
             untrained.append(i)
         elif w == 'extractor':
             out[i] = Head(
-                h.label, extractor.model_info.get('weights') or None, extractor.head, dict(extractor.head_meta)
+                h.label,
+                extractor.model_info.get('weights') or None,
+                extractor.head,
+                dict(extractor.head_meta),
+                dict(h.select),
             )
         else:
             if w.lower() in SHIPPED_WORDS:
@@ -106,10 +131,11 @@ def load_heads(extractor, heads: list[Head] | None) -> list[Head]:
             else:
                 path = os.path.expanduser(w)
             module, meta = load_checkpoint(path, name, layer, dim)
-            out[i] = Head(h.label, path, module, meta)
+            out[i] = Head(h.label, path, module, meta, dict(h.select))
     arch = next((h.module.conf for h in out if h is not None and h.weights), None)
     for i in untrained:
-        out[i] = Head(heads[i].label, None, LLNHead(dim, arch).eval(), {'trained': False, 'head_conf': arch})
+        meta = {'trained': False, 'head_conf': arch}
+        out[i] = Head(heads[i].label, None, LLNHead(dim, arch).eval(), meta, dict(heads[i].select))
     for h in out:
         for p in h.module.parameters():
             p.requires_grad_(False)
@@ -120,7 +146,7 @@ def variant(extractor, method: str, top_n: int, head: Head | None = None):
     """A shallow copy of the extractor with its own conf (method, top_n) and, optionally, another
     head. The backbone is shared: no second network is built."""
     v = copy.copy(extractor)
-    v.conf = {**extractor.conf, 'method': method, 'top_n': int(top_n)}
+    v.conf = {**extractor.conf, **(head.select if head is not None else {}), 'method': method, 'top_n': int(top_n)}
     if head is not None:
         v.head, v.head_meta = head.module, head.meta
         v.model_info = {

@@ -227,6 +227,7 @@ def markdown(results: dict) -> str:
             'sequence_prefilter_k',
             'scale',
             'rand_seed',
+            'act_fusion',
             'timing_images',
             'timing_queries',
             'timing_repeats',

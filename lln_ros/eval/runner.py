@@ -446,9 +446,11 @@ def evaluate(
             'layer': extractor.backbone.layer,
             'descriptor_space': extractor.descriptor_space,
             'rand_seed': int(extractor.conf['rand_seed']),
+            'act_fusion': float(extractor.conf['act_fusion']),
             'heads': {
                 h.label or 'lln': {
                     'weights': h.weights or '',
+                    'act_fusion': float({**extractor.conf, **h.select}['act_fusion']),
                     'trained': h.trained,
                     'fingerprint': head_fingerprint(h.module),
                     # what the checkpoint says it was trained and validated on (None: not recorded)

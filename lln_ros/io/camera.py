@@ -51,7 +51,7 @@ class CameraModel:
     def from_camera_info(cls, source, frame_id: str = '') -> 'CameraModel':
         """From a camera_calibration YAML path or dict, or a sensor_msgs/CameraInfo (dict or message)."""
         if isinstance(source, (str, bytes)) or hasattr(source, '__fspath__'):
-            source = _load_yaml(source)
+            source = load_yaml(source)
         if not isinstance(source, dict):  # a message object: its fields as a dict
             frame_id = frame_id or getattr(getattr(source, 'header', None), 'frame_id', '')
             source = {
@@ -173,16 +173,18 @@ def _field(source: dict, keys, what: str, required: bool = True):
     return None
 
 
-def _load_yaml(path) -> dict:
+def load_yaml(path, what: str = 'camera info', error: type = CameraError) -> dict:
+    """A ROS camera-calibration YAML (camera_calibration / camera_info_manager layout) as a dict;
+    `error` (naming the file as `what`) when it cannot be read, is not YAML or not a mapping."""
     import yaml
 
     try:
         with open(path) as f:
             data = yaml.safe_load(f)
     except OSError as e:
-        raise CameraError(f'cannot read camera info {str(path)!r}: {e.strerror}') from None
+        raise error(f'cannot read {what} {str(path)!r}: {e.strerror}') from None
     except yaml.YAMLError as e:
-        raise CameraError(f'camera info {str(path)!r} is not valid YAML: {e}') from None
+        raise error(f'{what} {str(path)!r} is not valid YAML: {e}') from None
     if not isinstance(data, dict):
-        raise CameraError(f'camera info {str(path)!r} must be a YAML mapping')
+        raise error(f'{what} {str(path)!r} must be a YAML mapping')
     return data

@@ -4,15 +4,14 @@ template, first stage -> fetch -> rerank -> answer) and MapCandidate, what a que
 from __future__ import annotations
 
 import abc
-import json
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..core import landmark_index
 from ..core.landmark_index import LandmarkIndex, check_prefilter
-from ..core.landmarks import LandmarkSet, stack_landmarks
-from ..core.limits import validate_model
+from ..core.landmarks import LandmarkSet
+from ..core.limits import KEYFRAME_ID_MAX, parse_model_json, stamp_problem, validate_model
 from ..core.retrieval import Candidate, pair_regions, rerank
 from ..core.retrieval import default_conf as retrieval_conf
 from ..errors import DescriptorError, MapError, ModelError
@@ -71,8 +70,9 @@ def _stamp(stamp) -> tuple[int, int]:
         except (TypeError, ValueError):
             raise ValueError(f'stamp must be (sec, nanosec) or a builtin_interfaces/Time, got {stamp!r}') from None
     sec, nsec = int(sec), int(nsec)
-    if not 0 <= nsec < 1_000_000_000:
-        raise ValueError(f'stamp nanosec must be in [0, 1e9), got {nsec}')
+    problem = stamp_problem(sec, nsec)  # what the answers' stamp_sec (INT32) and nanosec can carry
+    if problem:
+        raise ValueError(problem)
     return sec, nsec
 
 
@@ -249,7 +249,7 @@ class MapStore(abc.ABC):
     def _read_model_record(self, text: str) -> dict:
         """The model record of the map file, validated; MapError explains a bad one."""
         try:
-            return validate_model(json.loads(text))
+            return validate_model(parse_model_json(text, 'model record'))
         except (ValueError, RecursionError) as e:  # ModelError and JSONDecodeError are ValueErrors
             raise MapError(
                 f'map {self.path} has a bad model record ({e}): {text[:200]!r}; '
@@ -335,8 +335,9 @@ class MapStore(abc.ABC):
         if not len(ids):
             return []
         if method_rerank:
-            batch = stack_landmarks([sets[int(i)] for i in ids])
-            ranked = rerank(lset, batch, ids, hol, scale, limit=k)  # sorted: min_score drops a tail
+            # a list: matched in chunks grouped by landmark count (similarity.match_sets), so one
+            # long keyframe neither pads the others nor sizes the batch; sorted: min_score drops a tail
+            ranked = rerank(lset, [sets[int(i)] for i in ids], ids, hol, scale, limit=k)
         else:
             first = hol if first is None else first
             ranked = [Candidate(int(i), float(f), float(h)) for i, f, h in zip(ids, first, hol)]
@@ -374,6 +375,8 @@ class MapStore(abc.ABC):
                 f'{len(sets)} landmark sets need as many stamps (and ids); got {len(stamps)}'
                 f'{"" if ids is None else f" and {len(ids)}"}'
             )
+        if ids is not None and any(not 1 <= int(i) <= KEYFRAME_ID_MAX for i in ids):
+            raise ValueError(f'keyframe ids must be in [1, {KEYFRAME_ID_MAX}] (the answers carry them as UINT32)')
         spaces = [self._check_storable(lset) for lset in sets]
         given = spaces[0]
         if any(sp != given for sp in spaces):

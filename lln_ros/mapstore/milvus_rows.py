@@ -23,6 +23,7 @@ from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
+from ..core.limits import stamp_problem
 from ..errors import DescriptorError, MapError
 
 _PIECE = 65532  # base64 characters per VARCHAR piece: a multiple of 4, <= 65535
@@ -91,8 +92,11 @@ def row_problem(row: dict, dim: int) -> str | None:
             f'keyframe {kid}: landmark blob size {len(blob)} bytes does not fit n={n}, D={dim} '
             f'(expected {want}: cells 4n + centers 8n + scores 4n + descriptors 2nD)'
         )
-    if int(row['grid_rows']) < 1 or int(row['grid_cols']) < 1 or not 0 <= int(row['stamp_nanosec']) < 10**9:
-        return f'keyframe {kid}: bad grid {row["grid_rows"]}x{row["grid_cols"]} or stamp nanosec {row["stamp_nanosec"]}'
+    if int(row['grid_rows']) < 1 or int(row['grid_cols']) < 1:
+        return f'keyframe {kid}: bad grid {row["grid_rows"]}x{row["grid_cols"]}'
+    stamp = stamp_problem(row['stamp_sec'], row['stamp_nanosec'])  # an answer could not carry it
+    if stamp:
+        return f'keyframe {kid}: {stamp}'
     return None
 
 

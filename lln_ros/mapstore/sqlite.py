@@ -37,13 +37,14 @@ from .base import MapStore
 from .index import GlobalIndex
 from .sqlite_file import _KF_COLS, _KF_INSERT, _LM_COLS, _SQL_CHUNK, SQLiteFile
 from .sqlite_geometry import SQLiteGeometry
+from .sqlite_identity import SQLiteIdentity
 from .sqlite_landmarks import SQLiteLandmarks
 from .uri import backend_for
 
 log = logging.getLogger(__name__)
 
 
-class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, SQLiteGeometry, MapStore):
+class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, SQLiteIdentity, SQLiteGeometry, MapStore):
     """The embedded map: one SQLite file plus an in-memory FAISS index (see the module docstring).
 
     SQLiteMapStore(path, model=None, create=True, verify=True, conf=None). verify: run SQLite's
@@ -92,6 +93,7 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, SQLiteGeometry, MapStore):
             self._conn = sqlite3.connect(self.path, timeout=10.0, isolation_level=None, check_same_thread=False)
         except sqlite3.Error as e:
             raise MapError(f'cannot open map {self.path}: {e}') from e
+        self._remember_identity()  # checked before every write is acknowledged (sqlite_identity.py)
         try:
             self._identify()  # read-only: never modify a file that is not ours
             self._configure()
@@ -156,7 +158,7 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, SQLiteGeometry, MapStore):
 
     def _ready(self) -> None:
         if self._conn is None:
-            raise MapError(f'map {self.path} is closed')
+            raise MapError(self._lost or f'map {self.path} is closed')
         # another connection (process) committed: our FAISS index may be stale
         with self._read_errors():
             if self._conn.execute('PRAGMA data_version').fetchone()[0] != self._data_version:
@@ -171,7 +173,10 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, SQLiteGeometry, MapStore):
             raise MapError(f'cannot read map {self.path} (corrupt or truncated?): {e}') from e
 
     def _write(self, fn):
-        """Run fn(conn) in one IMMEDIATE transaction; durable on return (WAL + synchronous=FULL)."""
+        """Run fn(conn) in one IMMEDIATE transaction; durable on return (WAL + synchronous=FULL),
+        in the file at the path: its identity is checked before and after (SQLiteIdentity), so a
+        write into a deleted or replaced file is never acknowledged."""
+        self._check_identity('before a write')
         c = self._conn
         try:
             c.execute('BEGIN IMMEDIATE')
@@ -186,6 +191,7 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, SQLiteGeometry, MapStore):
             raise MapError(f'cannot write map {self.path}: {e}') from e
         except sqlite3.DatabaseError as e:
             raise MapError(f'map {self.path} is corrupt: {e}') from e
+        self._check_identity('after a write')
         return result
 
     def _row_to_set(self, row) -> LandmarkSet:
@@ -430,6 +436,7 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, SQLiteGeometry, MapStore):
         add is durable on return); it keeps the WAL small and the .db file self-contained."""
         with self._lock:
             self._ready()
+            self._check_identity('on save')
             self._persist_landmarks()
             try:
                 busy, _, _ = self._conn.execute('PRAGMA wal_checkpoint(TRUNCATE)').fetchone()
@@ -443,6 +450,12 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, SQLiteGeometry, MapStore):
         with self._lock:
             if self._conn is not None:
                 try:
+                    try:
+                        self._check_identity('on close')  # a deleted file is restored before we let go
+                    except MapError:
+                        pass  # logged as an ERROR by the check
+                    if self._conn is None:
+                        return
                     try:
                         self._persist_landmarks()
                     except MapError as e:  # the file is rebuilt from SQLite at the next open

@@ -61,6 +61,7 @@ import uuid
 
 import numpy as np
 
+from ..core.limits import stamp_problem
 from ..errors import DescriptorError, MapError
 from .base import FORMAT
 from .index import GlobalIndex
@@ -127,6 +128,11 @@ class SQLiteFile:
         for suffix in ('-wal', '-shm', '-journal'):  # left over from a deleted file: never replay them
             try:
                 os.remove(self.path + suffix)
+                log.warning(
+                    'no map at %s but its %s was left there: a map file was deleted; starting a NEW, EMPTY map',
+                    self.path,
+                    suffix,
+                )
             except FileNotFoundError:
                 pass
         tmp = f'{self.path}.creating-{os.getpid()}-{uuid.uuid4().hex[:8]}'
@@ -343,17 +349,18 @@ class SQLiteFile:
         reads a blob's size from its record header without reading the blob: 0.87 s at 100k
         keyframes against 4.1 s for quick_check (bench/bench_integrity.py, warm cache, loaded)."""
         rows = self._conn.execute(
-            'SELECT k.id, k.n, k.grid_rows, k.grid_cols, k.stamp_nanosec, length(k.global_descriptor), '
+            'SELECT k.id, k.n, k.grid_rows, k.grid_cols, k.stamp_sec, k.stamp_nanosec, length(k.global_descriptor), '
             'length(l.cells), length(l.centers), length(l.scores), length(l.descriptors), l.keyframe_id IS NULL '
             'FROM keyframes k LEFT JOIN landmarks l ON l.keyframe_id = k.id WHERE l.keyframe_id IS NULL '
             'OR k.n < 1 OR k.grid_rows < 1 OR k.grid_cols < 1 OR k.stamp_nanosec < 0 '
-            'OR k.stamp_nanosec >= 1000000000 OR length(k.global_descriptor) IS NOT 4 * :d '
+            'OR k.stamp_nanosec >= 1000000000 OR k.stamp_sec < -2147483648 OR k.stamp_sec > 2147483647 '
+            'OR length(k.global_descriptor) IS NOT 4 * :d '
             'OR length(l.cells) IS NOT 4 * k.n OR length(l.centers) IS NOT 8 * k.n '
             'OR length(l.scores) IS NOT 4 * k.n OR length(l.descriptors) IS NOT 2 * k.n * :d ORDER BY k.id',
             {'d': int(dim)},
         )
         out = {}
-        for kid, n, rows_, cols_, nsec, lg, lc, lce, ls, ld, orphan in rows:
+        for kid, n, rows_, cols_, sec, nsec, lg, lc, lce, ls, ld, orphan in rows:
             if orphan:
                 out[kid] = f'keyframe {kid} has no landmarks row'
                 continue
@@ -364,7 +371,9 @@ class SQLiteFile:
                     f'{(lg, lc, lce, ls, ld)} do not fit n={n}, D={dim} (expected {want})'
                 )
             else:
-                out[kid] = f'keyframe {kid}: bad grid {rows_}x{cols_} or stamp nanosec {nsec}'
+                # a stamp an older version stored unchecked (issue 25) would fail every answer
+                stamp = stamp_problem(sec, nsec)
+                out[kid] = f'keyframe {kid}: ' + (stamp or f'bad grid {rows_}x{cols_}')
         return out
 
     def check(self, limit: int = 20) -> list[str]:

@@ -59,6 +59,8 @@ class SQLiteLandmarks:
                 while rows := cursor.fetchmany(512):
                     kf, cells, desc = [], [], []
                     for kid, c, d in rows:
+                        if int(kid) in self._unindexed:  # quarantined at open (e.g. a bad stamp, good blobs)
+                            continue
                         n = len(c) // 4
                         if len(c) != 4 * n or len(d) != 2 * n * dim:
                             # not indexed, and named: check() reports it, a query that fetches it raises

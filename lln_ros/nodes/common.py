@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import functools
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -56,6 +57,42 @@ class Health(Counters):
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.node.get_clock().now().to_msg()
         return msg
+
+
+def guarded(what: str, fallback=None):
+    """The one guard of every callback and publish path of a node (subscriptions, timers, services,
+    the extractor's worker): an exception that escapes the body is counted as internal_error, logged
+    by kind (the first time, then at most once a minute: Counters.problem), and swallowed, so no
+    message, timer tick or service call ever ends the process. Refused input is the body's to count
+    (bad_*); what reaches this guard is a fault of this code, by definition.
+
+    A method decorator: the instance's `health` (a Health) counts. fallback(self, *args) -> the
+    value to return instead (a service's response with success False); None by default.
+
+        @guarded('query callback')
+        def on_query(self, msg): ...
+    """
+
+    def wrap(fn):
+        @functools.wraps(fn)
+        def inner(self, *args, **kwargs):
+            try:
+                return fn(self, *args, **kwargs)
+            except Exception as e:  # noqa: BLE001  one message, tick or call never ends the node
+                text = f'{what}: unexpected {type(e).__name__}: {e}'
+                self.health.problem('internal_error', text[:500], kind=f'{what}: {type(e).__name__}')
+                return fallback(self, *args, **kwargs) if fallback is not None else None
+
+        return inner
+
+    return wrap
+
+
+def failed_response(self, request, response):
+    """guarded()'s fallback for a std_srvs/Trigger service: success False, the reason said."""
+    response.success = False
+    response.message = 'internal error (counted as internal_error; see the node log)'
+    return response
 
 
 def run_node(make_node, name: str, args=None) -> int:
@@ -130,6 +167,7 @@ class Diagnostics:
         if period > 0:
             self.timer = self.node.create_timer(period, self.publish, clock=self._clock)
 
+    @guarded('diagnostics timer')
     def publish(self) -> None:
         try:
             level, message, log_text = self.status(self.window.delta())

@@ -41,8 +41,8 @@ from ..io.image import check_image, heatmap_bgr
 from ..io.rgbd import default_conf as RGBD
 from ..ros import msgs, topics
 from ..ros.stream import StampGaps
-from .common import MODEL_QOS, Health, loss_events, run_node, start_diagnostics, subscription_qos, worst
-from .parameters import Param, declare_all
+from .common import MODEL_QOS, Health, guarded, loss_events, run_node, start_diagnostics, subscription_qos, worst
+from .parameters import Param, declare_all, diagnostics_period
 
 # defaults come from the ROS-free confs (lln_ros.core.extractor / backbones / limits): one source each
 PARAMETERS = {
@@ -91,9 +91,7 @@ PARAMETERS = {
         'installed) | torch; same landmarks, model_info says which ran',
         choices=('onnxruntime', 'torch'),
     ),
-    'diagnostics_period': Param(
-        1.0, 'seconds between /diagnostics messages; 0 = off', dynamic=True, range=(0.0, 3600.0)
-    ),
+    'diagnostics_period': diagnostics_period(),
     'max_image_pixels': Param(
         LIMITS['max_image_pixels'],
         'limit: width x height of an image, raw or decoded '
@@ -188,7 +186,7 @@ class ExtractorNode(Node):
         )
         self.health = Health(self)
         self.landmarks_pub = self.create_publisher(PointCloud2, topics.LANDMARKS, 10)
-        self.activation_pub = None
+        self.activation_pub, self.activation_on = None, False
         self.set_activation(p['publish_activation'])
         self.keypoints_pub, self.orb = None, None
         if p['publish_keypoints']:
@@ -213,7 +211,7 @@ class ExtractorNode(Node):
         self.depths = DepthBuffer(p['depth_max_dt'], p['frame_queue'] + 10)
         if p['depth']:
             self.create_subscription(
-                Image, topics.DEPTH, self.depths.put, subscription_qos(p['reliability'], max(5, p['frame_queue']))
+                Image, topics.DEPTH, self.on_depth, subscription_qos(p['reliability'], max(5, p['frame_queue']))
             )
         self.gaps = StampGaps()
         self.last_image_at, self.publishers_since = 0.0, None
@@ -237,11 +235,12 @@ class ExtractorNode(Node):
         )
 
     def set_activation(self, on: bool) -> None:
+        """publish_activation gates publishing; the publisher, once made, is kept. Destroying it
+        while the worker thread publishes (toggling during a stream) lost frames to internal_error
+        (InvalidHandle, issue 25); an idle publisher costs nothing."""
         if on and self.activation_pub is None:
             self.activation_pub = self.create_publisher(Image, topics.ACTIVATION, 2)
-        elif not on and self.activation_pub is not None:
-            pub, self.activation_pub = self.activation_pub, None
-            self.destroy_publisher(pub)
+        self.activation_on = bool(on)
 
     def on_parameters(self, changes: dict) -> None:
         """Run-time changes (already range-checked): only the dynamic parameters get here."""
@@ -301,6 +300,7 @@ class ExtractorNode(Node):
             )
         return worst(problems)
 
+    @guarded('image callback')
     def on_image(self, msg) -> None:
         self.health.count('received')
         self.last_image_at = time.monotonic()
@@ -310,21 +310,25 @@ class ExtractorNode(Node):
         if self.mailbox.put(msg):
             self.health.count('dropped')
 
+    @guarded('depth callback')
+    def on_depth(self, msg) -> None:
+        # held undecoded until its colour frame comes: bounded in count (DepthBuffer) and here in size
+        if len(msg.data) > 4 * self.params['max_image_pixels']:
+            self.health.problem('bad_depth', f'depth image of {len(msg.data)} bytes: more than max_image_pixels allows')
+            return
+        self.depths.put(msg)
+
     def _work(self) -> None:
         while self._running:
             msg = self.mailbox.take(timeout=0.2)
-            if msg is None:
-                continue
-            try:
-                self.process(msg)
-            except Exception as e:  # noqa: BLE001  the worker must outlive any one frame
-                self.health.problem(
-                    'internal_error', f'unexpected error on a frame: {type(e).__name__}: {e}', kind=type(e).__name__
-                )
+            if msg is not None:
+                self.process(msg)  # guarded: the worker outlives any one frame
 
+    @guarded('frame')
     def process(self, msg) -> None:
         start = time.perf_counter()
         try:
+            msgs.header_stamp_ns(msg.header, 'image')  # copied to every output: refused here, first
             image, order = msgs.message_to_array(msg, self.params['max_image_pixels'])
             lset = self.extractor(image, channel_order=order)
             kps = self.orb.detect(image, order) if self.orb is not None else None
@@ -337,7 +341,7 @@ class ExtractorNode(Node):
             self.keypoints_pub.publish(msgs.keypoints_to_cloud(kps, msg.header))
         self.landmarks_pub.publish(msgs.landmarks_to_cloud(lset, msg.header))
         activation_pub = self.activation_pub  # publish_activation may change meanwhile (executor thread)
-        if activation_pub is not None:
+        if activation_pub is not None and self.activation_on:
             heat = heatmap_bgr(check_image(image, order), lset.activation)
             activation_pub.publish(msgs.array_to_image(heat, 'bgr8', msg.header))
         self.latency_ms = (time.perf_counter() - start) * 1e3

@@ -59,8 +59,18 @@ from ..errors import LLNError
 from ..mapstore import open_for_matcher
 from ..ros import msgs, topics
 from ..ros.stream import StampGaps
-from .common import MODEL_QOS, Health, loss_events, run_node, start_diagnostics, subscription_qos, worst
-from .parameters import Param, declare_all
+from .common import (
+    MODEL_QOS,
+    Health,
+    failed_response,
+    guarded,
+    loss_events,
+    run_node,
+    start_diagnostics,
+    subscription_qos,
+    worst,
+)
+from .parameters import Param, declare_all, diagnostics_period
 from .registration_params import KEYS as REG_KEYS
 from .registration_params import PARAMETERS as REGISTRATION_PARAMETERS
 from .registration_params import registration_conf
@@ -137,9 +147,7 @@ PARAMETERS = {
         dynamic=True,
         range=(0.0, 1e9),
     ),
-    'diagnostics_period': Param(
-        1.0, 'seconds between /diagnostics messages; 0 = off', dynamic=True, range=(0.0, 3600.0)
-    ),
+    'diagnostics_period': diagnostics_period(),
     'sequence_length': Param(
         LOC['sequence_length'],
         'queries in the sequence search (0 = off, single-frame ranking); a change starts a new sequence',
@@ -166,6 +174,7 @@ PARAMETERS = {
         range=(1, 2**31 - 1),
     ),
     'max_keypoints': Param(LIMITS['max_keypoints'], 'limit: rows per keypoints cloud (verify)', range=(1, 2**31 - 1)),
+    'max_point_fields': Param(LIMITS['max_point_fields'], 'limit: PointFields per cloud', range=(1, 2**16)),
     **REGISTRATION_PARAMETERS,
 }
 # the Localizer's own settings among them (updated in place at run time: it reads them per message)
@@ -332,6 +341,8 @@ class MatcherNode(Node):
             'bad_odometry',
             'queries_failed',
             'keyframes_failed',
+            'bad_stored_stamp',
+            'internal_error',
         ):
             if delta.get(key) and not (self.loc.refusing and key in ('bad_query', 'bad_keyframe')):
                 problems.append((S.WARN, f'{delta[key]} messages refused ({key})', True))  # logged by kind already
@@ -347,6 +358,11 @@ class MatcherNode(Node):
 
     # ------------------------------------------------------------------ inputs
 
+    # every callback below runs under common.guarded: a fault of this code is internal_error, counted
+    # and logged by kind, never the end of the process; each header stamp is checked at the door
+    # (msgs.header_stamp_ns), so nothing unrepresentable reaches the map or an answer
+
+    @guarded('model_info callback')
     def on_model_info(self, msg: String) -> None:
         self.loc.model_info(msg.data)
 
@@ -360,6 +376,14 @@ class MatcherNode(Node):
             self.loc.refuse(counter, e)
             return None
 
+    def stamp(self, msg, counter: str, what: str) -> int | None:
+        try:
+            return msgs.header_stamp_ns(msg.header, what)
+        except LLNError as e:
+            self.loc.refuse(counter, e)
+            return None
+
+    @guarded('camera_info callback')
     def on_camera_info(self, msg: CameraInfo) -> None:
         try:
             # zeros (uncalibrated), NaN, a principal point outside the size, a size not the images': not used
@@ -367,6 +391,7 @@ class MatcherNode(Node):
         except LLNError as e:
             self.loc.refuse('bad_camera_info', e)
 
+    @guarded('odometry callback')
     def on_odometry(self, msg: Odometry) -> None:
         try:
             odom = msgs.odometry_to_pose(msg)
@@ -375,17 +400,26 @@ class MatcherNode(Node):
             return
         self.loc.reg.add_odometry(odom)
 
+    @guarded('keypoints callback')
     def on_keypoints(self, msg: PointCloud2) -> None:
-        self.loc.keypoints(msg, msgs.stamp_to_ns(msg.header.stamp))
+        stamp = self.stamp(msg, 'bad_keypoints', 'keypoints cloud')
+        if stamp is not None:
+            self.loc.keypoints(msg, stamp, len(msg.data))
 
+    @guarded('keyframes callback')
     def on_keyframe(self, msg: PointCloud2) -> None:
         self.loc.count('keyframes_received')
-        lset = self.decode(msg, 'bad_keyframe')
+        stamp = self.stamp(msg, 'bad_keyframe', 'keyframes cloud')
+        lset = self.decode(msg, 'bad_keyframe') if stamp is not None else None
         if lset is not None:
-            self.loc.keyframe(lset, msgs.stamp_to_ns(msg.header.stamp))
+            self.loc.keyframe(lset, stamp)
 
+    @guarded('query callback')
     def on_query(self, msg: PointCloud2) -> None:
-        stamp = msgs.stamp_to_ns(msg.header)
+        stamp = self.stamp(msg, 'bad_query', 'query cloud')
+        if stamp is None:
+            self.loc.count('queries_received')
+            return
         now = self.get_clock().now().nanoseconds
         self.last_query_age = (now - stamp) * 1e-9
         missing = self.gaps.add(stamp)
@@ -410,6 +444,7 @@ class MatcherNode(Node):
 
     # ------------------------------------------------------------------ services
 
+    @guarded('~/save', failed_response)
     def on_save(self, request, response):
         def save():
             self.store.save()
@@ -417,9 +452,11 @@ class MatcherNode(Node):
 
         return self._service(response, save)
 
+    @guarded('~/clear', failed_response)
     def on_clear(self, request, response):
         return self._service(response, lambda: f'cleared {self.loc.clear()} keyframes from {self.store.path}')
 
+    @guarded('~/relocalize', failed_response)
     def on_relocalize(self, request, response):
         def relocalize():
             self.loc.reg.reset()
@@ -432,6 +469,7 @@ class MatcherNode(Node):
 
         return self._service(response, relocalize)
 
+    @guarded('~/info', failed_response)
     def on_info(self, request, response):
         return self._service(
             response,

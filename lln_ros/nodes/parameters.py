@@ -95,8 +95,37 @@ def declare_all(node, spec: dict[str, Param | tuple], on_change: Callable[[dict]
             except ValueError as e:
                 values.update(old)
                 return SetParametersResult(successful=False, reason=str(e))
+            except Exception as e:  # noqa: BLE001  a fault applying it: refused, the node goes on
+                values.update(old)
+                health = getattr(node, 'health', None)
+                if health is not None:
+                    health.problem('internal_error', f'applying {sorted(changes)}: {type(e).__name__}: {e}')
+                return SetParametersResult(successful=False, reason=f'internal error: {type(e).__name__}: {e}')
             node.get_logger().info('parameters changed: ' + ', '.join(f'{k}={v!r}' for k, v in changes.items()))
         return SetParametersResult(successful=True)
 
     node.add_on_set_parameters_callback(on_set)
     return values
+
+
+# Lower bound of every period / rate parameter: a /diagnostics period of 1e-6 s once took a core and
+# sent 1,600 messages a second (issue 25). 0 still means off.
+MIN_PERIOD_S = 0.05
+
+
+def period_problem(value) -> str:
+    """Param.check of a period in seconds: 0 (off) or at least MIN_PERIOD_S."""
+    return (
+        '' if value == 0 or value >= MIN_PERIOD_S else f'must be 0 (off) or at least {MIN_PERIOD_S:g} s, got {value!r}'
+    )
+
+
+def diagnostics_period(default: float = 1.0) -> Param:
+    """The diagnostics_period parameter every node declares (one definition, one lower bound)."""
+    return Param(
+        default,
+        f'seconds between /diagnostics messages; 0 = off, else at least {MIN_PERIOD_S:g}',
+        dynamic=True,
+        range=(0.0, 3600.0),
+        check=period_problem,
+    )

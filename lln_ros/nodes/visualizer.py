@@ -31,7 +31,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from ..errors import LLNError
 from ..ros import msgs, topics
 from ..viz.drawing import draw_match_overlay, similarity_colours
-from .common import Health, run_node, subscription_qos
+from .common import Health, guarded, run_node, subscription_qos
 from .parameters import Param, declare_all
 
 PARAMETERS = {
@@ -79,6 +79,7 @@ class VisualizerNode(Node):
         self.overlay_pub = self.create_publisher(Image, topics.OVERLAY, 2)
         self.markers_pub = self.create_publisher(MarkerArray, topics.MARKERS, 10)
 
+    @guarded('image callback')
     def on_image(self, msg) -> None:
         try:
             image, order = msgs.message_to_array(msg)
@@ -103,6 +104,7 @@ class VisualizerNode(Node):
             return None, None
         return cv2.imdecode(np.frombuffer(found[0], np.uint8), cv2.IMREAD_COLOR), found[1]
 
+    @guarded('answer callback')
     def on_answer(self, msg: PointCloud2, kind: str) -> None:
         """candidates and matches of one query come on two topics in either order: draw when both are in."""
         stamp = msgs.stamp_to_ns(msg.header.stamp)

@@ -11,6 +11,7 @@ from std_msgs.msg import Header
 
 from ...core.landmarks import LandmarkSet
 from ...core.limits import LimitError
+from ...core.limits import default_conf as LIMITS
 from ...errors import DescriptorError, MessageError
 from .headers import TABLE_FRAME
 
@@ -48,14 +49,8 @@ _DATATYPES = {
     PointField.FLOAT64: np.dtype('<f8'),
 }
 _DATATYPE_NAMES = {
-    PointField.INT8: 'INT8',
-    PointField.UINT8: 'UINT8',
-    PointField.INT16: 'INT16',
-    PointField.UINT16: 'UINT16',
-    PointField.INT32: 'INT32',
-    PointField.UINT32: 'UINT32',
-    PointField.FLOAT32: 'FLOAT32',
-    PointField.FLOAT64: 'FLOAT64',
+    getattr(PointField, name): name
+    for name in ('INT8', 'UINT8', 'INT16', 'UINT16', 'INT32', 'UINT32', 'FLOAT32', 'FLOAT64')
 }
 _KIND_SIZE_TO_DATATYPE = {(dt.kind, dt.itemsize): code for code, dt in _DATATYPES.items()}
 
@@ -153,14 +148,16 @@ def array_to_cloud(records: np.ndarray, header: Header | None = None) -> PointCl
 
 
 def _fields_to_dtype(msg: PointCloud2, what: str) -> np.dtype:
-    names, formats, offsets = [], [], []
+    """The records' dtype, linear in the field count (check_fields bounds it first; issue 25)."""
+    names, formats, offsets, seen = [], [], [], set()
     for f in msg.fields:
         if f.datatype not in _DATATYPES:
             raise MessageError(f'{what}: field {f.name!r} has unknown PointField datatype {f.datatype}')
         if f.count < 1:
             raise MessageError(f'{what}: field {f.name!r} has count {f.count}; it must be at least 1')
-        if f.name in names:
+        if f.name in seen:
             raise MessageError(f'{what}: field {f.name!r} appears twice')
+        seen.add(f.name)
         base = _DATATYPES[f.datatype]
         size = base.itemsize * f.count
         if f.offset + size > msg.point_step:
@@ -177,9 +174,13 @@ def _fields_to_dtype(msg: PointCloud2, what: str) -> np.dtype:
         raise MessageError(f'{what}: fields cannot be laid out in point_step {msg.point_step}: {exc}') from exc
 
 
-def check_fields(msg: PointCloud2, required: Sequence[tuple], what: str = 'cloud') -> None:
+def check_fields(
+    msg: PointCloud2, required: Sequence[tuple], what: str = 'cloud', max_fields: int = LIMITS['max_point_fields']
+) -> None:
     """Raise MessageError unless every (name, datatype, count) in `required` is present as given.
-    A count of None accepts any count."""
+    A count of None accepts any count. LimitError first for more than max_fields PointFields."""
+    if len(msg.fields) > max_fields:
+        raise LimitError(f'{what}: {len(msg.fields)} PointFields is more than max_point_fields {max_fields}')
     present = {f.name: f for f in msg.fields}
     for name, datatype, count in required:
         f = present.get(name)
@@ -196,14 +197,17 @@ def check_fields(msg: PointCloud2, required: Sequence[tuple], what: str = 'cloud
 
 
 def cloud_to_array(
-    msg: PointCloud2, required: Sequence[tuple] = (), what: str = 'cloud', max_rows: int | None = None
+    msg: PointCloud2,
+    required: Sequence[tuple] = (),
+    what: str = 'cloud',
+    max_rows: int | None = None,
+    max_fields: int = LIMITS['max_point_fields'],
 ) -> np.ndarray:
     """Structured array (width * height records, every field of the cloud) from a PointCloud2.
 
     Checks the required fields (see check_fields), refuses big-endian clouds, and checks that
     point_step, row_step, width * height and len(data) agree. max_rows: LimitError for a cloud of
-    more rows, before anything is copied. The result owns its memory.
-    """
+    more rows, before anything is copied (max_fields: more PointFields). The result owns its memory."""
     if not isinstance(msg, PointCloud2):
         raise MessageError(f'{what}: expected a sensor_msgs/PointCloud2, got {type(msg).__name__}')
     if msg.is_bigendian:
@@ -212,7 +216,7 @@ def cloud_to_array(
     n = width * height
     if max_rows is not None and n > max_rows:
         raise LimitError(f'{what}: {width} x {height} = {n} rows is more than the limit of {max_rows}')
-    check_fields(msg, required, what)
+    check_fields(msg, required, what, max_fields)
     data = msg.data
     nbytes = len(data)
     if n and point_step < 1:
@@ -270,7 +274,14 @@ def _records(rows, fields: Sequence[tuple], what: str) -> np.ndarray:
     extras = [(k, np.dtype('<f4')) for k in sorted(keys - std)]
     out = np.zeros(len(rows), base + extras)
     for n in out.dtype.names:
-        out[n] = [r[n] for r in rows]
+        values = [r[n] for r in rows]
+        kind = out.dtype.fields[n][0]
+        if kind.kind in 'iu' and values:  # numpy would raise OverflowError (or wrap): name the value
+            info = np.iinfo(kind)
+            bad = next((v for v in values if not info.min <= int(v) <= info.max), None)
+            if bad is not None:
+                raise MessageError(f'{what}: {n} {bad} does not fit {kind.name} [{info.min}, {info.max}]')
+        out[n] = values
     return out
 
 
@@ -326,7 +337,8 @@ def cloud_to_landmarks(
         rows = int(msg.width) * int(msg.height)
         if rows > limits['max_landmarks'] + 1:
             raise LimitError(f'{what}: {rows - 1} landmark rows is more than max_landmarks {limits["max_landmarks"]}')
-    check_fields(msg, LANDMARK_FIELDS + (('descriptor', PointField.FLOAT32, None),), what)
+    max_fields = (limits or LIMITS).get('max_point_fields', LIMITS['max_point_fields'])
+    check_fields(msg, LANDMARK_FIELDS + (('descriptor', PointField.FLOAT32, None),), what, max_fields)
     dim = next(f.count for f in msg.fields if f.name == 'descriptor')
     if limits is not None and dim > limits['max_descriptor_dim']:
         raise LimitError(
@@ -337,7 +349,7 @@ def cloud_to_landmarks(
             f'{what}: descriptors have D={dim}, expected D={int(expected_dim)} '
             '(extractor and matcher use different models?)'
         )
-    table = cloud_to_array(msg, what=what)
+    table = cloud_to_array(msg, what=what, max_fields=max_fields)
     if len(table) == 0:
         raise MessageError(f'{what}: no rows (row 0, the whole image, is required)')
     if len(table) == 1:

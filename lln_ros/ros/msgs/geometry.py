@@ -22,7 +22,7 @@ from ...core.geometry import quaternion
 from ...core.registration import OdomPose, pose_from_parts
 from ...errors import CameraError, MessageError
 from ...io.camera import DEPTH_ENCODINGS, CameraModel, depth_metres
-from .headers import make_header, stamp_to_ns
+from .headers import header_stamp_ns, make_header
 
 __all__ = [
     'camera_info_to_model',
@@ -109,7 +109,7 @@ def odometry_to_pose(msg: Odometry) -> OdomPose:
     T = pose_from_parts((p.x, p.y, p.z), (q.x, q.y, q.z, q.w))
     if not msg.header.frame_id:
         raise MessageError('odometry: header.frame_id is empty (the frame the poses are in must be named)')
-    return OdomPose(stamp_to_ns(msg.header.stamp), T, msg.header.frame_id, msg.child_frame_id)
+    return OdomPose(header_stamp_ns(msg.header, 'odometry'), T, msg.header.frame_id, msg.child_frame_id)
 
 
 def _fill_pose(pose, T: np.ndarray) -> None:

@@ -113,7 +113,11 @@ def compressed_to_array(msg: CompressedImage, max_pixels: int | None = None) -> 
     """BGR uint8 (H, W, 3) and 'bgr' from a sensor_msgs/CompressedImage (jpeg or png).
 
     max_pixels: the size in the PNG/JPEG header is checked first (compressed_size): a small file
-    that would decode to more pixels is refused with LimitError before it is decoded."""
+    that would decode to more pixels is refused with LimitError before it is decoded.
+
+    EXIF orientation is ignored (cv2.IMREAD_IGNORE_ORIENTATION), as image_transport's compressed
+    decoder does: ROS cameras never rotate, a raw sensor_msgs/Image has no EXIF, and the same frame
+    must give the same pixels (and the size compressed_size read) on either transport."""
     what = 'compressed image'
     if not isinstance(msg, CompressedImage):
         raise MessageError(f'{what}: expected a sensor_msgs/CompressedImage, got {type(msg).__name__}')
@@ -132,7 +136,7 @@ def compressed_to_array(msg: CompressedImage, max_pixels: int | None = None) -> 
             ) from None
         check_pixels(w, h, {'max_image_pixels': max_pixels}, f'{what} ({kind} header)')
     try:
-        image = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_COLOR)
+        image = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     except cv2.error as e:  # e.g. above OpenCV's own OPENCV_IO_MAX_IMAGE_PIXELS
         raise MessageError(
             f'{what}: cannot decode {len(msg.data)} bytes of format {msg.format!r}: {str(e).strip().splitlines()[-1]}'
