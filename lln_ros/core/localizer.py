@@ -17,9 +17,8 @@ docs/interfaces.md §3.6) keep these sums for every input:
     queries_received                  = queries_answered + queries_stale + bad_query + queries_failed
     keyframes_received + queries_stored = keyframes_stored + bad_keyframe + keyframes_failed
 
-(queries_stored: mapping mode's queries stored as keyframes; with odometry, queries too near the last
-keyframe are not stored: queries_not_stored. The metric side, camera, odometry, poses and gating, is
-lln_ros.core.registration's: loc.reg.)
+(queries_stored: mapping mode's queries stored as keyframes; those the keyframe gate refuses are
+queries_not_stored. The metric side, camera, odometry, poses and gating, is core.registration's: loc.reg.)
 
 *_failed: the map, not the message, was at fault (a keyframe damaged after start, a write that
 failed, or an internal error): the message is not blamed as bad_*.
@@ -373,7 +372,12 @@ class Localizer:
         inliers, results = {}, {}
         if self.reloc is not None:
             found, inliers, results = self.verify(lset, kps, found)
-        pose = self.pose(lset, kps, found[0], results, odom) if found and self.geometry else None
+        pose = None
+        if found and self.geometry:  # the best candidate's T(keyframe <- query), judged (core.registration)
+            best, kid = found[0], found[0].keyframe_id
+            kf_kps = self._stored_keypoints(kid, best.image_size) if kid in results else None
+            kf_geom = self.store.geometry(kid) if kf_kps is not None else None
+            pose = self.reg.pose_of(kps, kf_kps, results.get(kid), kf_geom, best, odom, lset.image_size)
         if self.mapping:  # committed before the answer goes out: an answered keyframe is never lost
             if self.reg.gate(stamp_ns, odom, found[0].score if found else None):
                 self._store_keyframe(lset, stamp_ns, kps, odom)
@@ -410,26 +414,6 @@ class Localizer:
     def geometry(self) -> bool:
         """Poses are estimated (and their fields answered): verify mode with registration's geometry on."""
         return self.reloc is not None and bool(self.reg.conf['geometry'])
-
-    def pose(self, lset, kps, best, results: dict, odom):
-        """core.registration.PoseAnswer of the best candidate, or None (no keypoints on either side
-        or no camera: counted by Registration)."""
-        r = results.get(best.keyframe_id)
-        kf_kps = self._stored_keypoints(best.keyframe_id, best.image_size) if r is not None else None
-        if kps is None or r is None or kf_kps is None:
-            self.reg.agreement.update(None)  # no estimate breaks the run of agreeing ones
-            self.count('pose_no_keypoints')
-            return None
-        return self.reg.estimate(
-            kps,
-            kf_kps,
-            r.matches,
-            self.store.geometry(best.keyframe_id),
-            best.score,
-            odom,
-            lset.image_size,
-            best.keyframe_id,
-        )
 
     def _stamp_ok(self, keyframe_id: int, stamp) -> bool:
         """Whether a stored keyframe fits the answer's keyframe_id (UINT32), stamp_sec (INT32) and

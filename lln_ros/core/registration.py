@@ -318,6 +318,16 @@ class Registration:
         """Relocalization from scratch (kidnapped robot): no earlier estimate vouches for the next."""
         self.agreement.reset()
 
+    def pose_of(self, kps, kf_kps, result, kf_geom, best, odom, image_size):
+        """PoseAnswer of the answer's best candidate (a mapstore.MapCandidate) from its verification
+        (reloc.RelocResult: the region-constrained matches), or None when the query or the keyframe
+        has no keypoints (counted as pose_no_keypoints; it breaks the run of agreeing estimates)."""
+        if kps is None or result is None or kf_kps is None:
+            self.agreement.update(None)
+            self._count('pose_no_keypoints')
+            return None
+        return self.estimate(kps, kf_kps, result.matches, kf_geom, best.score, odom, image_size, best.keyframe_id)
+
     def estimate(self, query_kps, kf_kps, matches, kf_geom: dict | None, score: float, odom, image_size, keyframe_id):
         """PoseAnswer for the best candidate (module doc), or None when it cannot be estimated (no
         camera for the query or keyframe: counted as pose_no_camera)."""

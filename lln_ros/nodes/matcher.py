@@ -42,11 +42,8 @@ from __future__ import annotations
 import json
 import sys
 
-from geometry_msgs.msg import PoseWithCovarianceStamped
-from nav_msgs.msg import Odometry
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, PointCloud2
+from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
@@ -70,6 +67,7 @@ from .common import (
     subscription_qos,
     worst,
 )
+from .matcher_metric import MetricInputs
 from .parameters import Param, declare_all, diagnostics_period
 from .registration_params import KEYS as REG_KEYS
 from .registration_params import PARAMETERS as REGISTRATION_PARAMETERS
@@ -197,7 +195,7 @@ LOCALIZER_KEYS = (
 )
 
 
-class MatcherNode(Node):
+class MatcherNode(MetricInputs, Node):
     def __init__(self, **kwargs):
         super().__init__('lln_matcher', **kwargs)
         p = self.params = declare_all(self, PARAMETERS, self.on_parameters)
@@ -231,22 +229,7 @@ class MatcherNode(Node):
         self.gaps = StampGaps()
         self.last_query_age = None  # seconds, header stamp vs node clock (sim time with use_sim_time)
         self.create_subscription(String, topics.MODEL_INFO, self.on_model_info, MODEL_QOS)
-        # odometry at 100 Hz must not overflow the reader while a query is being answered: 10 s of it
-        sensor_qos = subscription_qos(p['sensor_reliability'], 1000)
-        # their own thread (make_executor): one take per subscription and executor round would let
-        # 100 Hz odometry fall seconds behind the queries it must pose
-        sensors = MutuallyExclusiveCallbackGroup()
-        if p['camera_info_file']:
-            from ..io.camera import CameraModel
-
-            self.loc.reg.set_camera(CameraModel.from_camera_info(p['camera_info_file']))  # CameraError: fatal
-        else:
-            self.create_subscription(
-                CameraInfo, topics.CAMERA_INFO, self.on_camera_info, sensor_qos, callback_group=sensors
-            )
-        self.create_subscription(Odometry, topics.ODOM, self.on_odometry, sensor_qos, callback_group=sensors)
-        self.pose_pub = self.create_publisher(PoseWithCovarianceStamped, topics.POSE, 10)
-        self.create_service(Trigger, '~/relocalize', self.on_relocalize)
+        self.start_metric(p)  # camera_info, odom, lln/pose, ~/relocalize (matcher_metric.MetricInputs)
         self.create_service(Trigger, '~/save', self.on_save)
         self.create_service(Trigger, '~/clear', self.on_clear)
         self.create_service(Trigger, '~/info', self.on_info)
@@ -263,13 +246,6 @@ class MatcherNode(Node):
             f'map {self.store.path}: {len(self.store)} keyframes, model '
             f'{model["descriptor_space"] if model else "(none yet)"}; mode {p["mode"]}'
         )
-
-    def make_executor(self):
-        """Two threads: the node's default group (every answer, serialised: the Localizer is used by
-        one caller at a time) and the sensors group (odometry, camera_info)."""
-        from rclpy.executors import MultiThreadedExecutor
-
-        return MultiThreadedExecutor(num_threads=2)
 
     # ------------------------------------------------------------------ parameters and health
 
@@ -383,23 +359,6 @@ class MatcherNode(Node):
             self.loc.refuse(counter, e)
             return None
 
-    @guarded('camera_info callback')
-    def on_camera_info(self, msg: CameraInfo) -> None:
-        try:
-            # zeros (uncalibrated), NaN, a principal point outside the size, a size not the images': not used
-            self.loc.reg.set_camera(msgs.camera_info_to_model(msg))
-        except LLNError as e:
-            self.loc.refuse('bad_camera_info', e)
-
-    @guarded('odometry callback')
-    def on_odometry(self, msg: Odometry) -> None:
-        try:
-            odom = msgs.odometry_to_pose(msg)
-        except LLNError as e:  # NaN, a non-unit quaternion: never buffered, so never stored with a keyframe
-            self.loc.refuse('bad_odometry', e)
-            return
-        self.loc.reg.add_odometry(odom)
-
     @guarded('keypoints callback')
     def on_keypoints(self, msg: PointCloud2) -> None:
         stamp = self.stamp(msg, 'bad_keypoints', 'keypoints cloud')
@@ -436,10 +395,7 @@ class MatcherNode(Node):
         self.matches_pub.publish(
             msgs.matches_to_cloud(msgs.match_rows(best.keyframe_id, best.pairs) if best else [], msg.header)
         )
-        pose = answer.pose
-        if self.params['mode'] == 'localization' and pose is not None and pose.T_map is not None:
-            self.pose_pub.publish(msgs.pose_to_message(pose.T_map, pose.cov_map, stamp, pose.frame_id))
-            self.health.count('poses_published')
+        self.publish_pose(answer.pose, stamp)
         self.health.count('queries_answered')
 
     # ------------------------------------------------------------------ services
@@ -455,19 +411,6 @@ class MatcherNode(Node):
     @guarded('~/clear', failed_response)
     def on_clear(self, request, response):
         return self._service(response, lambda: f'cleared {self.loc.clear()} keyframes from {self.store.path}')
-
-    @guarded('~/relocalize', failed_response)
-    def on_relocalize(self, request, response):
-        def relocalize():
-            self.loc.reg.reset()
-            c = self.loc.conf
-            if self.loc.sequence is not None:  # the sequence search starts afresh too
-                self.loc.sequence = KeyframeSequence(
-                    {'length': c['sequence_length'], 'max_gap_s': c['sequence_max_gap']}
-                )
-            return 'pose consistency state cleared: the next accepted pose starts from scratch'
-
-        return self._service(response, relocalize)
 
     @guarded('~/info', failed_response)
     def on_info(self, request, response):

@@ -2,7 +2,8 @@
 the codecs). Algorithm code stays ROS-free. `from lln_ros.ros import msgs` and `msgs.X` for any codec.
 
     headers   make_header / stamp_to_ns, and the stamp checks every table and answer goes through
-    clouds    typed tables as sensor_msgs/PointCloud2: landmarks, candidates, keypoints, matches
+    clouds    typed tables as sensor_msgs/PointCloud2: landmarks, candidates, matches
+    keypoints the keypoints table (verify mode), with an optional depth field
     images    sensor_msgs/Image and CompressedImage <-> uint8 arrays
     geometry  sensor_msgs/CameraInfo, REP 118 depth images, nav_msgs/Odometry, PoseWithCovarianceStamped
 
@@ -43,5 +44,7 @@ from .headers import *  # noqa: F401,F403
 from .headers import __all__ as _headers
 from .images import *  # noqa: F401,F403
 from .images import __all__ as _images
+from .keypoints import *  # noqa: F401,F403
+from .keypoints import __all__ as _keypoints
 
-__all__ = [*_headers, *_clouds, *_images, *_geometry]
+__all__ = [*_headers, *_clouds, *_keypoints, *_images, *_geometry]
