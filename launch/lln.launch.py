@@ -7,10 +7,15 @@
     ros2 launch lln_ros lln.launch.py use_sim_time:=true reliability:=reliable frame_queue:=100  # bag, --clock
     ros2 launch lln_ros lln.launch.py namespace:=robot1 verify:=true visualize:=true rviz:=true \
         map_path:=milvus://127.0.0.1:19530?map=campus log_level:=debug
+    ros2 launch lln_ros lln.launch.py image:=/camera/rgb/image_color verify:=true depth:=true \
+        depth_image:=/camera/depth_registered/image_raw camera_info:=/camera/rgb/camera_info odom:=/odom  # metric
 
 The extractor subscribes `image` (or `image/compressed`), both remapped from the `image` argument;
 its `lln/landmarks` go to the matcher's `lln/query` (answered; in mapping mode also stored) or, with
-feed:=keyframes, to `lln/keyframes` (stored, not answered). Every topic is relative (lln_ros.ros.topics),
+feed:=keyframes, to `lln/keyframes` (stored, not answered). For metric answers (issue 27: T(keyframe <- query)
+with a covariance, lln/pose in localization mode) the extractor takes the registered depth image (`depth_image`,
+with depth:=true) and the matcher the colour camera's `camera_info` and the `odom` odometry, each remapped from
+its argument. Every topic is relative (lln_ros.ros.topics),
 so `namespace:=robot1` moves the whole pipeline, rviz included, under /robot1. Parameters come from the YAML files in
 share/lln_ros/config, then the launch arguments below override theirs. Every process started here
 (and any camera driver included after it in the same launch) gets the Fast DDS profile for
@@ -33,6 +38,7 @@ def generate_launch_description() -> LaunchDescription:
     namespace = LaunchConfiguration('namespace')
     use_sim_time = LaunchConfiguration('use_sim_time')
     verify = LaunchConfiguration('verify')
+    camera_info, odom = LaunchConfiguration('camera_info'), LaunchConfiguration('odom')
     ros_arguments = ['--log-level', LaunchConfiguration('log_level')]
     arguments = [
         DeclareLaunchArgument(
@@ -84,6 +90,27 @@ def generate_launch_description() -> LaunchDescription:
             choices=['true', 'false'],
             description='re-rank candidates by keypoint inliers: the extractor publishes '
             'ORB keypoints, the matcher verifies and adds `inliers`',
+        ),
+        DeclareLaunchArgument(
+            'depth',
+            default_value='false',
+            choices=['true', 'false'],
+            description='the extractor subscribes depth_image and sends keypoint depths (with verify): PnP poses',
+        ),
+        DeclareLaunchArgument(
+            'depth_image',
+            default_value='camera/depth_registered/image_raw',
+            description='depth image registered to the colour camera (REP 118: 16UC1 mm or 32FC1 m)',
+        ),
+        DeclareLaunchArgument(
+            'camera_info',
+            default_value='camera/camera_info',
+            description="the colour camera's sensor_msgs/CameraInfo (the matcher's camera model)",
+        ),
+        DeclareLaunchArgument(
+            'odom',
+            default_value='odom',
+            description='nav_msgs/Odometry: keyframe poses, gating, lln/pose in the odometry frame (tf2 is not used)',
         ),
         DeclareLaunchArgument(
             'use_sim_time',
@@ -152,10 +179,15 @@ def generate_launch_description() -> LaunchDescription:
                 'reliability': LaunchConfiguration('reliability'),
                 'frame_queue': LaunchConfiguration('frame_queue'),
                 'publish_keypoints': verify,
+                'depth': LaunchConfiguration('depth'),
                 'use_sim_time': use_sim_time,
             },
         ],
-        remappings=[('image', image), ('image/compressed', [image, '/compressed'])],
+        remappings=[
+            ('image', image),
+            ('image/compressed', [image, '/compressed']),
+            ('depth/image', LaunchConfiguration('depth_image')),
+        ],
     )
     matcher = Node(
         executable='matcher',
@@ -170,7 +202,11 @@ def generate_launch_description() -> LaunchDescription:
                 'use_sim_time': use_sim_time,
             },
         ],
-        remappings=[(['lln/', LaunchConfiguration('feed')], 'lln/landmarks')],
+        remappings=[
+            (['lln/', LaunchConfiguration('feed')], 'lln/landmarks'),
+            ('camera_info', camera_info),
+            ('odom', odom),
+        ],
     )
     visualizer = Node(
         executable='visualizer',

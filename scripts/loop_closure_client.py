@@ -1,14 +1,17 @@
 #!/usr/bin/env python3
 """Loop-closure constraints from a running lln_matcher, one JSON object per line (docs/slam_integration.md).
 
-    python scripts/loop_closure_client.py --min-score 17.8 [--min-inliers 15] [--min-gap 5] [--out closures.jsonl] \
+    python scripts/loop_closure_client.py --min-score 17.8 [--min-inliers 15] [--min-gap 5] [--require-pose] \
+        [--out closures.jsonl] \
         [--ros-args -r candidates:=/robot1/candidates -r matches:=/robot1/matches -p use_sim_time:=true]
 
 Subscribes the matcher's `candidates` and `matches` (they share the query's header stamp and come on
 two topics in either order), keeps the best candidate when it passes the thresholds
 (lln_ros.core.loop_closure.LoopClosureFilter) and writes {query_stamp_ns, keyframe_stamp_ns, keyframe_id,
-score, holistic_score, inliers, regions} lines: what a pose-graph back end needs to look up its two
-poses by stamp and register them (regions = matched region pairs, pixels) before adding the edge.
+score, holistic_score, inliers, regions, transform, covariance, metric} lines: what a pose-graph back
+end needs to look up its two poses by stamp and add the edge. transform (4x4 T(keyframe <- query),
+camera optical frames) and covariance (6x6 of [x y z roll pitch yaw]) are the matcher's accepted
+pose (verify + geometry; null otherwise); --require-pose keeps only answers that have one.
 On Ctrl-C it prints how many answers were accepted and why the others were not.
 """
 
@@ -33,6 +36,7 @@ def main(argv=None) -> int:
         metavar='S',
         help='seconds between query and keyframe stamps below which it is odometry, not a loop',
     )
+    p.add_argument('--require-pose', action='store_true', help='only answers with an accepted pose')
     p.add_argument('--out', help='append the lines to this file instead of stdout')
     p.add_argument('--count', type=int, default=0, help='exit after this many answers (default 0: run until Ctrl-C)')
     args = p.parse_args(own)
@@ -45,7 +49,12 @@ def main(argv=None) -> int:
     from lln_ros.ros import msgs
 
     select = LoopClosureFilter(
-        {'min_score': args.min_score, 'min_inliers': args.min_inliers, 'min_gap_s': args.min_gap}
+        {
+            'min_score': args.min_score,
+            'min_inliers': args.min_inliers,
+            'min_gap_s': args.min_gap,
+            'require_pose': args.require_pose,
+        }
     )
     out = open(args.out, 'a') if args.out else sys.stdout
     rclpy.init(args=['loop_closure_client', *ros_args])

@@ -98,3 +98,6 @@ def test_rviz_config_matches_the_nodes(colcon_install):
     assert displays['rviz_default_plugins/MarkerArray']['Topic']['Value'] == 'lln/markers'
     images = [d['Topic']['Value'] for d in manager['Displays'] if d['Class'] == 'rviz_default_plugins/Image']
     assert images == ['lln/overlay', 'lln/activation']
+    from lln_ros.ros import topics
+
+    assert displays['rviz_default_plugins/PoseWithCovariance']['Topic']['Value'] == topics.POSE

@@ -4,9 +4,10 @@ migration, keypoints, two readers with one writer, a server restart under a writ
 matcher over DDS in mapping mode.
 
 The server listens on every interface, so it only runs in a network namespace that has nothing but
-lo: test_real_server_suite (in the normal run) re-runs every `milvus_server` test, this file's and
-test_map_backends.py's, in a child pytest inside such a namespace (test/milvus_loopback.py); there
-the `milvus_server` fixture starts one server for the whole child run. Outside it those tests skip.
+lo: test_real_server_suite (in the normal run) re-runs every `milvus_server` test, this file's,
+test_map_backends.py's and test_map_geometry.py's, in a child pytest inside such a namespace
+(test/milvus_loopback.py); there the `milvus_server` fixture starts one server for the whole child
+run. Outside it those tests skip.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from test_mapstore import MODEL, make_set
 from lln_ros.core import landmark_index
 from lln_ros.errors import MapError
 from lln_ros.mapstore import MapStore
+from lln_ros.mapstore.milvus_collections import SCHEMA_VERSION as MILVUS_SCHEMA
 
 REPO = Path(__file__).resolve().parents[1]
 HAVE_LITE = all(__import__('importlib').util.find_spec(m) for m in ('pymilvus', 'milvus_lite'))
@@ -74,6 +76,7 @@ def test_real_server_suite(tmp_path):
         '-o',
         'addopts=-ra',
         str(REPO / 'test' / 'test_map_backends.py'),
+        str(REPO / 'test' / 'test_map_geometry.py'),
         str(REPO / 'test' / 'test_milvus_server.py'),
     ]
     t = time.monotonic()
@@ -99,7 +102,7 @@ def test_database_is_created_and_a_missing_one_named(milvus_server):
     try:
         with MapStore.open(uri, model=MODEL) as store:
             kid = store.add(make_set(np.random.default_rng(0)))
-            assert store.ids() == [kid] and store.info()['schema_version'] == 2
+            assert store.ids() == [kid] and store.info()['schema_version'] == MILVUS_SCHEMA
         with MapStore.open(uri, create=False) as store:
             assert store.ids() == [kid]
     finally:
@@ -234,13 +237,13 @@ def write_schema1_map(uri: str, sets, stamps, model: dict) -> list[int]:
 
 @pytest.mark.parametrize('milvus_uri', BOTH, indirect=True)
 def test_schema1_map_is_migrated_at_open(milvus_uri):
-    """A map written in the schema 1 layout opens as schema 2 with the same keyframes, answers,
+    """A map written in the schema 1 layout opens as the current schema (1 -> 2 -> 3) with the same keyframes, answers,
     and the old per-landmark collections are gone; a second open does nothing more."""
     rng = np.random.default_rng(5)
     sets = [make_set(rng) for _ in range(30)]
     ids = write_schema1_map(milvus_uri, sets, [(100 + i, i) for i in range(30)], MODEL)
     with MapStore.open(milvus_uri, create=False) as store:
-        assert store.info()['schema_version'] == 2 and store.ids() == ids and store.check() == []
+        assert store.info()['schema_version'] == MILVUS_SCHEMA and store.ids() == ids and store.check() == []
         got = store.get(ids[4])
         np.testing.assert_allclose(got.descriptors, sets[4].descriptors, atol=2e-3)
         np.testing.assert_array_equal(got.cells, sets[4].cells)

@@ -8,7 +8,7 @@ import math
 import cv2
 import numpy as np
 import pytest
-from sensor_msgs.msg import Image, PointCloud2
+from sensor_msgs.msg import Image, PointCloud2, PointField
 from test_nodes import EXTRACTOR, MATCHER, header, read_log, rig, same_header, start_matcher  # noqa: F401
 
 from lln_ros.core.reloc import Relocalizer
@@ -52,7 +52,7 @@ def test_extractor_publishes_keypoints_with_the_landmarks_header(rig, scenes):
     for i in range(2):
         assert same_header(keypoints[i].header, landmarks[i].header)
     fields = {f.name: (f.datatype, f.count) for f in keypoints[0].fields}
-    assert fields['descriptor'] == (msgs.PointField.UINT8, 32) and fields['octave'][0] == msgs.PointField.INT32
+    assert fields['descriptor'] == (PointField.UINT8, 32) and fields['octave'][0] == PointField.INT32
     kps = msgs.cloud_to_keypoints(keypoints[0], (256, 288))
     assert 100 < len(kps) <= 300 and kps.uv[:, 0].max() < 256 and kps.uv[:, 1].max() < 288
     # the keypoints are what the library detects on the same image

@@ -224,7 +224,8 @@ def estimate_pose(
 ) -> PoseEstimate:
     """T(keyframe <- query) from reloc.Matches between reloc.Keypoints query and keyframe, with
     io.camera.CameraModel query_cam and keyframe_cam and the keyframe's depth (H, W) float32
-    metres (NaN = none) or None. PnP when at least min_points matches have a depth, else the
+    metres (NaN = none), or the keyframe keypoints' depths (N,) metres (NaN = none), or None. PnP
+    when at least min_points matches have a depth, else the
     essential matrix. Never raises for degenerate input (module doc)."""
     c = {**default_conf, **(conf or {})}
     if not isinstance(getattr(cv2, str(c['essential_method']), None), int):
@@ -241,7 +242,12 @@ def estimate_pose(
     thr = float(c['ransac_px']) / query_cam.focal  # normalised units
     est = None
     if keyframe_depth is not None:
-        z = keypoint_depth(keyframe_depth, pk, c)
+        # (H, W) depth image, or (N,) depths of the keyframe's keypoints (read when they were detected)
+        if np.ndim(keyframe_depth) == 1:
+            z = np.asarray(keyframe_depth, np.float64)[matches.map_index]
+            z[~((z >= c['min_depth_m']) & (z <= c['max_depth_m']))] = np.nan
+        else:
+            z = keypoint_depth(keyframe_depth, pk, c)
         valid = np.isfinite(z)
         if valid.sum() >= int(c['min_points']):
             X = np.c_[nk * z[:, None], z]  # (M, 3) keyframe camera frame, NaN rows where no depth

@@ -17,7 +17,8 @@ docs/interfaces.md §3.6) keep these sums for every input:
     queries_received                  = queries_answered + queries_stale + bad_query + queries_failed
     keyframes_received + queries_stored = keyframes_stored + bad_keyframe + keyframes_failed
 
-(queries_stored: mapping mode's queries stored as keyframes.)
+(queries_stored: mapping mode's queries stored as keyframes; those the keyframe gate refuses are
+queries_not_stored. The metric side, camera, odometry, poses and gating, is core.registration's: loc.reg.)
 
 *_failed: the map, not the message, was at fault (a keyframe damaged after start, a write that
 failed, or an internal error): the message is not blamed as bad_*.
@@ -30,6 +31,7 @@ from dataclasses import dataclass, field
 
 from ..errors import DescriptorError, LLNError, MapError
 from . import limits as limits_mod
+from . import registration as registration_mod
 from .landmark_index import check_prefilter
 from .limits import LimitError, check_landmark_set, parse_model_json, stamp_problem, validate_model
 from .pending import Pending
@@ -59,6 +61,8 @@ default_conf = {
     # (issue 25) 100 messages declaring 1 row and carrying 8 MB each stayed resident, 816 MB
     'pending_keypoints_bytes': 16 * 2**20,
     'limits': limits_mod.default_conf,
+    # the metric side (camera, depth, odometry, poses, gating): lln_ros.core.registration.default_conf
+    'registration': registration_mod.default_conf,
 }
 PENDING = 100  # keypoints messages / keyframes waiting for their partner (by stamp), newest kept
 KEYPOINT_ROW_BYTES = 56  # one keypoints cloud row (msgs.KEYPOINT_FIELDS: 5 float32, int32, 32 uint8)
@@ -74,6 +78,7 @@ class Answer:
     extra_fields: tuple
     best: object = None
     inliers: dict = field(default_factory=dict)
+    pose: object = None  # core.registration.PoseAnswer of the best candidate, or None
 
 
 class Localizer:
@@ -88,6 +93,7 @@ class Localizer:
         self.log = log or logging.getLogger('lln_ros.core.localizer')
         self.counters = counters if counters is not None else Counters(log=self.log.warning)
         self.mapping = conf['mode'] == 'mapping'
+        self.reg = registration_mod.Registration(conf['registration'], self.counters)
         self.sequence = (
             KeyframeSequence({'length': conf['sequence_length'], 'max_gap_s': conf['sequence_max_gap']})
             if conf['sequence_length'] > 0
@@ -114,6 +120,8 @@ class Localizer:
         """default_conf updated by conf, checked (ValueError naming the bad value)."""
         conf = dict(conf or {})
         conf = {**default_conf, **conf, 'limits': limits_mod.limits(conf.get('limits'))}
+        conf['registration'] = {**registration_mod.default_conf, **(conf.get('registration') or {})}
+        registration_mod.check_conf(conf['registration'])
         if conf['mode'] not in ('localization', 'mapping'):
             raise ValueError(f"mode must be 'localization' or 'mapping', got {conf['mode']!r}")
         if conf['method'] not in ('lln', 'holistic'):
@@ -213,7 +221,8 @@ class Localizer:
             self.counters.problem('bad_keyframe', str(e))
             return None
         try:
-            return self._store_keyframe(lset, stamp_ns, self._take_keypoints(stamp_ns, lset))
+            odom = self.reg.odometry_at(stamp_ns)
+            return self._store_keyframe(lset, stamp_ns, self._take_keypoints(stamp_ns, lset), odom)
         except MapError as e:
             self._failed('keyframes_failed', e)
         except (LLNError, ValueError) as e:  # the store's own checks (e.g. no model recorded yet)
@@ -249,6 +258,8 @@ class Localizer:
             kps = self._decode_keypoints(payload, self.store.get(kid))
             if kps is not None:
                 self.store.add_keypoints(kid, kps.uv, kps.descriptors)
+                if kps.depth is not None:
+                    self.store.set_geometry(kid, {'depth': kps.depth})
         except (LLNError, KeyError) as e:
             self.counters.problem('bad_keypoints', str(e))
 
@@ -273,10 +284,16 @@ class Localizer:
             self.counters.problem('bad_keypoints', str(e))
             return None
 
-    def _store_keyframe(self, lset, stamp_ns: int, kps) -> int:
+    def _store_keyframe(self, lset, stamp_ns: int, kps, odom=None) -> int:
         kid = self.store.add(lset, divmod(int(stamp_ns), 1_000_000_000))
+        geom = self.reg.keyframe_geometry(lset.image_size, odom)  # checked again by the store: no broken pose
+        if geom['camera'] is not None or geom['pose'] is not None:
+            self.store.set_geometry(kid, geom)
+        self.reg.stored(stamp_ns, odom)
         if kps is not None:
             self.store.add_keypoints(kid, kps.uv, kps.descriptors)
+            if kps.depth is not None:
+                self.store.set_geometry(kid, {'depth': kps.depth})
         elif self.reloc is not None:  # its keypoints may still come
             self.unmatched_keyframes[stamp_ns] = kid
             _bound(self.unmatched_keyframes)
@@ -293,6 +310,9 @@ class Localizer:
         kps = Keypoints.empty(image_size)
         kps.uv, kps.descriptors = uv, desc
         kps.scale = detection_scale(image_size[1], self.reloc.conf['min_height'])
+        geom = self.store.geometry(keyframe_id) if self.geometry else None
+        if geom is not None and geom['depth'] is not None and len(geom['depth']) == len(uv):
+            kps.depth = geom['depth']
         return kps
 
     def _failed(self, counter: str, error: Exception) -> None:
@@ -336,6 +356,7 @@ class Localizer:
     def _answer(self, lset, stamp_ns: int) -> Answer:
         c = self.conf
         kps = self._take_keypoints(stamp_ns, lset)
+        odom = self.reg.odometry_at(stamp_ns)
         sequence = self.sequence is not None  # the sequence search needs every reranked candidate
         prefilter_k = candidates_k(c['prefilter_k'], c['sequence_prefilter_k'], sequence)
         found = self.store.query(
@@ -344,16 +365,25 @@ class Localizer:
             prefilter_k=prefilter_k,
             k=(prefilter_k or max(len(self.store), 1)) if sequence else c['k'],
             min_score=None if sequence else c['min_score'],
-            exclude_recent=c['exclude_recent'] if self.mapping else 0,
+            exclude_recent=max(c['exclude_recent'], self.reg.recent(stamp_ns, odom)) if self.mapping else 0,
             method_rerank=c['method'] == 'lln',
             scale=c['offset_scale'],
         )
-        inliers = {}
+        inliers, results = {}, {}
         if self.reloc is not None:
-            found, inliers = self.verify(lset, kps, found)
+            found, inliers, results = self.verify(lset, kps, found)
+        pose = None
+        if found and self.geometry:  # the best candidate's T(keyframe <- query), judged (core.registration)
+            best, kid = found[0], found[0].keyframe_id
+            kf_kps = self._stored_keypoints(kid, best.image_size) if kid in results else None
+            kf_geom = self.store.geometry(kid) if kf_kps is not None else None
+            pose = self.reg.pose_of(kps, kf_kps, results.get(kid), kf_geom, best, odom, lset.image_size)
         if self.mapping:  # committed before the answer goes out: an answered keyframe is never lost
-            self._store_keyframe(lset, stamp_ns, kps)
-            self.count('queries_stored')
+            if self.reg.gate(stamp_ns, odom, found[0].score if found else None):
+                self._store_keyframe(lset, stamp_ns, kps, odom)
+                self.count('queries_stored')
+            else:  # the gate (odometry motion, or novelty) says it is not a new keyframe
+                self.count('queries_not_stored')
         found = [m for m in found if self._stamp_ok(m.keyframe_id, m.stamp)]
         rows = [
             {
@@ -368,9 +398,22 @@ class Localizer:
         ]
         if sequence:
             rows, found = self.sequence_rows(found, stamp_ns, inliers if self.reloc else None)
+        if self.geometry:  # the pose fields: on the row of the keyframe the pose is about, NaN elsewhere
+            for row in rows:
+                mine = pose is not None and row['keyframe_id'] == pose.keyframe_id
+                row.update(pose.fields() if mine else registration_mod.nan_fields())
         # a zero-row answer carries the same optional fields as the others
-        extra = ('inliers',) * (self.reloc is not None) + ('sequence_score',) * sequence
-        return Answer(rows, extra, found[0] if found else None, inliers)
+        extra = (
+            ('inliers',) * (self.reloc is not None)
+            + ('sequence_score',) * sequence
+            + registration_mod.POSE_FIELDS * self.geometry
+        )
+        return Answer(rows, extra, found[0] if found else None, inliers, pose)
+
+    @property
+    def geometry(self) -> bool:
+        """Poses are estimated (and their fields answered): verify mode with registration's geometry on."""
+        return self.reloc is not None and bool(self.reg.conf['geometry'])
 
     def _stamp_ok(self, keyframe_id: int, stamp) -> bool:
         """Whether a stored keyframe fits the answer's keyframe_id (UINT32), stamp_sec (INT32) and
@@ -385,16 +428,21 @@ class Localizer:
         return not problem
 
     def verify(self, lset, kps, found):
-        """Candidates re-ranked by region-constrained inliers, and {keyframe_id: inliers}."""
+        """Candidates re-ranked by region-constrained inliers, {keyframe_id: inliers} and
+        {keyframe_id: reloc.RelocResult} (its matches: what the pose is estimated from)."""
         from .reloc import verify_candidates
 
         if kps is None or not found:
-            return found, {}
+            return found, {}, {}
         ranked = verify_candidates(
             self.reloc, kps, lset.cell_size, found, lambda m: self._stored_keypoints(m.keyframe_id, m.image_size)
         )
         self.count('queries_verified')
-        return [m for m, _ in ranked], {m.keyframe_id: float(r.inliers) for m, r in ranked if r is not None}
+        return (
+            [m for m, _ in ranked],
+            {m.keyframe_id: float(r.inliers) for m, r in ranked if r is not None},
+            {m.keyframe_id: r for m, r in ranked if r is not None},
+        )
 
     def sequence_rows(self, found: list, stamp_ns: int, inliers: dict | None = None) -> tuple[list, list]:
         """Candidate rows ranked by sequence_score, and the MapCandidates among them (same order)
@@ -434,6 +482,7 @@ class Localizer:
     def clear(self) -> int:
         """Remove every keyframe (~/clear); the sequence search forgets the map too."""
         removed = self.store.clear()
+        self.reg.forget()
         if self.sequence is not None:
             self.sequence.set_map([])
         return removed

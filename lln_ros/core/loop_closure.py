@@ -5,11 +5,12 @@
     if closure is not None:
         graph.add(closure.as_dict())                          # JSON-able: stamps, scores, region pairs
 
-Place recognition says *which* earlier pose this frame revisits, not the relative transform: a back
-end keys its poses by stamp, so a constraint here is (query stamp, keyframe stamp) plus the evidence
-(score S, holistic cosine, RANSAC inliers in verify mode) and the matched region pairs, which the
-back end's own registration (PnP with depth, ICP, essential matrix with the intrinsics) uses as a
-prior before it adds a between-factor. docs/slam_integration.md says what to threshold on.
+A back end keys its poses by stamp, so a constraint here is (query stamp, keyframe stamp) plus the
+evidence (score S, holistic cosine, RANSAC inliers in verify mode), the matched region pairs and,
+when the matcher estimated and accepted it (verify + geometry, lln_ros.core.registration), the
+relative pose T(keyframe <- query) (4, 4) with its 6x6 covariance of [x y z roll pitch yaw]: a
+between-factor as it is (metric: PnP with depth; otherwise the translation is a unit direction
+with a huge variance along it). docs/slam_integration.md says what to threshold on.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ DEFAULT_CONF = {
     'min_score': 0.0,  # landmark similarity S of the best candidate (method lln); 0 = any
     'min_inliers': 0,  # verify mode: RANSAC inliers of the best candidate; 0 = do not require
     'min_gap_s': 0.0,  # candidates closer in time than this to the query are odometry, not loops
+    'require_pose': False,  # only answers whose best candidate has an accepted pose (pose_accepted = 1)
 }
 
 
@@ -38,6 +40,9 @@ class LoopClosure:
     inliers: float | None = None  # verify mode only
     regions: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), np.float32))
     """(M, 6) float32 query_u, query_v, map_u, map_v, cell_w, cell_h of the matched region pairs."""
+    transform: np.ndarray | None = None  # (4, 4) T(keyframe <- query), camera optical frames, when accepted
+    covariance: np.ndarray | None = None  # (6, 6) of [x y z roll pitch yaw] (ROS order)
+    metric: bool = False  # PnP with depth; False: essential matrix, |t| = 1
 
     def as_dict(self) -> dict:
         return {
@@ -48,6 +53,9 @@ class LoopClosure:
             'holistic_score': round(self.holistic_score, 4),
             'inliers': None if self.inliers is None else int(self.inliers),
             'regions': np.round(self.regions, 1).tolist(),
+            'transform': None if self.transform is None else np.round(self.transform, 6).tolist(),
+            'covariance': None if self.covariance is None else self.covariance.ravel().tolist(),
+            'metric': self.metric,
         }
 
 
@@ -82,6 +90,18 @@ class LoopClosureFilter:
         if c['min_inliers'] > 0 and (inliers is None or math.isnan(inliers) or inliers < c['min_inliers']):
             self._reject('few_inliers')
             return None
+        names = candidates.dtype.names
+        accepted = 'pose_accepted' in names and float(row['pose_accepted']) == 1.0
+        if c['require_pose'] and not accepted:
+            self._reject('no_pose')
+            return None
+        transform = covariance = None
+        if accepted:
+            from .registration import POSE_XYZQ, pose_from_parts
+
+            x = [float(row[k]) for k in POSE_XYZQ]
+            transform = pose_from_parts(x[:3], x[3:], 1e-4)
+            covariance = np.array([float(row[f'cov_{i}']) for i in range(36)], np.float64).reshape(6, 6)
         regions = np.zeros((0, 6), np.float32)
         if matches is not None and len(matches) and int(matches['keyframe_id'][0]) == int(row['keyframe_id']):
             regions = np.stack(
@@ -95,6 +115,9 @@ class LoopClosureFilter:
             float(row['holistic_score']),
             None if inliers is None or math.isnan(inliers) else inliers,
             regions,
+            transform,
+            covariance,
+            accepted and float(row['pose_metric']) == 1.0,
         )
 
 

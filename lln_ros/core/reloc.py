@@ -58,7 +58,8 @@ class Keypoints:
 
     uv (N, 2) float32, size (N,) float32 (diameter, original pixels), angle (N,) float32 degrees,
     response (N,) float32, octave (N,) int32, descriptors (N, B) uint8 (ORB/AKAZE, binary) or
-    float32 (SIFT); scale = detection pixels per original pixel; image_size (width, height)."""
+    float32 (SIFT); scale = detection pixels per original pixel; image_size (width, height);
+    depth (N,) float32 metres or None (no depth image)."""
 
     uv: np.ndarray
     size: np.ndarray
@@ -68,6 +69,7 @@ class Keypoints:
     descriptors: np.ndarray
     scale: float = 1.0
     image_size: tuple = (0, 0)
+    depth: np.ndarray | None = None  # (N,) float32 metres from a registered depth image, NaN = none
 
     def __len__(self) -> int:
         return len(self.uv)

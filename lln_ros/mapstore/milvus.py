@@ -15,7 +15,8 @@ is created in it. ``milvus-lite://PATH`` opens Milvus Lite at PATH (must end in 
 pymilvus MilvusClient API; tested on Milvus Lite 3.2.2 and on a real Milvus 2.3.5 standalone server
 (test/test_milvus_server.py).
 
-Schema version 2 (collections; Milvus 2.3 allows one vector field per collection)::
+Schema version 3 (collections; Milvus 2.3 allows one vector field per collection; 3 added
+{map}_geometry, milvus_geometry.py)::
 
     {map}_meta       key VARCHAR primary, value VARCHAR, unused FLOAT_VECTOR(2)   -- format,
                      schema_version, model, descriptor_space, descriptor_dim, next_id (ids never
@@ -67,6 +68,7 @@ from ..core.landmarks import LandmarkSet
 from ..errors import LLNError, MapError
 from .base import FORMAT, MapStore
 from .milvus_collections import SCHEMA_VERSION, MilvusCollections
+from .milvus_geometry import MilvusGeometry
 from .milvus_mixins import MilvusKeypoints, MilvusLandmarks
 from .milvus_rows import (  # noqa: F401  (pack, unpack, parse_uri, RowCache: this module's API too)
     _FETCH_IDS,
@@ -90,7 +92,7 @@ log = logging.getLogger(__name__)
 ID_BLOCK = 1024  # ids reserved per meta write
 
 
-class MilvusMapStore(MilvusCollections, MilvusLandmarks, MilvusKeypoints, MapStore):
+class MilvusMapStore(MilvusCollections, MilvusLandmarks, MilvusKeypoints, MilvusGeometry, MapStore):
     """A map in Milvus collections (see the module docstring); MapStore's API and error behaviour."""
 
     default_conf = {

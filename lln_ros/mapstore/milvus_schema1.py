@@ -9,6 +9,7 @@ import numpy as np
 from ..core.landmarks import LandmarkSet
 from ..errors import MapError
 from .base import MapStore
+from .milvus_geometry import migrate_2_to_3
 from .milvus_rows import scan_ids
 
 # `store` below is a MilvusMapStore, annotated by its base: milvus.py imports this module, so
@@ -92,4 +93,4 @@ def _migrate_1_to_2(store: MapStore, meta: dict) -> None:
 
 
 # schema version v -> function(store, meta) that upgrades a v map to v + 1
-MIGRATIONS = {1: _migrate_1_to_2}
+MIGRATIONS = {1: _migrate_1_to_2, 2: migrate_2_to_3}

@@ -36,6 +36,7 @@ from ..errors import MapError
 from .base import MapStore
 from .index import GlobalIndex
 from .sqlite_file import _KF_COLS, _KF_INSERT, _LM_COLS, _SQL_CHUNK, SQLiteFile
+from .sqlite_geometry import SQLiteGeometry
 from .sqlite_identity import SQLiteIdentity
 from .sqlite_landmarks import SQLiteLandmarks
 from .uri import backend_for
@@ -43,7 +44,7 @@ from .uri import backend_for
 log = logging.getLogger(__name__)
 
 
-class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, SQLiteIdentity, MapStore):
+class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, SQLiteIdentity, SQLiteGeometry, MapStore):
     """The embedded map: one SQLite file plus an in-memory FAISS index (see the module docstring).
 
     SQLiteMapStore(path, model=None, create=True, verify=True, conf=None). verify: run SQLite's

@@ -6,10 +6,10 @@ Storage
 One SQLite file in WAL mode with ``synchronous=FULL``: ``add`` commits one transaction and fsyncs
 the WAL before it returns, so an acknowledged keyframe survives ``kill -9`` and power loss. New files
 are built under a temporary name and linked into place, so a file at the map path is always either a
-complete map or not ours (never half-created). Schema version 1::
+complete map or not ours (never half-created). Schema version 2 (1 without the geometry table)::
 
     meta       key TEXT PRIMARY KEY, value TEXT
-               format='lln_ros-map', schema_version='1', created (unix s), created_by,
+               format='lln_ros-map', schema_version='2', created (unix s), created_by,
                model (JSON of Extractor.model_info, or {descriptor_space, descriptor_dim}; written on
                first use), descriptor_space, descriptor_dim
     keyframes  id INTEGER PRIMARY KEY AUTOINCREMENT   -- never reused, not even after clear()
@@ -28,6 +28,8 @@ complete map or not ours (never half-created). Schema version 1::
                keyframe_id INTEGER PRIMARY KEY REFERENCES keyframes(id) ON DELETE CASCADE
                n INTEGER, uv BLOB (float32 LE (n, 2), original pixels), descriptors BLOB (uint8 (n, B))
                -- 40 bytes per ORB keypoint (B = 32): 20 KB per keyframe at 500 keypoints
+    geometry   (schema 2) keyframe_id, camera JSON, pose (7,) float64, frame_id, keypoint depths (N,)
+               float32: what registration needs (sqlite_geometry.py, geometry_record.py)
 
 All landmarks of a keyframe are one row (a row per landmark would be ~50x more rows and far slower to
 insert and fetch). ``landmarks`` is its own table so the scan at open, which rebuilds the FAISS index,
@@ -42,7 +44,8 @@ and the .db file measured ~34.7-34.9 KB per keyframe after a checkpoint (4 KiB p
 headers, b-tree and overflow-page slack add ~2%). float32 descriptors would double the descriptor
 part.
 
-Migrations: ``MIGRATIONS[v]`` upgrades a map from schema v to v+1 inside one transaction at open.
+Migrations: ``MIGRATIONS[v]`` upgrades a map from schema v to v+1 inside one transaction at open
+(1 -> 2: the geometry table).
 A map newer than this code is refused, never modified.
 """
 
@@ -62,13 +65,15 @@ from ..core.limits import stamp_problem
 from ..errors import DescriptorError, MapError
 from .base import FORMAT
 from .index import GlobalIndex
+from .sqlite_geometry import GEOMETRY_TABLE, migrate_1_to_2
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 SQLITE_MAGIC = b'SQLite format 3\x00'
 
-SCHEMA = """
+SCHEMA = (
+    """
 CREATE TABLE meta (
     key   TEXT PRIMARY KEY,
     value TEXT NOT NULL
@@ -94,9 +99,12 @@ CREATE TABLE landmarks (
     descriptors BLOB NOT NULL
 );
 """
+    + GEOMETRY_TABLE
+    + ';'
+)
 
 # schema version v -> function(conn) that upgrades a v map to v + 1 (called inside a transaction)
-MIGRATIONS: dict = {}
+MIGRATIONS: dict = {1: migrate_1_to_2}
 
 _KF_COLS = (
     'k.id, k.stamp_sec, k.stamp_nanosec, k.image_w, k.image_h, k.grid_rows, k.grid_cols, '
@@ -226,7 +234,7 @@ class SQLiteFile:
                 f'map {self.path} has schema version {version}; this lln_ros reads up to '
                 f'{SCHEMA_VERSION}: upgrade lln_ros'
             )
-        missing = {'keyframes', 'landmarks'} - tables
+        missing = {'keyframes', 'landmarks', 'geometry'} - tables
         if missing and version == SCHEMA_VERSION:
             raise MapError(f'map {self.path} is damaged: missing tables {sorted(missing)}')
 

@@ -115,7 +115,8 @@ def run_node(make_node, name: str, args=None) -> int:
             node.get_logger().warning(dds_note)
         else:
             node.get_logger().info(dds_note)
-        rclpy.spin(node)
+        # a node may ask for its own executor (the matcher: sensor callbacks beside the answers)
+        rclpy.spin(node, executor=node.make_executor() if hasattr(node, 'make_executor') else None)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (LLNError, ValueError, OSError) as e:

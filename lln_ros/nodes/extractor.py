@@ -1,6 +1,8 @@
 """lln_extractor: camera images in, landmark sets out (`ros2 run lln_ros extractor`).
 
-Subscribes  image (sensor_msgs/Image) or, with image_transport=compressed, image/compressed
+Subscribes  image (sensor_msgs/Image) or, with image_transport=compressed, image/compressed;
+            with depth, depth/image (sensor_msgs/Image, REP 118 16UC1 mm / 32FC1 m, registered to the
+            colour camera, paired with the colour image by stamp within depth_max_dt)
 Publishes   lln/landmarks (sensor_msgs/PointCloud2, see lln_ros.ros.msgs), lln/activation (sensor_msgs/Image,
             bgr8, with publish_activation), lln/model_info (std_msgs/String, JSON, latched),
             /diagnostics (counters)
@@ -9,7 +11,10 @@ Only the newest frame waits for the network: when extraction falls behind, an ol
 is replaced and counted as dropped, so latency stays bounded by one extraction.
 
 Counters: received = published + dropped + bad_image + internal_error (+ the frames waiting, at
-most frame_queue, and one in flight). Every property of an input (encoding, size, a PNG/JPEG header
+most frame_queue, and one in flight). With depth and publish_keypoints, each keypoints cloud gets a
+depth field (metres, NaN = none); a frame without a depth image within depth_max_dt counts
+depth_missing, a depth image of another size or encoding bad_depth (its keypoints get NaN depths:
+the frame itself is still published). Every property of an input (encoding, size, a PNG/JPEG header
 above max_image_pixels, undecodable data) is bad_image; internal_error counts only faults of this code.
 """
 
@@ -28,10 +33,12 @@ from ..core.backbones import BACKBONES
 from ..core.backbones import default_conf as BACKBONE
 from ..core.extractor import Extractor
 from ..core.extractor import default_conf as EXTRACTOR
+from ..core.geometry import keypoint_depth
 from ..core.landmarks import METHODS
 from ..core.limits import default_conf as LIMITS
 from ..errors import LLNError
 from ..io.image import check_image, heatmap_bgr
+from ..io.rgbd import default_conf as RGBD
 from ..ros import msgs, topics
 from ..ros.stream import StampGaps
 from .common import MODEL_QOS, Health, guarded, loss_events, run_node, start_diagnostics, subscription_qos, worst
@@ -63,6 +70,16 @@ PARAMETERS = {
     'publish_activation': Param(False, "also publish the LLN activation heatmap on 'activation'", dynamic=True),
     'publish_keypoints': Param(False, "also publish ORB keypoints on 'keypoints' (matcher verify mode)"),
     'keypoints_max': Param(500, 'ORB keypoints per image with publish_keypoints', range=(1, LIMITS['max_keypoints'])),
+    'depth': Param(
+        False,
+        "subscribe 'depth/image' (REP 118, registered to the colour camera) and add each keypoint's "
+        'depth (metres) to the keypoints cloud (with publish_keypoints)',
+    ),
+    'depth_max_dt': Param(
+        RGBD['max_depth_dt'],
+        'seconds: a depth image further in time from the colour image is not its pair',
+        range=(0.0, 1.0),
+    ),
     'num_threads': Param(
         EXTRACTOR['num_threads'],
         'inference threads (torch intra-op / ONNX Runtime intra-op); 0 = the runtime default',
@@ -115,6 +132,43 @@ class NewestFrame:
             return self._msgs.popleft() if self._msgs else None
 
 
+class DepthBuffer:
+    """The newest depth images (sensor_msgs/Image, undecoded), for pairing with colour images by
+    stamp. take() waits up to WAIT_S for a depth image as new as the colour image: the two topics
+    are not ordered, and the depth of this frame may still be on its way. It does not wait when no
+    depth image came for LIVE_S (no depth publisher: frames must not be slowed down for nothing)."""
+
+    WAIT_S, LIVE_S = 0.15, 1.0
+
+    def __init__(self, max_dt_s: float, size: int):
+        from collections import deque
+
+        self.max_dt_ns = int(float(max_dt_s) * 1e9)
+        self._msgs = deque(maxlen=int(size))
+        self._cond = threading.Condition()
+        self.last_put = -1e9  # time.monotonic() of the newest depth image
+
+    def put(self, msg) -> None:
+        with self._cond:
+            self._msgs.append(msg)
+            self.last_put = time.monotonic()
+            self._cond.notify_all()
+
+    def take(self, stamp_ns: int):
+        deadline = time.monotonic() + self.WAIT_S
+        with self._cond:
+            while True:
+                stamps = [msgs.stamp_to_ns(m.header.stamp) for m in self._msgs]
+                near = [i for i, st in enumerate(stamps) if abs(st - stamp_ns) <= self.max_dt_ns]
+                if near:
+                    return self._msgs[min(near, key=lambda i: abs(stamps[i] - stamp_ns))]
+                left = deadline - time.monotonic()
+                stale = time.monotonic() - self.last_put > self.LIVE_S
+                if (stamps and max(stamps) > stamp_ns + self.max_dt_ns) or left <= 0 or stale:
+                    return None
+                self._cond.wait(left)
+
+
 class ExtractorNode(Node):
     def __init__(self, **kwargs):
         super().__init__('lln_extractor', **kwargs)
@@ -153,6 +207,12 @@ class ExtractorNode(Node):
             subscription_qos(p['reliability'], max(5, p['frame_queue'])),
             event_callbacks=loss_events(self.health, f'image subscription {self.image_topic}'),
         )
+        # as many depth images as colour frames may wait (+ a margin for depth arriving first)
+        self.depths = DepthBuffer(p['depth_max_dt'], p['frame_queue'] + 10)
+        if p['depth']:
+            self.create_subscription(
+                Image, topics.DEPTH, self.on_depth, subscription_qos(p['reliability'], max(5, p['frame_queue']))
+            )
         self.gaps = StampGaps()
         self.last_image_at, self.publishers_since = 0.0, None
         self.mailbox = NewestFrame(p['frame_queue'])
@@ -250,6 +310,14 @@ class ExtractorNode(Node):
         if self.mailbox.put(msg):
             self.health.count('dropped')
 
+    @guarded('depth callback')
+    def on_depth(self, msg) -> None:
+        # held undecoded until its colour frame comes: bounded in count (DepthBuffer) and here in size
+        if len(msg.data) > 4 * self.params['max_image_pixels']:
+            self.health.problem('bad_depth', f'depth image of {len(msg.data)} bytes: more than max_image_pixels allows')
+            return
+        self.depths.put(msg)
+
     def _work(self) -> None:
         while self._running:
             msg = self.mailbox.take(timeout=0.2)
@@ -267,6 +335,8 @@ class ExtractorNode(Node):
         except LLNError as e:
             self.health.problem('bad_image', str(e))
             return
+        if kps is not None and self.params['depth']:
+            kps.depth = self.keypoint_depths(msg, image, kps)
         if kps is not None:  # first, so a matcher has them when the landmarks of this header arrive
             self.keypoints_pub.publish(msgs.keypoints_to_cloud(kps, msg.header))
         self.landmarks_pub.publish(msgs.landmarks_to_cloud(lset, msg.header))
@@ -276,6 +346,25 @@ class ExtractorNode(Node):
             activation_pub.publish(msgs.array_to_image(heat, 'bgr8', msg.header))
         self.latency_ms = (time.perf_counter() - start) * 1e3
         self.health.count('published')
+
+    def keypoint_depths(self, msg, image, kps):
+        """(N,) float32 metres of the keypoints from the paired depth image; NaN when there is none
+        (depth_missing) or it is refused (bad_depth: another size or encoding)."""
+        import numpy as np
+
+        z = np.full(len(kps.uv), np.nan, np.float32)
+        depth = self.depths.take(msgs.stamp_to_ns(msg.header.stamp))
+        if depth is None:
+            self.health.count('depth_missing')
+            return z
+        try:
+            metres = msgs.depth_image_to_metres(
+                depth, (image.shape[1], image.shape[0]), self.params['max_image_pixels']
+            )
+        except LLNError as e:
+            self.health.problem('bad_depth', str(e))
+            return z
+        return keypoint_depth(metres, kps.uv).astype(np.float32) if len(kps.uv) else z
 
     def close(self) -> None:
         """Stop the extraction worker; run_node calls it before the DDS teardown."""

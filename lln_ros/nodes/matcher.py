@@ -2,12 +2,20 @@
 
 Subscribes  lln/keyframes (PointCloud2 landmark sets to store), lln/query (landmark sets to localize),
             lln/model_info (std_msgs/String, the extractor's model, latched), lln/keypoints (PointCloud2,
-            the extractor's ORB keypoints; with verify)
+            the extractor's ORB keypoints, with depth when it has depth; with verify),
+            camera_info (sensor_msgs/CameraInfo; or the camera_info_file parameter), odom (nav_msgs/Odometry)
 Publishes   lln/candidates (PointCloud2: keyframe_id, score, holistic_score, stamp_sec, stamp_nanosec;
             with verify also inliers, NaN where the keyframe or query had no keypoints;
             with sequence_length > 0 also sequence_score),
-            lln/matches (PointCloud2: the matched region pairs of the best candidate), /diagnostics
-Services    ~/save, ~/clear, ~/info (std_srvs/Trigger; info answers JSON)
+            lln/matches (PointCloud2: the matched region pairs of the best candidate), /diagnostics,
+            lln/pose (geometry_msgs/PoseWithCovarianceStamped: localization mode, the camera in the
+            frame of the keyframes' odometry poses, for each accepted metric pose)
+Services    ~/save, ~/clear, ~/info, ~/relocalize (std_srvs/Trigger; info answers JSON; relocalize
+            forgets the pose-consistency state: a kidnapped robot)
+
+With verify and geometry (default on), the best candidate's T(keyframe <- query) and its 6x6
+covariance go in the candidates table as pose_* / tx..qw / cov_0..cov_35 fields (docs/interfaces.md;
+lln_ros.core.registration). Keyframes keep the camera model, keypoint depths and the odometry pose.
 
 mode=localization answers queries and leaves the map alone; mode=mapping answers each query, then
 stores it as a keyframe (online loop-closure detection; the newest `exclude_recent` keyframes are
@@ -59,7 +67,11 @@ from .common import (
     subscription_qos,
     worst,
 )
+from .matcher_metric import MetricInputs
 from .parameters import Param, declare_all, diagnostics_period
+from .registration_params import KEYS as REG_KEYS
+from .registration_params import PARAMETERS as REGISTRATION_PARAMETERS
+from .registration_params import registration_conf
 
 # defaults come from the ROS-free confs (lln_ros.core.localizer / limits): one source each.
 # dynamic=True: settable at run time (ros2 param set), applied from the next message on
@@ -161,6 +173,7 @@ PARAMETERS = {
     ),
     'max_keypoints': Param(LIMITS['max_keypoints'], 'limit: rows per keypoints cloud (verify)', range=(1, 2**31 - 1)),
     'max_point_fields': Param(LIMITS['max_point_fields'], 'limit: PointFields per cloud', range=(1, 2**16)),
+    **REGISTRATION_PARAMETERS,
 }
 # the Localizer's own settings among them (updated in place at run time: it reads them per message)
 LOCALIZER_KEYS = (
@@ -182,13 +195,14 @@ LOCALIZER_KEYS = (
 )
 
 
-class MatcherNode(Node):
+class MatcherNode(MetricInputs, Node):
     def __init__(self, **kwargs):
         super().__init__('lln_matcher', **kwargs)
         p = self.params = declare_all(self, PARAMETERS, self.on_parameters)
         self.health = Health(self)
         conf = {name: p[name] for name in LOCALIZER_KEYS}
         conf['limits'] = {name: p[name] for name in LIMITS}
+        conf['registration'] = registration_conf(p)
         Localizer.check_conf(conf)  # a bad parameter ends the node before the map is touched
         self.store, quarantined = open_for_matcher(p['map_path'], p['mode'], p['descriptor_space'])
         self.loc = Localizer(self.store, conf, self.health, self.get_logger(), msgs.cloud_to_keypoints)
@@ -196,6 +210,8 @@ class MatcherNode(Node):
         self.candidates_pub = self.create_publisher(PointCloud2, topics.CANDIDATES, 10)
         self.matches_pub = self.create_publisher(PointCloud2, topics.MATCHES, 10)
         self.query_topic = self.resolve_topic_name(topics.QUERY)
+        if p['verify']:  # before the landmark subscriptions: a round of the executor takes it first
+            self.create_subscription(PointCloud2, topics.KEYPOINTS, self.on_keypoints, qos)
         self.create_subscription(
             PointCloud2,
             topics.KEYFRAMES,
@@ -213,8 +229,7 @@ class MatcherNode(Node):
         self.gaps = StampGaps()
         self.last_query_age = None  # seconds, header stamp vs node clock (sim time with use_sim_time)
         self.create_subscription(String, topics.MODEL_INFO, self.on_model_info, MODEL_QOS)
-        if p['verify']:
-            self.create_subscription(PointCloud2, topics.KEYPOINTS, self.on_keypoints, qos)
+        self.start_metric(p)  # camera_info, odom, lln/pose, ~/relocalize (matcher_metric.MetricInputs)
         self.create_service(Trigger, '~/save', self.on_save)
         self.create_service(Trigger, '~/clear', self.on_clear)
         self.create_service(Trigger, '~/info', self.on_info)
@@ -248,6 +263,9 @@ class MatcherNode(Node):
                 if conf['sequence_length'] > 0
                 else None
             )
+        reg = {k: v for k, v in changes.items() if k in REG_KEYS}
+        if reg:
+            self.loc.reg.update(reg)
         if 'diagnostics_period' in changes:
             self.diagnostics.set_period(changes['diagnostics_period'])
 
@@ -295,6 +313,8 @@ class MatcherNode(Node):
             'bad_keyframe',
             'bad_keypoints',
             'bad_model_info',
+            'bad_camera_info',
+            'bad_odometry',
             'queries_failed',
             'keyframes_failed',
             'bad_stored_stamp',
@@ -375,6 +395,7 @@ class MatcherNode(Node):
         self.matches_pub.publish(
             msgs.matches_to_cloud(msgs.match_rows(best.keyframe_id, best.pairs) if best else [], msg.header)
         )
+        self.publish_pose(answer.pose, stamp)
         self.health.count('queries_answered')
 
     # ------------------------------------------------------------------ services

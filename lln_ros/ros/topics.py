@@ -4,12 +4,14 @@ Every name is relative, so a node's namespace moves them all (`--ros-args -r __n
 launch file's `namespace:=robot1`: /robot1/lln/candidates), and sits under the `lln/` prefix so it
 cannot clash with another package's topics of the same base name (rtabmap publishes its own
 `landmarks`). The camera input keeps the image_transport convention (`image`, `image/compressed`),
-remapped to the camera's topic.
+remapped to the camera's topic; so do the other sensor inputs (`depth/image` registered to the colour
+camera, REP 118; `camera_info`, the colour camera's; `odom`, nav_msgs/Odometry).
 
-    extractor  in: image | image/compressed        out: lln/landmarks, lln/model_info (latched),
-                                                        lln/keypoints (verify), lln/activation
-    matcher    in: lln/query, lln/keyframes,        out: lln/candidates, lln/matches
-                   lln/model_info, lln/keypoints
+    extractor  in: image | image/compressed,       out: lln/landmarks, lln/model_info (latched),
+                   depth/image (optional)               lln/keypoints (verify), lln/activation
+    matcher    in: lln/query, lln/keyframes,        out: lln/candidates, lln/matches,
+                   lln/model_info, lln/keypoints,       lln/pose (localization, with odometry poses)
+                   camera_info, odom (optional)
     visualizer in: image, lln/candidates,           out: lln/overlay, lln/markers
                    lln/matches
 The extractor's lln/landmarks is remapped to the matcher's lln/query (answered) or lln/keyframes
@@ -29,3 +31,7 @@ CANDIDATES = PREFIX + 'candidates'
 MATCHES = PREFIX + 'matches'
 OVERLAY = PREFIX + 'overlay'
 MARKERS = PREFIX + 'markers'
+DEPTH = 'depth/image'
+CAMERA_INFO = 'camera_info'
+ODOM = 'odom'
+POSE = PREFIX + 'pose'

@@ -2,8 +2,10 @@
 the codecs). Algorithm code stays ROS-free. `from lln_ros.ros import msgs` and `msgs.X` for any codec.
 
     headers   make_header / stamp_to_ns, and the stamp checks every table and answer goes through
-    clouds    typed tables as sensor_msgs/PointCloud2: landmarks, candidates, keypoints, matches
+    clouds    typed tables as sensor_msgs/PointCloud2: landmarks, candidates, matches
+    keypoints the keypoints table (verify mode), with an optional depth field
     images    sensor_msgs/Image and CompressedImage <-> uint8 arrays
+    geometry  sensor_msgs/CameraInfo, REP 118 depth images, nav_msgs/Odometry, PoseWithCovarianceStamped
 
 Typed tables travel as `sensor_msgs/PointCloud2`: height 1, one row (point) per record,
 little-endian, is_dense true. A table is a numpy structured array on the Python side:
@@ -36,9 +38,13 @@ message declares before allocating anything from them, and raise LimitError (a M
 
 from .clouds import *  # noqa: F401,F403
 from .clouds import __all__ as _clouds
+from .geometry import *  # noqa: F401,F403
+from .geometry import __all__ as _geometry
 from .headers import *  # noqa: F401,F403
 from .headers import __all__ as _headers
 from .images import *  # noqa: F401,F403
 from .images import __all__ as _images
+from .keypoints import *  # noqa: F401,F403
+from .keypoints import __all__ as _keypoints
 
-__all__ = [*_headers, *_clouds, *_images]
+__all__ = [*_headers, *_clouds, *_keypoints, *_images, *_geometry]

@@ -27,8 +27,6 @@ __all__ = [
     'cloud_to_array',
     'landmarks_to_cloud',
     'cloud_to_landmarks',
-    'keypoints_to_cloud',
-    'cloud_to_keypoints',
     'candidates_to_cloud',
     'cloud_to_candidates',
     'matches_to_cloud',
@@ -398,50 +396,6 @@ def cloud_to_landmarks(
         return lset.validate()
     except DescriptorError as exc:
         raise MessageError(f'{what}: {exc}') from exc
-
-
-# --------------------------------------------------------------------------------------------
-# keypoints
-
-
-def keypoints_to_cloud(kps, header: Header | None = None) -> PointCloud2:
-    """ORB keypoints of one image (reloc.Keypoints, 32-byte descriptors), published beside its
-    landmarks with the same header."""
-    desc = np.asarray(kps.descriptors)
-    if desc.dtype != np.uint8 or desc.ndim != 2 or desc.shape[1] != 32 or len(desc) != len(kps.uv):
-        raise MessageError(f'keypoints cloud: descriptors must be uint8 (N, 32) (ORB), got {desc.dtype} {desc.shape}')
-    table = np.zeros(
-        len(desc), [(n, _DATATYPES[dt]) for n, dt, _ in KEYPOINT_FIELDS[:-1]] + [('descriptor', 'u1', (32,))]
-    )
-    table['u'], table['v'] = kps.uv[:, 0], kps.uv[:, 1]
-    for name in ('size', 'angle', 'response', 'octave'):
-        table[name] = getattr(kps, name)
-    table['descriptor'] = desc
-    return array_to_cloud(table, header)
-
-
-def cloud_to_keypoints(msg: PointCloud2, image_size=(0, 0), scale: float = 1.0, max_rows: int | None = None):
-    """reloc.Keypoints from a keypoints cloud. The image size and the detection scale do not travel:
-    pass them (the landmarks of the same header carry the image size). Raises MessageError for
-    missing or mistyped fields and non-finite values, LimitError for more than max_rows keypoints;
-    zero rows is a valid (textureless) image."""
-    from ...core.reloc import Keypoints
-
-    what = 'keypoints cloud'
-    table = cloud_to_array(msg, KEYPOINT_FIELDS, what, max_rows=max_rows)
-    for name in ('u', 'v', 'size', 'angle', 'response'):
-        if not np.isfinite(table[name]).all():
-            raise MessageError(f'{what}: field {name!r} contains NaN or inf')
-    return Keypoints(
-        uv=np.stack([table['u'], table['v']], axis=1).astype(np.float32),
-        size=table['size'].astype(np.float32),
-        angle=table['angle'].astype(np.float32),
-        response=table['response'].astype(np.float32),
-        octave=table['octave'].astype(np.int32),
-        descriptors=np.ascontiguousarray(table['descriptor'], np.uint8).reshape(len(table), 32),
-        scale=float(scale),
-        image_size=tuple(int(v) for v in image_size),
-    )
 
 
 # --------------------------------------------------------------------------------------------
