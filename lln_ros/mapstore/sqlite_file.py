@@ -115,6 +115,15 @@ _KF_INSERT = 'stamp_sec, stamp_nanosec, image_w, image_h, grid_rows, grid_cols, 
 _SQL_CHUNK = 900  # ids per IN (...) list, below SQLite's oldest variable limit (999)
 
 
+def fsync_path(path) -> None:
+    """fsync a file or folder by path (a folder: so a new name in it survives power loss)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 class SQLiteFile:
     """Opening and loading an SQLite map (SQLiteMapStore's; reads its path, conf and _conn)."""
 
@@ -158,11 +167,7 @@ class SQLiteFile:
                 conn.execute('COMMIT')
             finally:
                 conn.close()
-            fd = os.open(tmp, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
+            fsync_path(tmp)
             try:
                 os.link(tmp, self.path)  # fails if someone else created the map meanwhile
             except FileExistsError:
@@ -170,11 +175,7 @@ class SQLiteFile:
             except OSError:  # no hard links on this filesystem
                 if not os.path.exists(self.path):
                     os.replace(tmp, self.path)
-            dfd = os.open(parent, os.O_RDONLY)
-            try:
-                os.fsync(dfd)
-            finally:
-                os.close(dfd)
+            fsync_path(parent)
         except (OSError, sqlite3.Error) as e:
             raise MapError(f'cannot create map {self.path}: {e}') from e
         finally:

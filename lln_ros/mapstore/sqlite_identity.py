@@ -26,6 +26,7 @@ import sqlite3
 import time
 
 from ..errors import MapError
+from .sqlite_file import fsync_path
 
 log = logging.getLogger(__name__)
 
@@ -96,11 +97,7 @@ class SQLiteIdentity:
                 dest.execute('PRAGMA journal_mode=DELETE')  # one file: nothing left in a -wal
             finally:
                 dest.close()
-            fd = os.open(target, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
+            fsync_path(target)
         except (OSError, sqlite3.Error) as e:
             raise MapError(
                 f'map {self.path} changed under this node and its open copy could not be saved to {target}: {e}'
