@@ -12,13 +12,13 @@ from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import PointCloud2
 
 from conftest import shared_data
-from lln_ros.ros import bag, msgs
+from lln_ros.ros import bag, msgs, topics
 from ros_harness import Probe, RosProcess, installed_env, ros_env
 
 # the extractor keeps only the newest waiting frame (by design: bounded latency), so at a fixed rate a
 # frame is dropped whenever one extraction stalls for two frame periods: at 4 Hz about one run in four
 # on the shared 2-core CI machine, and at 2 Hz with the machine at load ~17 (82 of 84 answered). The
-# player therefore paces on the extractor's output (`lln-bag play --pace landmarks`): the recorded
+# player therefore paces on the extractor's output (`lln-bag play --pace lln/landmarks`): the recorded
 # 2 Hz is the fastest pace, and a slow extraction delays the rest of the bag instead of losing a frame.
 RATE_HZ = 2.0
 GAP = 10  # a frame may be answered only with frames at least 10 older (the dataset's protocol)
@@ -106,7 +106,7 @@ def play_rtabmap(colcon_install, tmp, matcher_params: list) -> dict:
                     '--wait-timeout',
                     '30',
                     '--pace',
-                    'landmarks',
+                    topics.LANDMARKS,
                     '--pace-timeout',
                     '60',
                 ],

@@ -151,7 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar='TOPIC',
         default='',
         help='lossless replay into a slower node: after each message wait for one message on '
-        "TOPIC (e.g. the extractor's landmarks), at most --pace-timeout s; the recorded "
+        "TOPIC (e.g. the extractor's lln/landmarks), at most --pace-timeout s; the recorded "
         'timing stays the fastest pace',
     )
     pl.add_argument(
