@@ -3,12 +3,15 @@ refusals, keyframe gating, recent exclusion in seconds and metres, the pose fiel
 the loop-closure filter passing the pose on."""
 
 import math
+import threading
+import time
 
 import numpy as np
 import pytest
 
 from lln_ros.core.counters import Counters
 from lln_ros.core.loop_closure import LoopClosureFilter
+from lln_ros.core.odometry import OdometryBuffer
 from lln_ros.core.registration import POSE_FIELDS, OdomPose, Registration, nan_fields, pose_from_parts
 from lln_ros.errors import CameraError, PoseError
 from lln_ros.io.camera import CameraModel
@@ -31,16 +34,45 @@ def test_broken_poses_refused(position, orientation):
         pose_from_parts(position, orientation)
 
 
-def test_odometry_nearest_within_max_dt_and_frame_change():
+def test_odometry_by_stamp_within_max_dt_and_frame_change():
     counters = Counters(log=lambda _: None)
     reg = Registration({'odom_max_dt': 0.05}, counters)
     assert reg.odometry_at(5 * S) is None and not counters.counts  # no odometry at all: nothing missing
     for t in (1.00, 1.01, 1.02, 0.99):  # out of order too
         reg.add_odometry(odom(t, x=t))
-    assert reg.odometry_at(int(1.012 * S)).T[0, 3] == pytest.approx(1.01)
+    assert reg.odometry_at(int(1.012 * S)).T[0, 3] == pytest.approx(1.012)  # interpolated
+    assert reg.odometry_at(int(1.05 * S)).T[0, 3] == pytest.approx(1.02)  # after the newest: the nearest
     assert reg.odometry_at(int(1.2 * S)) is None and counters.counts['odometry_missing'] == 1
     reg.add_odometry(odom(2.0, frame='map'))  # another frame: the old poses cannot be compared with it
     assert reg.odometry_at(1 * S) is None and reg.odometry_at(2 * S).frame_id == 'map'
+
+
+def test_odometry_interpolates_rotation_along_the_geodesic():
+    buf = OdometryBuffer(10)
+    buf.add(odom(1.0, x=0.0, yaw_deg=10))
+    buf.add(odom(1.1, x=1.0, yaw_deg=50))
+    T = buf.at(int(1.025 * S), max_dt_s=0.1).T
+    assert T[0, 3] == pytest.approx(0.25)
+    assert math.degrees(math.atan2(T[1, 0], T[0, 0])) == pytest.approx(20.0)
+    assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3))
+    # a gap wider than 2 x max_dt is not bridged: the nearest within max_dt, or nothing
+    assert buf.at(int(1.02 * S), max_dt_s=0.03).T[0, 3] == 0.0
+    assert buf.at(int(1.05 * S), max_dt_s=0.03) is None
+
+
+def test_lagging_odometry_is_waited_for_a_stopped_stream_is_not():
+    buf = OdometryBuffer(100)
+    buf.add(odom(1.0, x=1.0))
+    late = threading.Timer(0.15, lambda: buf.add(odom(1.2, x=2.0)))  # the sensor thread, behind the frames
+    late.start()
+    t0 = time.monotonic()
+    found = buf.at(int(1.1 * S), max_dt_s=0.1, wait_s=2.0)
+    assert 0.1 < time.monotonic() - t0 < 1.5 and found.T[0, 3] == pytest.approx(1.5)
+    late.join()
+    assert buf.at(int(1.3 * S), max_dt_s=0.1, wait_s=0.2).T[0, 3] == pytest.approx(2.0)  # waited 0.2 s: nearest
+    buf._last_add -= 5.0  # the last sample arrived 5 s ago: the stream stopped, nobody waits for it
+    t0 = time.monotonic()
+    assert buf.at(int(9 * S), max_dt_s=0.1, wait_s=2.0) is None and time.monotonic() - t0 < 0.5
 
 
 def test_gating_and_recent_exclusion():

@@ -143,6 +143,13 @@ def perturb(T: np.ndarray, d: np.ndarray) -> np.ndarray:
     return out
 
 
+def interpolate(T0: np.ndarray, T1: np.ndarray, w: float) -> np.ndarray:
+    """The rigid transform (4, 4) a fraction w in [0, 1] of the way from T0 to T1: the translation
+    linearly, the rotation along the geodesic (R0 exp(w log(R0^T R1)), i.e. slerp)."""
+    r = cv2.Rodrigues(np.ascontiguousarray(T0[:3, :3].T @ T1[:3, :3], np.float64))[0]
+    return rigid(T0[:3, :3] @ cv2.Rodrigues(w * r)[0], (1.0 - w) * T0[:3, 3] + w * T1[:3, 3])
+
+
 def quaternion(R: np.ndarray) -> np.ndarray:
     """Rotation matrix (3, 3) -> unit quaternion (4,) x y z w, w >= 0."""
     rvec = cv2.Rodrigues(np.asarray(R, np.float64))[0].ravel()

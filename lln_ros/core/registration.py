@@ -5,7 +5,7 @@ the best candidate with its acceptance.
     reg = Registration(conf, counters)
     reg.set_camera(CameraModel)                    # the query camera (camera_info topic or YAML)
     reg.add_odometry(OdomPose)                     # checked by pose_from_parts when decoded
-    odom = reg.odometry_at(stamp_ns)               # OdomPose nearest in time within odom_max_dt, or None
+    odom = reg.odometry_at(stamp_ns)               # OdomPose at the stamp (core.odometry), or None
     geom = reg.keyframe_geometry(image_size, odom) # what store.set_geometry keeps with a keyframe
     n = reg.recent(stamp_ns, odom)                 # newest keyframes closer than exclude_recent_s / _m
     if reg.gate(odom): store the keyframe; reg.stored(stamp_ns, odom)
@@ -20,7 +20,6 @@ the camera's optical frame, as TUM RGB-D ground truth does.
 
 from __future__ import annotations
 
-import bisect
 import math
 from dataclasses import dataclass
 
@@ -31,12 +30,14 @@ from . import geometry
 from .gating import KeyframeGate
 from .gating import default_conf as GATE
 from .geometry import Agreement, accept, estimate_pose, in_parent, invert, odometry_pose
+from .odometry import OdometryBuffer, OdomPose
 
 IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
 default_conf = {
     'geometry': True,  # estimate T(keyframe <- query) for the best candidate (needs verify keypoints + a camera)
     'odom_max_dt': 0.05,  # s: an odometry pose further in time from a frame is not its pose
+    'odom_wait_s': 0.2,  # s: flowing odometry not yet at a frame's stamp is waited for this long (core.odometry)
     'odom_buffer': 2000,  # odometry poses kept (100 Hz odometry: 20 s)
     'base_to_camera': IDENTITY_POSE,  # T(odometry child frame <- camera optical frame), x y z qx qy qz qw
     # mapping mode: which queries become keyframes (core.gating.KeyframeGate; its defaults)
@@ -55,16 +56,6 @@ default_conf = {
     'pose_agree_deg': geometry.default_conf['agree_deg'],
 }
 QUATERNION_TOLERANCE = 1e-3  # |q| must be within this of 1 (drivers normalise; 1e-3 is float32 noise x 100)
-
-
-@dataclass
-class OdomPose:
-    """One odometry sample: stamp (ns), T (4, 4) float64 T(frame_id <- child_frame_id)."""
-
-    stamp_ns: int
-    T: np.ndarray
-    frame_id: str
-    child_frame_id: str = ''
 
 
 @dataclass
@@ -122,50 +113,6 @@ def pose_vector(T: np.ndarray) -> np.ndarray:
     return np.r_[T[:3, 3], geometry.quaternion(T[:3, :3])]
 
 
-class OdometryBuffer:
-    """The newest `capacity` odometry poses, sorted by stamp; a new frame_id starts it afresh (poses
-    of two frames cannot be compared). Thread-safe: a node may add from a sensor thread."""
-
-    def __init__(self, capacity: int, max_dt_s: float):
-        import threading
-
-        self.capacity, self.max_dt_ns = int(capacity), int(float(max_dt_s) * 1e9)
-        self.stamps: list[int] = []
-        self.poses: list[OdomPose] = []
-        self._lock = threading.Lock()
-
-    def add(self, odom: OdomPose) -> None:
-        with self._lock:
-            self._add(odom)
-
-    def _add(self, odom: OdomPose) -> None:
-        if self.poses and odom.frame_id != self.poses[-1].frame_id:
-            self.stamps, self.poses = [], []
-        i = bisect.bisect_left(self.stamps, odom.stamp_ns)
-        if i < len(self.stamps) and self.stamps[i] == odom.stamp_ns:
-            self.poses[i] = odom
-            return
-        self.stamps.insert(i, odom.stamp_ns)
-        self.poses.insert(i, odom)
-        if len(self.stamps) > self.capacity:
-            del self.stamps[0], self.poses[0]
-
-    def at(self, stamp_ns: int) -> OdomPose | None:
-        """The pose nearest in time to stamp_ns, when within max_dt (no interpolation: at 30-100 Hz
-        odometry the nearest sample is within 5-17 ms of any frame)."""
-        with self._lock:
-            return self._at(stamp_ns)
-
-    def _at(self, stamp_ns: int) -> OdomPose | None:
-        i = bisect.bisect_left(self.stamps, int(stamp_ns))
-        best = None
-        for j in (i - 1, i):
-            if 0 <= j < len(self.stamps) and abs(self.stamps[j] - stamp_ns) <= self.max_dt_ns:
-                if best is None or abs(self.stamps[j] - stamp_ns) < abs(self.stamps[best] - stamp_ns):
-                    best = j
-        return None if best is None else self.poses[best]
-
-
 class Registration:
     """Per-query metric state of a matcher (module doc). counters: core.counters.Counters."""
 
@@ -174,7 +121,7 @@ class Registration:
         check_conf(c)
         self.counters = counters
         self.camera, self.image_size = None, None  # image_size (w, h): of the latest landmark set
-        self.odometry = OdometryBuffer(c['odom_buffer'], c['odom_max_dt'])
+        self.odometry = OdometryBuffer(c['odom_buffer'])
         self.base_to_camera = pose_from_parts(c['base_to_camera'][:3], c['base_to_camera'][3:])
         self.agreement = Agreement(self._geometry_conf())
         self.history: list[tuple[int, np.ndarray | None]] = []  # this session's stored keyframes: stamp, position
@@ -236,7 +183,7 @@ class Registration:
         when odometry comes but none is within odom_max_dt of this stamp."""
         if not self.odometry.poses:
             return None
-        found = self.odometry.at(stamp_ns)
+        found = self.odometry.at(stamp_ns, self.conf['odom_max_dt'], self.conf['odom_wait_s'])
         if found is None and self.counters is not None:
             st = self.odometry.stamps
             self.counters.problem(
@@ -373,6 +320,7 @@ def check_conf(c: dict) -> None:
     """ValueError naming a bad registration setting."""
     for key in (
         'odom_max_dt',
+        'odom_wait_s',
         'keyframe_min_distance',
         'keyframe_min_angle',
         'keyframe_max_interval_s',

@@ -101,14 +101,14 @@ def run_node(make_node, name: str, args=None) -> int:
     At the end the node's own state is released first (node.close(): the map closed, the worker
     joined); only then is the DDS teardown run, under a watchdog (lln_ros.ros.dds.exit_if_teardown_hangs)."""
     import rclpy
-    from rclpy.executors import ExternalShutdownException
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
     from ..errors import LLNError
     from ..ros.dds import apply_large_data_profile, exit_if_teardown_hangs
 
     dds_level, dds_note = apply_large_data_profile()  # before rclpy.init: Fast DDS reads it then
     rclpy.init(args=args)
-    node, status = None, 0
+    node, executor, status = None, None, 0
     try:
         node = make_node()
         if dds_level == 'warn':
@@ -116,13 +116,16 @@ def run_node(make_node, name: str, args=None) -> int:
         else:
             node.get_logger().info(dds_note)
         # a node may ask for its own executor (the matcher: sensor callbacks beside the answers)
-        rclpy.spin(node, executor=node.make_executor() if hasattr(node, 'make_executor') else None)
+        executor = node.make_executor() if hasattr(node, 'make_executor') else SingleThreadedExecutor()
+        rclpy.spin(node, executor=executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (LLNError, ValueError, OSError) as e:
         rclpy.logging.get_logger(name).fatal(f'cannot start: {e}')
         status = 1
     finally:
+        if executor is not None:
+            join_executor(executor, TEARDOWN_TIMEOUT_S)
         if node is not None and hasattr(node, 'close'):
             node.close()
         exit_if_teardown_hangs(name, TEARDOWN_TIMEOUT_S, status, done='its state was saved')
@@ -134,6 +137,25 @@ def run_node(make_node, name: str, args=None) -> int:
 
 # a teardown longer than this is the Fast DDS participant-deletion deadlock, not work
 TEARDOWN_TIMEOUT_S = 10.0
+
+
+def join_executor(executor, timeout_s: float) -> bool:
+    """Stop `executor` and wait (at most timeout_s) until no callback of it runs any more; False
+    when one is still running then. The node's handles and state must outlive every callback:
+    destroying a node while a worker thread takes from its subscription is a segfault (rclpy
+    #255/#663; seen in CI: the matcher exited -11 at SIGINT). rclpy Jazzy's Executor.shutdown does
+    not wait for a MultiThreadedExecutor's pool (its wait is skipped once _is_shutdown is set), so
+    the pool, rclpy's ThreadPoolExecutor in `_executor`, is joined here."""
+    import threading
+
+    executor.shutdown(timeout_sec=timeout_s)
+    pool = getattr(executor, '_executor', None)
+    if pool is None:
+        return True
+    joiner = threading.Thread(target=pool.shutdown, kwargs={'wait': True}, daemon=True)
+    joiner.start()
+    joiner.join(timeout_s)
+    return not joiner.is_alive()
 
 
 LOG_PERIOD_S = 60.0  # a diagnostics problem of one kind is logged at most once a minute (as Counters does)

@@ -31,7 +31,16 @@ PARAMETERS = {
         choices=('reliable', 'best_effort'),
     ),
     'odom_max_dt': Param(
-        REG['odom_max_dt'], "seconds: the odometry pose nearest a frame's stamp must be this close", range=(0.0, 10.0)
+        REG['odom_max_dt'],
+        "seconds: odometry samples this close to a frame's stamp give its pose (interpolated between the two "
+        'around it)',
+        range=(0.0, 10.0),
+    ),
+    'odom_wait_s': Param(
+        REG['odom_wait_s'],
+        "seconds: flowing odometry that has not yet reached a frame's stamp is waited for this long (it lags "
+        'the frames under load); 0 = never wait',
+        range=(0.0, 2.0),
     ),
     'odom_buffer': Param(REG['odom_buffer'], 'odometry poses kept for the look-up by stamp', range=(1, 1_000_000)),
     'base_to_camera': Param(

@@ -3,7 +3,7 @@ images (sensor_msgs/Image 16UC1 mm / 32FC1 m), nav_msgs/Odometry and geometry_ms
 
     cam = camera_info_to_model(msg)                   # io.camera.CameraModel; CameraError when unusable
     depth_m = depth_image_to_metres(msg, (w, h))      # (H, W) float32 metres, NaN = none; CameraError
-    odom = odometry_to_pose(msg)                      # core.registration.OdomPose; PoseError (NaN, |q| != 1)
+    odom = odometry_to_pose(msg)                      # core.odometry.OdomPose; PoseError (NaN, |q| != 1)
     msg = pose_to_message(T, covariance, stamp_ns, frame_id)   # PoseWithCovarianceStamped
     camera_model_to_info / depth_to_image / pose_to_odometry    # the other way (bags, tests)
 
@@ -19,7 +19,8 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import CameraInfo, Image
 
 from ...core.geometry import quaternion
-from ...core.registration import OdomPose, pose_from_parts
+from ...core.odometry import OdomPose
+from ...core.registration import pose_from_parts
 from ...errors import CameraError, MessageError
 from ...io.camera import DEPTH_ENCODINGS, CameraModel, depth_metres
 from .headers import header_stamp_ns, make_header
@@ -101,7 +102,7 @@ def depth_to_image(depth: np.ndarray, encoding: str = '16UC1', stamp_ns: int = 0
 
 
 def odometry_to_pose(msg: Odometry) -> OdomPose:
-    """core.registration.OdomPose (stamp, T(frame <- child) (4, 4), frame_id, child_frame_id) from a
+    """core.odometry.OdomPose (stamp, T(frame <- child) (4, 4), frame_id, child_frame_id) from a
     nav_msgs/Odometry. PoseError for NaN or a non-unit quaternion, MessageError for an empty frame_id."""
     if not isinstance(msg, Odometry):
         raise MessageError(f'odometry: expected a nav_msgs/Odometry, got {type(msg).__name__}')
