@@ -99,20 +99,25 @@ def test_two_robots_map_into_one_map_and_close_loops_across_robots(rig, photo, t
     def info(ns: str) -> dict:
         return json.loads(rig.probe.call(Trigger, f'/{ns}/lln_matcher/info', timeout=TIMEOUT).message)
 
-    rig.until(
-        lambda: all(
-            images[ns].get_subscription_count() == 1 and info(ns).get('subscriptions', {}).get('candidates', 0) > 0
-            for ns in ROBOTS
-        ),
-        'both pipelines up, their answers reaching us',
-    )
+    def linked(ns: str) -> bool:  # every hop matched: us -> extractor -> matcher -> us
+        i = info(ns)
+        return (
+            images[ns].get_subscription_count() == 1
+            and i['publishers']['query'] == 1
+            and i['subscriptions']['candidates'] > 0
+        )
+
+    rig.until(lambda: all(linked(ns) for ns in ROBOTS), 'both pipelines up, their answers reaching us')
     h, w = photo.shape[:2]
     places = [np.ascontiguousarray(photo[y : y + h // 2, x : x + w // 3]) for y, x in ((0, 0), (h // 3, w // 2))]
     # robot1 maps both places; robot2 then passes the first one (the same view, 1 s later)
     for i, (ns, place) in enumerate((('robot1', 0), ('robot1', 1), ('robot2', 0))):
         images[ns].publish(msgs.array_to_image(cv2.resize(places[place], (160, 120)), 'rgb8', header(20 * i)))
         want = sum(1 for n, _ in ((('robot1', 0), ('robot1', 1), ('robot2', 0))[: i + 1]) if n == ns)
-        rig.until(lambda ns=ns, want=want: len(answers[ns]) >= want, f'{ns} answer {i}', procs[ns, 'matcher'])
+        try:
+            rig.until(lambda ns=ns, want=want: len(answers[ns]) >= want, f'{ns} answer {i}', procs[ns, 'matcher'])
+        except AssertionError as e:  # which hop lost it: what the matcher counted says
+            raise AssertionError(f'{e}\n{ns} matcher: {info(ns)}') from None
     sessions = {s['robot']: s['id'] for s in info('robot2')['sessions']}
     assert set(sessions) == {'robot1', 'robot2'}
     mine = {ns: info(ns)['session'] for ns in ROBOTS}

@@ -221,14 +221,14 @@ class MatcherNode(MetricInputs, FleetIdentity, Node):
         self.query_topic = self.resolve_topic_name(topics.QUERY)
         if p['verify']:  # before the landmark subscriptions: a round of the executor takes it first
             self.create_subscription(PointCloud2, topics.KEYPOINTS, self.on_keypoints, qos)
-        self.create_subscription(
+        self.keyframes_sub = self.create_subscription(
             PointCloud2,
             topics.KEYFRAMES,
             self.on_keyframe,
             qos,
             event_callbacks=loss_events(self.health, 'keyframes subscription'),
         )
-        self.create_subscription(
+        self.query_sub = self.create_subscription(
             PointCloud2,
             topics.QUERY,
             self.on_query,
@@ -437,6 +437,12 @@ class MatcherNode(MetricInputs, FleetIdentity, Node):
                     'subscriptions': {
                         'candidates': self.candidates_pub.get_subscription_count(),
                         'matches': self.matches_pub.get_subscription_count(),
+                    },
+                    # writers the landmark subscriptions have matched: an extractor's first
+                    # landmarks reach us only once it is counted here
+                    'publishers': {
+                        'keyframes': self.keyframes_sub.get_publisher_count(),
+                        'query': self.query_sub.get_publisher_count(),
                     },
                 }
             ),
