@@ -6,7 +6,7 @@ DATA ?= ../shared/data
 export LLN_DATA ?= $(abspath $(DATA))
 NORDLAND := aligned:$(DATA)/nordland_trimmed/summer,$(DATA)/nordland_trimmed/winter,1
 
-.PHONY: setup test main results train loo bench bench-map colcon clean
+.PHONY: setup test main results train loo bench bench-map bench-scale colcon clean
 
 setup:
 	bash scripts/setup.sh
@@ -46,6 +46,10 @@ bench: setup
 # map store at 1k / 10k / 100k keyframes (~5 min, ~2 GB in /tmp); table on stdout, plot in out/
 bench-map: setup
 	$(PY) bench/bench_map.py $(ARGS)
+
+# Nordland test split in maps padded with real distractor keyframes (docs/benchmarks.md, Accuracy at scale)
+bench-scale: setup
+	nice -n 10 $(PY) bench/bench_accuracy_at_scale.py --data $(DATA) $(ARGS)
 
 colcon: setup
 	$(VENV)/bin/colcon build --base-paths . --build-base build --install-base install

@@ -1,0 +1,191 @@
+"""Accuracy at scale: the Nordland test split inside maps padded with real distractor keyframes.
+
+    python bench/bench_accuracy_at_scale.py [--sizes 0,10000,100000] [--data /work/shared/data]
+                                            [--cache cache/features] [--sequence 10] [--dir /tmp/lln_scale]
+
+The map: the summer references of the Nordland test split (lln-eval's docs/results.md split:
+aligned summer/winter, range 0.7:1, tolerance 1 frame), keyframe ids in route order, then
+distractor keyframes appended until each --sizes (0 = the plain test map). Distractors are
+landmarks of other real images through the shipped Extractor (backbone features from the on-disk
+FeatureCache, --cache, shared with lln-eval), in this order: Nordland summer and winter 0:0.6
+(the training part; it ends 358 frames before the test range starts and Nordland never revisits a
+place, so with a 1-frame tolerance no distractor can be a true match), then every image of
+rtabmap_loop, essex3in1 and tum_fr1rpy. When more are needed, horizontal flips of those images
+(through the same extractor, not cached), then seeded random crops (70-90% of the image, resized
+back by the extractor). A distractor is never counted correct: ground truth covers references only.
+
+Queries: the winter test frames (lln-eval's drop rule), in route order, through the matcher's own
+decision code (core.localizer.Localizer.query on MapStore.open: shipped defaults, landmark first
+stage, rerank by S), single frame (lln) and with sequence_length --sequence (lln+seq). P@100%R is
+the fraction of queries whose best answer is a reference within tolerance (every test query has
+one). 'first stage' is the recall of a correct reference in the landmark index's shortlist of
+prefilter_k keyframes (the map's index, as MapStore.query calls it).
+
+Skips (exit 0, message) when --data is absent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from lln_ros.core.extractor import Extractor  # noqa: E402
+from lln_ros.core.localizer import Localizer  # noqa: E402
+from lln_ros.core.retrieval import default_conf as retrieval_conf  # noqa: E402
+from lln_ros.io.datasets import _select, aligned, list_images  # noqa: E402
+from lln_ros.io.features import FeatureCache  # noqa: E402
+from lln_ros.io.image import load_image  # noqa: E402
+from lln_ros.mapstore import MapStore  # noqa: E402
+
+T0 = 1_700_000_000 * 10**9
+OTHER_SETS = ('rtabmap_loop', 'essex3in1', 'tum_fr1rpy')
+
+
+def distractor_paths(data: Path) -> list[Path]:
+    """Real images that are never a test place: Nordland 0:0.6 of both seasons, the other sets."""
+    out = []
+    for season in ('summer', 'winter'):
+        imgs = list_images(data / 'nordland_trimmed' / season)
+        out += imgs[_select(len(imgs), (0.0, 0.6))]
+    for name in OTHER_SETS:
+        if (data / name).is_dir():
+            out += sorted(p for p in (data / name).rglob('*') if p.suffix.lower() in ('.png', '.jpg', '.jpeg', '.bmp'))
+    return out
+
+
+def augmented(path: Path, k: int, rng) -> np.ndarray:
+    """The k-th augmentation round of a real image: 1 = horizontal flip, >= 2 = seeded crop."""
+    img = load_image(str(path))
+    if k == 1:
+        return np.ascontiguousarray(img[:, ::-1])
+    h, w = img.shape[:2]
+    f = rng.uniform(0.7, 0.9)
+    ch, cw = int(h * f), int(w * f)
+    y, x = rng.integers(0, h - ch + 1), rng.integers(0, w - cw + 1)
+    return np.ascontiguousarray(img[y : y + ch, x : x + cw])
+
+
+def cached_sets(extractor, cache, paths, height) -> list:
+    feats = cache.load([str(p) for p in paths], size=height, progress='features')
+    out = []
+    for p, f in zip(paths, feats):
+        img = load_image(str(p))
+        out.append(extractor.from_features(f, (img.shape[1], img.shape[0])))
+    return out
+
+
+def score(store, sets, gt, ref_ids, seq_len) -> dict:
+    """P@100%R of lln and lln+seq and the first stage's recall, over the queries in order."""
+    id_to_ref = {int(k): i for i, k in enumerate(ref_ids)}
+    out = {}
+    k = int(retrieval_conf['prefilter_k'])
+    hits = 0
+    for qi, lset in enumerate(sets):
+        ids, _ = store._landmarks.shortlist(lset, k, below=None, scale=1.0)
+        hits += any(int(i) in id_to_ref and gt[qi, id_to_ref[int(i)]] for i in ids)
+    out['first_stage'] = hits / len(sets)
+    for name, length in (('lln', 0), ('lln+seq', seq_len)):
+        loc = Localizer(store, {'sequence_length': length})
+        good, t = 0, time.perf_counter()
+        for qi, lset in enumerate(sets):
+            answer = loc.query(lset, T0 + 10**13 + qi * 10**9)
+            best = int(answer.rows[0]['keyframe_id']) if answer and answer.rows else -1
+            good += best in id_to_ref and bool(gt[qi, id_to_ref[best]])
+        out[name] = good / len(sets)
+        out[name + '_ms'] = (time.perf_counter() - t) * 1e3 / len(sets)
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('--sizes', default='0,10000,100000', help='map sizes, keyframes (0 = the test references only)')
+    ap.add_argument('--data', default='/work/shared/data')
+    ap.add_argument('--cache', default=os.environ.get('LLN_FEATURES', 'cache/features'))
+    ap.add_argument('--sequence', type=int, default=10, help="lln+seq's sequence_length")
+    ap.add_argument('--dir', default='/tmp/lln_scale')
+    ap.add_argument('--max-seconds', type=float, default=0, help='stop growing the map after this long (0 = never)')
+    args = ap.parse_args(argv)
+    data = Path(args.data)
+    if not (data / 'nordland_trimmed' / 'summer').is_dir():
+        print(f'skipped: no Nordland data under {data} (nordland_trimmed/summer, winter)')
+        return 0
+    t_start = time.perf_counter()
+    sizes = sorted(int(s) for s in args.sizes.split(','))
+    folder = Path(args.dir)
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    ds = aligned(data / 'nordland_trimmed' / 'summer', data / 'nordland_trimmed' / 'winter', 1, (0.7, 1.0))
+    extractor = Extractor()
+    height = int(extractor.conf['input_height'])
+    cache = FeatureCache(args.cache, extractor)
+    refs = cached_sets(extractor, cache, ds.ref_paths, height)
+    queries = cached_sets(extractor, cache, ds.query_paths, height)
+    pool = distractor_paths(data)
+    print(f'{len(refs)} references, {len(queries)} queries, {len(pool)} real distractor images', flush=True)
+    rows, used, rng = [], {'real': 0, 'flip': 0, 'crop': 0}, np.random.default_rng(0)
+    rate = []
+    with MapStore.open(folder / 'map.db', model=extractor.model_info) as store:
+        ref_ids = store.add_many(refs, [divmod(T0 + i * 10**8, 10**9) for i in range(len(refs))])
+        cursor = 0
+        for size in sizes:
+            stopped = False
+            while len(store) < size:
+                if args.max_seconds and time.perf_counter() - t_start > args.max_seconds:
+                    stopped = True
+                    break
+                n = min(500, size - len(store))
+                round_, idx = divmod(cursor, len(pool))
+                chunk = pool[idx : idx + n]
+                t = time.perf_counter()
+                if round_ == 0:
+                    sets = cached_sets(extractor, cache, chunk, height)
+                    used['real'] += len(sets)
+                else:
+                    sets = [extractor(augmented(p, round_, rng)) for p in chunk]
+                    used['flip' if round_ == 1 else 'crop'] += len(sets)
+                rate.append(((time.perf_counter() - t) * 1e3 / len(chunk), round_))
+                start = len(store)
+                store.add_many(sets, [divmod(T0 + (10**6 + start + i) * 10**8, 10**9) for i in range(len(sets))])
+                cursor += len(chunk)
+                print(f'  map {len(store)} keyframes ({used}), {rate[-1][0]:.1f} ms/image', flush=True)
+            r = score(store, queries, ds.gt, ref_ids, args.sequence)
+            rows.append({'keyframes': len(store), 'target': size, 'stopped': stopped, 'load': os.getloadavg()[0], **r})
+            print(row_line(rows[-1]), flush=True)
+            if stopped:
+                break
+    print(table(rows, args, used, rate))
+    return 0
+
+
+def row_line(r: dict) -> str:
+    return (
+        f'{r["keyframes"]:>9} {r["lln"]:>7.3f} {r["lln+seq"]:>8.3f} {r["first_stage"]:>11.3f} '
+        f'{r["lln_ms"]:>7.1f} {r["load"]:>5.1f}' + ('  (stopped at --max-seconds)' if r['stopped'] else '')
+    )
+
+
+def table(rows, args, used, rate) -> str:
+    k = retrieval_conf['prefilter_k']
+    lines = [
+        f'Nordland test split (summer refs 0.7:1, winter queries, tol 1), lln / lln+seq (L={args.sequence}) P@100%R',
+        f'distractors used: {used}',
+        f'{"keyframes":>9} {"lln":>7} {"lln+seq":>8} {"1st@" + str(k):>11} {"ms/q":>7} {"load":>5}',
+    ]
+    lines += [row_line(r) for r in rows]
+    for kind, name in ((0, 'cached real'), (1, 'flip'), (2, 'crop')):
+        ms = [m for m, rnd in rate if min(rnd, 2) == kind]
+        if ms:
+            lines.append(f'distractor extraction ({name}): {np.median(ms):.1f} ms/image median over chunks of 500')
+    return '\n'.join(lines)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
