@@ -314,7 +314,8 @@ got = []
 def callback(msg, info):
     # 'sent': when the player wrote it (the DDS source timestamp), which a loaded machine's late
     # spin cannot compress; 't': when we took it, for the idle timeout below
-    got.append({'t': time.monotonic(), 'sent': info['source_timestamp'] * 1e-9, 'stamp': [msg.header.stamp.sec, msg.header.stamp.nanosec],
+    got.append({'t': time.monotonic(), 'sent': info['source_timestamp'] * 1e-9,
+                'stamp': [msg.header.stamp.sec, msg.header.stamp.nanosec],
                 'frame_id': msg.header.frame_id, 'sha1': hashlib.sha1(bytes(msg.data)).hexdigest(),
                 'size': [getattr(msg, 'width', 0), getattr(msg, 'height', 0)]})
 qos = QoSProfile(depth=100, reliability=getattr(ReliabilityPolicy, reliability.upper()))
