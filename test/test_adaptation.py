@@ -5,10 +5,9 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import shared_data
 from lln_ros.core import adaptation
 from lln_ros.errors import DatasetError, ModelError
-
-from conftest import shared_data
 
 
 def test_sequence_masks_follow_the_gaps():
@@ -79,7 +78,12 @@ def test_init_needs_the_head_configuration_of_the_checkpoint(tmp_path, extractor
     with pytest.raises(ModelError, match='--norm-prior 1'):
         adaptation.start_from(plain, ckpt)
     prior = training.Trainer(
-        extractor, pairs, None, {'head': {'norm_prior': 1.0}}, cache_dir=str(tmp_path / 'c'), out_dir=str(tmp_path / 'o')
+        extractor,
+        pairs,
+        None,
+        {'head': {'norm_prior': 1.0}},
+        cache_dir=str(tmp_path / 'c'),
+        out_dir=str(tmp_path / 'o'),
     )
     adaptation.start_from(prior, ckpt)
     from lln_ros.core.lln import load_checkpoint
