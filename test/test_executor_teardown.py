@@ -18,7 +18,9 @@ from ros_harness import ros_env
 
 def test_join_executor_waits_for_the_running_callback(tmp_path):
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=int(ros_env(tmp_path)['ROS_DOMAIN_ID']), signal_handler_options=SignalHandlerOptions.NO)
+    rclpy.init(
+        context=ctx, domain_id=int(ros_env(tmp_path)['ROS_DOMAIN_ID']), signal_handler_options=SignalHandlerOptions.NO
+    )
     started, finished = threading.Event(), threading.Event()
 
     def slow_callback():

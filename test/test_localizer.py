@@ -114,7 +114,7 @@ def test_localization_and_mapping(map_path, rng):
         answer = ask(loc, sets[4], 100)
         assert answer.rows[0]['keyframe_id'] == 5 and answer.best.keyframe_id == 5
         assert (answer.rows[0]['stamp_sec'], answer.rows[0]['stamp_nanosec']) == divmod(stamp(4), 10**9)
-        assert len(answer.rows) == 3 and answer.extra_fields == () and len(store) == 6
+        assert len(answer.rows) == 3 and answer.extra_fields == ('session_id',) and len(store) == 6
         invariants(loc.counters.snapshot())
     store, _ = open_map(map_path, 'mapping', SPACE)
     with store:
@@ -124,6 +124,35 @@ def test_localization_and_mapping(map_path, rng):
         again = ask(loc, sets[2], 201)  # its own copy (keyframe 7) is too recent to answer
         assert 7 not in [r['keyframe_id'] for r in again.rows]
         invariants(loc.counters.snapshot())
+
+
+def test_recent_exclusion_applies_to_this_session_only(map_path, rng):
+    """Issue 29: exclude_recent keeps this session's own newest keyframes out of the answers, never
+    another robot's or an earlier run's, however recent; every stored keyframe gets (session, seq)."""
+    from lln_ros.mapstore.sessions import SessionLog
+
+    sets = [make_set(rng) for _ in range(4)]
+    store, _ = open_map(map_path, 'mapping', SPACE)
+    with store:
+        other = Localizer(store, {'mode': 'mapping', 'exclude_recent': 10})
+        other.session = SessionLog(store, 'robot_b')
+        for i, s in enumerate(sets[:3]):
+            ask(other, s, i)  # robot_b maps three places
+        mine = Localizer(store, {'mode': 'mapping', 'exclude_recent': 10, 'k': 3})
+        mine.session = SessionLog(store, 'robot_a')
+        answer = ask(mine, sets[1], 100)  # robot_b's keyframe 2 is among the newest 10, yet an answer
+        assert answer.rows[0]['keyframe_id'] == 2 and answer.rows[0]['session_id'] == other.session.session.id
+        again = ask(mine, sets[1], 101)  # robot_a's own copy (keyframe 4) is too recent: still robot_b's
+        assert 4 not in [r['keyframe_id'] for r in again.rows] and again.rows[0]['keyframe_id'] == 2
+        origins = store.origins()
+        assert [(origins[k].session_id, origins[k].seq) for k in store.ids()] == [
+            (other.session.session.id, 1),
+            (other.session.session.id, 2),
+            (other.session.session.id, 3),
+            (mine.session.session.id, 1),
+            (mine.session.session.id, 2),
+        ]
+        invariants(mine.counters.snapshot())
 
 
 @pytest.mark.parametrize(

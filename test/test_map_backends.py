@@ -14,6 +14,7 @@ from test_mapstore import MODEL, OTHER_MODEL, make_set
 
 from lln_ros.errors import MapError
 from lln_ros.mapstore import MapStore, SQLiteMapStore, backend_for
+from lln_ros.mapstore.sessions import Origin
 
 HAVE_MILVUS = importlib.util.find_spec('pymilvus') is not None and importlib.util.find_spec('milvus_lite') is not None
 BACKENDS = [
@@ -206,7 +207,24 @@ def test_cli_export_import_between_backends(tmp_path, rng, request, target):
     info = json.loads(run_cli('info', '--json', milvus).stdout)
     assert info['keyframes'] == 14 and info['backend'] == 'milvus'
     assert 'healthy' in run_cli('check', milvus).stdout
-    assert run_cli('export', str(src), milvus, check=False).returncode == 2  # ids taken: refused (bad input)
+    # again: every keyframe is there already (by content), so nothing is copied twice
+    assert 'copied 0 keyframes' in run_cli('export', str(src), milvus).stdout
+    other = tmp_path / 'other.db'  # another map whose ids are taken by different keyframes: refused (bad input)
+    with MapStore.open(other, model=MODEL) as store:
+        store.add_many([make_set(rng) for _ in range(3)], [(i, 0) for i in range(3)])
+    assert run_cli('export', str(other), milvus, check=False).returncode == 2
+    # the keyframe's identity and geometry come along (lln_ros.mapstore.merge)
+    with MapStore.open(src) as store:
+        session = store.start_session('robot_x')
+        kid = store.add(make_set(rng), (99, 0))
+        store.set_origin(kid, session.id, 1)
+        store.set_geometry(kid, {'frame_id': 'robot_x/odom'})
+    assert 'copied 1 keyframes' in run_cli('export', str(src), milvus).stdout
+    with MapStore.open(milvus) as store:
+        robots = {s.robot: s for s in store.sessions()}  # src's first 14 had no origin: a legacy session 'src'
+        assert robots.keys() == {'src', 'robot_x'} and robots['robot_x'].label == session.label
+        assert store.origins([kid])[kid] == Origin(robots['robot_x'].id, 1)
+        assert store.geometry(kid)['frame_id'] == 'robot_x/odom'
 
 
 def test_cli_info_check_compact(tmp_path, rng):
@@ -284,3 +302,34 @@ def test_sqlite_migration_runs_once_in_a_transaction(tmp_path, rng, monkeypatch)
         assert store.info()['schema_version'] == mapstore.SCHEMA_VERSION and store.ids() == [kid]
     with MapStore.open(path) as store:
         assert len(calls) == 1 and store.check() == []
+
+
+def test_sessions_and_origins_identify_keyframes(uri, rng):
+    """Keyframe identity (issue 29): a session per robot run, each keyframe's (session, seq), kept
+    across a reopen, carried by the answers (session_id), and forgotten with the keyframe."""
+    with MapStore.open(uri, model=MODEL) as store:
+        a = store.start_session('robot_a')
+        b = store.start_session('fleet/robot_b', label='20261203T120000Z-abcdef', started_ns=5)
+        assert (a.id, b.id) != (0, 0) and a.id != b.id and a.label != b.label
+        assert store.start_session('fleet/robot_b', label=b.label).id == b.id  # brought in once
+        sets = [make_set(rng) for _ in range(6)]
+        ids = store.add_many(sets, [(i, 0) for i in range(6)])
+        for n, kid in enumerate(ids):
+            store.set_origin(kid, (a, b)[n % 2].id, n // 2 + 1)
+        with pytest.raises(MapError, match='refused'):
+            store.set_origin(ids[0], b.id, 1)  # session b already has a keyframe 1
+        with pytest.raises(MapError, match='refused'):
+            store.set_origin(ids[0], 999, 1)  # no such session
+        for bad in ('', '/robot', 'a b', 'x' * 65):
+            with pytest.raises(ValueError):
+                store.start_session(bad)
+        found = store.query(make_set(rng, base=sets[3], noise=0.1), k=2)
+        assert found[0].keyframe_id == ids[3] and found[0].session_id == b.id
+    with MapStore.open(uri, model=MODEL) as store:
+        assert [(s.robot, s.label) for s in store.sessions()] == [(a.robot, a.label), (b.robot, b.label)]
+        origins = store.origins()
+        assert {k: (o.session_id, o.seq) for k, o in origins.items()} == {
+            kid: ((a, b)[n % 2].id, n // 2 + 1) for n, kid in enumerate(ids)
+        }
+        store.delete([ids[0]])
+        assert ids[0] not in store.origins() and store.origins([ids[1]])[ids[1]].session_id == b.id

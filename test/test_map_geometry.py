@@ -61,13 +61,14 @@ def test_sqlite_schema_1_map_is_migrated(tmp_path):
     sets = [make_set(rng) for _ in range(3)]
     with MapStore.open(path, model=MODEL) as store:
         ids = store.add_many(sets, [(i, 0) for i in range(3)])
-    conn = sqlite3.connect(path)  # back to schema 1: the same file without the geometry table
-    conn.execute('DROP TABLE geometry')
+    conn = sqlite3.connect(path)  # back to schema 1: the same file without geometry, sessions, origins
+    for table in ('origins', 'sessions', 'geometry'):
+        conn.execute(f'DROP TABLE {table}')
     conn.execute("UPDATE meta SET value = '1' WHERE key = 'schema_version'")
     conn.commit()
     conn.close()
     with MapStore.open(path) as store:
-        assert store.info()['schema_version'] == 2 and len(store) == 3
+        assert store.info()['schema_version'] == 3 and len(store) == 3
         assert store.query(sets[1], k=1)[0].keyframe_id == ids[1]
         assert store.geometry(ids[0]) is None
         store.set_geometry(ids[0], {'pose': POSE, 'frame_id': 'map'})
@@ -88,7 +89,7 @@ def test_milvus_schema_2_map_is_migrated(tmp_path):
         store._client.drop_collection(name)  # back to schema 2
         store._put_meta({'schema_version': '2'})
     with MapStore.open(uri) as store:
-        assert store.info()['schema_version'] == 3 and len(store) == 3
+        assert store.info()['schema_version'] == 4 and len(store) == 3
         assert store._client.has_collection(name)
         assert store.query(sets[2], k=1)[0].keyframe_id == ids[2]
         assert store.geometry(ids[0]) is None

@@ -72,3 +72,54 @@ def test_two_namespaced_pipelines_answer_only_their_own_queries(rig, photo, tmp_
         assert stored['keyframes'] == len(sent[ns]) and stored['path'] == str(tmp_path / f'{ns}.db')
     for proc in procs.values():
         assert proc.alive()
+
+
+def test_two_robots_map_into_one_map_and_close_loops_across_robots(rig, photo, tmp_path):
+    """Issue 29: two robots (namespaces) mapping into one SQLite map at once. Each keyframe is
+    stored under its robot's session; robot2 passing a place robot1 mapped a moment ago gets robot1's
+    keyframe as its answer (exclude_recent applies to a robot's own session), named by session_id."""
+    shared = tmp_path / 'fleet.db'
+    procs = {}
+    for ns in ROBOTS:
+        ros_ns = ['-r', f'__ns:=/{ns}']
+        procs[ns, 'extractor'] = rig.extractor(*ros_ns, '-p', 'input_height:=128', '-p', 'top_n:=10')
+        procs[ns, 'matcher'] = rig.matcher(
+            shared,
+            *ros_ns,
+            '-r',
+            f'{topics.QUERY}:={topics.LANDMARKS}',
+            '-p',
+            'mode:=mapping',
+            '-p',
+            'exclude_recent:=10',
+        )
+    images = {ns: rig.probe.publisher(Image, f'/{ns}/{topics.IMAGE}') for ns in ROBOTS}
+    answers = {ns: rig.probe.collect(PointCloud2, f'/{ns}/{topics.CANDIDATES}') for ns in ROBOTS}
+
+    def info(ns: str) -> dict:
+        return json.loads(rig.probe.call(Trigger, f'/{ns}/lln_matcher/info', timeout=TIMEOUT).message)
+
+    rig.until(
+        lambda: all(
+            images[ns].get_subscription_count() == 1 and info(ns).get('subscriptions', {}).get('candidates', 0) > 0
+            for ns in ROBOTS
+        ),
+        'both pipelines up, their answers reaching us',
+    )
+    h, w = photo.shape[:2]
+    places = [np.ascontiguousarray(photo[y : y + h // 2, x : x + w // 3]) for y, x in ((0, 0), (h // 3, w // 2))]
+    # robot1 maps both places; robot2 then passes the first one (the same view, 1 s later)
+    for i, (ns, place) in enumerate((('robot1', 0), ('robot1', 1), ('robot2', 0))):
+        images[ns].publish(msgs.array_to_image(cv2.resize(places[place], (160, 120)), 'rgb8', header(20 * i)))
+        want = sum(1 for n, _ in ((('robot1', 0), ('robot1', 1), ('robot2', 0))[: i + 1]) if n == ns)
+        rig.until(lambda ns=ns, want=want: len(answers[ns]) >= want, f'{ns} answer {i}', procs[ns, 'matcher'])
+    sessions = {s['robot']: s['id'] for s in info('robot2')['sessions']}
+    assert set(sessions) == {'robot1', 'robot2'}
+    mine = {ns: info(ns)['session'] for ns in ROBOTS}
+    assert mine['robot1']['id'] == sessions['robot1'] and mine['robot1']['keyframes'] == 2
+    assert mine['robot2']['id'] == sessions['robot2'] and mine['robot2']['keyframes'] == 1
+    assert len(msgs.cloud_to_candidates(answers['robot1'][0])) == 0  # the map was empty
+    loop = msgs.cloud_to_candidates(answers['robot2'][0])
+    assert len(loop) and int(loop['keyframe_id'][0]) == 1 and int(loop['session_id'][0]) == sessions['robot1']
+    for proc in procs.values():
+        assert proc.alive()

@@ -49,6 +49,7 @@ HELP = {
     'lln-bag play rtabmap_bag --clock --wait-subscribers 1': 'plays only once the nodes subscribe',
     'lln-map info /tmp/run.db': 'the map is the one the launch line above writes',
     "lln-map export /tmp/run.db 'milvus://milvus.example:19530/lln?map=city'": 'needs a Milvus server',
+    'lln-map merge robot1.db robot2.db fleet.db': "needs two robots' maps (test/test_map_merge.py merges real ones)",
     'python scripts/loop_closure_client.py --min-score 17.1 --min-gap 5 --require-pose --out closures.jsonl '
     '--ros-args -p use_sim_time:=true': 'needs a running matcher',
 }

@@ -126,10 +126,10 @@ def test_loop_closure_filter_passes_the_pose_on():
     fields.update(dict(zip(('qx', 'qy', 'qz', 'qw'), q)))
     fields.update({f'cov_{i}': float(np.eye(6).ravel()[i] * 1e-4) for i in range(36)})
     dtype = [('keyframe_id', '<u4'), ('score', '<f4'), ('holistic_score', '<f4'), ('stamp_sec', '<i4')]
-    dtype += [('stamp_nanosec', '<u4')] + [(k, '<f4') for k in POSE_FIELDS]
-    table = np.array([tuple({**row, **fields}[n] for n, _ in dtype)], dtype)
+    dtype += [('stamp_nanosec', '<u4'), ('session_id', '<f4')] + [(k, '<f4') for k in POSE_FIELDS]
+    table = np.array([tuple({**row, **fields, 'session_id': 3.0}[n] for n, _ in dtype)], dtype)
     closure = LoopClosureFilter({'require_pose': True})(5 * S, table)
-    assert closure.metric
+    assert closure.metric and closure.as_dict()['keyframe_session_id'] == 3  # which robot's keyframe
     np.testing.assert_allclose(closure.transform, T, atol=1e-6)
     assert closure.as_dict()['covariance'][0] == pytest.approx(1e-4)
     table['pose_accepted'] = 0.0

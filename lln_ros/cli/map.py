@@ -4,7 +4,12 @@
     lln-map check MAP                  what is wrong with a map, if anything (exit 1 when damaged)
     lln-map compact MAP                give deleted keyframes' space back (SQLite VACUUM / Milvus compact)
     lln-map export MAP DEST            copy every keyframe of MAP into DEST (ids and stamps kept)
-    lln-map import MAP SRC             copy every keyframe of SRC into MAP
+    lln-map import MAP SRC             copy every keyframe of SRC into MAP (ids kept: taken ids refused)
+    lln-map merge A B [C ...] DEST     every keyframe of A, B, ... into DEST (new or existing) under new
+                                       ids, each once; robots and sessions kept (mapstore/merge.py)
+
+A copy carries each keyframe's landmarks, stamp, geometry, verify keypoints and (robot, session,
+seq) identity.
 
 MAP, DEST, SRC: a path (SQLite), milvus-lite:///path.db or milvus://host:port[/db][?map=name].
 
@@ -23,8 +28,6 @@ from datetime import datetime, timezone
 
 from ..errors import MapError
 from .common import UsageError, run_cli
-
-_BATCH = 256  # keyframes per transaction / insert while copying
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -46,33 +49,56 @@ def build_parser() -> argparse.ArgumentParser:
     imp = sub.add_parser('import', help='copy SRC into MAP')
     imp.add_argument('map')
     imp.add_argument('src')
+    merge = sub.add_parser('merge', help='merge maps into DEST under new ids')
+    merge.add_argument('maps', nargs='+', metavar='MAP', help='the maps to merge, then DEST')
+    merge.add_argument(
+        '--legacy-robot', help="robot id of keyframes from maps of before schema 3 (default: each map's file name)"
+    )
     return p
 
 
 def copy_map(src_uri: str, dst_uri: str) -> int:
-    """Copy every keyframe of src into dst (created if missing), keeping ids and stamps; returns the count."""
+    """Copy every keyframe of src into dst (created if missing), keeping ids and stamps; returns the
+    count copied (keyframes dst holds already, by content, are not copied again)."""
     from ..mapstore import MapStore
+    from ..mapstore.merge import merge_into
 
     with MapStore.open(src_uri, create=False) as src:
         if src.model is None:
             raise MapError(f'map {src.path} has no model record (never used); nothing to copy')
         with MapStore.open(dst_uri, model=src.model) as dst:
-            batch, count = [], 0
-            for item in src.keyframes(_BATCH):
-                batch.append(item)
-                if len(batch) == _BATCH:
-                    count += _flush(dst, batch)
-            count += _flush(dst, batch)
-            dst.save()
-    return count
+            return merge_into(dst, src, keep_ids=True).added
 
 
-def _flush(dst, batch: list) -> int:
-    if batch:
-        dst.add_many([s for _, _, s in batch], [st for _, st, _ in batch], ids=[i for i, _, _ in batch])
-    n = len(batch)
-    batch.clear()
-    return n
+def merge_maps(sources: list[str], dst_uri: str, legacy_robot: str | None = None, out=print) -> dict:
+    """`lln-map merge`: every source into dst under new ids (mapstore.merge); a DEST this call
+    created is removed again when the merge fails, so it is never left half-merged."""
+    from ..mapstore import MapStore
+    from ..mapstore.merge import digests, merge_into
+    from ..mapstore.uri import backend_for
+
+    kind, location = backend_for(dst_uri)
+    created = kind == 'sqlite' and not os.path.exists(os.path.expanduser(location))
+    totals = {'read': 0, 'added': 0, 'present': 0}
+    try:
+        with MapStore.open(dst_uri) as dst:
+            known = digests(dst)
+            for uri in sources:
+                with MapStore.open(existing_map(uri), create=False) as src:
+                    r = merge_into(dst, src, legacy_robot=legacy_robot, known=known)
+                out(f'{uri}: {r.read} keyframes, {r.added} added, {r.present} already in {dst_uri}')
+                for key in totals:
+                    totals[key] += getattr(r, key)
+            totals['keyframes'] = len(dst)
+            totals['sessions'] = len(dst.sessions())
+    except BaseException:
+        if created:
+            path = os.path.abspath(os.path.expanduser(location))
+            for leftover in (path, path + '-wal', path + '-shm', path + '.landmarks'):
+                if os.path.exists(leftover):
+                    os.remove(leftover)
+        raise
+    return totals
 
 
 def check(uri: str) -> list[str]:
@@ -158,6 +184,15 @@ def run(args) -> int:
             else ' (Milvus compacts in the background)'
         )
         print(f'compacted {args.map}{sizes}')
+    elif args.command == 'merge':
+        if len(args.maps) < 2:
+            raise UsageError('merge needs at least one map and DEST')
+        *sources, dest = args.maps
+        t = merge_maps(sources, dest, args.legacy_robot)
+        print(
+            f'merged {len(sources)} maps into {dest}: {t["added"]} keyframes added, {t["present"]} already there; '
+            f'{t["keyframes"]} keyframes in {t["sessions"]} sessions'
+        )
     else:
         src, dst = (args.map, args.dest) if args.command == 'export' else (args.src, args.map)
         n = copy_map(existing_map(src), dst)

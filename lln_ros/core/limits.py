@@ -269,3 +269,20 @@ def check_landmark_set(lset, model: Mapping | None, conf: Mapping, what: str = '
         raise LimitError(
             f'{what}: grid {tuple(lset.grid)} does not match image / cell size ({round(rows)}, {round(cols)})'
         )
+
+
+def height_change(before: dict, model: dict) -> str:
+    """What to say, once per change, when a model_info of the same descriptor space as `before` (the
+    previous model_info, else the map's record) brings another input_height: every landmark cloud of
+    the old height is refused from then on (bad_query / bad_keyframe: grid rows). '' = nothing to say."""
+    old, new = before.get('input_height'), model.get('input_height')
+    if old is None or new is None or int(old) == int(new):
+        return ''
+    if before.get('descriptor_space') != model.get('descriptor_space'):
+        return ''  # another model: the map's own refusal (use_model) says so
+    return (
+        f'model_info of the same model {model["descriptor_space"]!r} changes input_height from '
+        f'{int(old)} to {int(new)}: landmark clouds must now have a grid of {int(new) // 32} rows, '
+        f'so clouds of an extractor still at input_height {int(old)} ({int(old) // 32} rows) are '
+        f'refused as bad_query / bad_keyframe until the extractor and its model_info agree'
+    )

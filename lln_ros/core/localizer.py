@@ -33,8 +33,8 @@ from ..errors import DescriptorError, LLNError, MapError
 from . import limits as limits_mod
 from . import registration as registration_mod
 from .landmark_index import check_prefilter
-from .limits import LimitError, check_landmark_set, parse_model_json, stamp_problem, validate_model
-from .pending import Pending
+from .limits import LimitError, check_landmark_set, height_change, parse_model_json, stamp_problem, validate_model
+from .pending import Pending, keep_newest
 from .retrieval import candidates_k
 from .retrieval import default_conf as retrieval_conf
 from .sequence import KeyframeSequence
@@ -102,6 +102,7 @@ class Localizer:
         self.refusing = ''  # set when the extractor's model differs from the map's
         self.extractor_model = None  # the last valid model_info: its input_height fixes the grid rows
         self.reloc, self.unmatched_keyframes = None, {}
+        self.session = None  # a mapping matcher's mapstore.sessions.SessionLog: numbers its keyframes
         self.pending_keypoints = Pending(PENDING, conf['pending_keypoints_bytes'])
         # decode_keypoints(payload, image_size (w, h), scale, max_rows) -> reloc.Keypoints
         self.decode_keypoints = decode_keypoints or (lambda kps, *_: kps)
@@ -122,10 +123,9 @@ class Localizer:
         conf = {**default_conf, **conf, 'limits': limits_mod.limits(conf.get('limits'))}
         conf['registration'] = {**registration_mod.default_conf, **(conf.get('registration') or {})}
         registration_mod.check_conf(conf['registration'])
-        if conf['mode'] not in ('localization', 'mapping'):
-            raise ValueError(f"mode must be 'localization' or 'mapping', got {conf['mode']!r}")
-        if conf['method'] not in ('lln', 'holistic'):
-            raise ValueError(f"method must be 'lln' or 'holistic', got {conf['method']!r}")
+        for key, choices in (('mode', ('localization', 'mapping')), ('method', ('lln', 'holistic'))):
+            if conf[key] not in choices:
+                raise ValueError(f'{key} must be one of {choices}, got {conf[key]!r}')
         if conf['prefilter_k'] < 0:
             raise ValueError(f'prefilter_k must be 0 (every keyframe) or positive, got {conf["prefilter_k"]}')
         check_prefilter(conf['prefilter'], conf['prefilter_k'])
@@ -151,7 +151,9 @@ class Localizer:
         except (ValueError, RecursionError) as e:  # JSONDecodeError and ModelError are ValueErrors
             self.counters.problem('bad_model_info', f'cannot use model_info: {e}')
             return
-        self._say_height_change(model)
+        said = height_change(self.extractor_model or self.store.model or {}, model)
+        if said:
+            self.log.error(said)
         self.extractor_model = model
         try:
             self.store.use_model(model)
@@ -160,24 +162,6 @@ class Localizer:
             if str(e) != self.refusing:
                 self.log.error(f'{e}; landmark input is refused until the models agree')
             self.refusing = str(e)
-
-    def _say_height_change(self, model: dict) -> None:
-        """One ERROR line, per change, when a model_info of the same descriptor space brings another
-        input_height than the one landmark clouds were checked against until now (the previous
-        model_info, else the map's record): every cloud of the old height is refused from now on
-        (bad_query / bad_keyframe: grid rows), and this says why, once, in plain words."""
-        before = self.extractor_model or self.store.model or {}
-        old, new = before.get('input_height'), model.get('input_height')
-        if old is None or new is None or int(old) == int(new):
-            return
-        if before.get('descriptor_space') != model.get('descriptor_space'):
-            return  # another model: the map's own refusal (use_model) says so
-        self.log.error(
-            f'model_info of the same model {model["descriptor_space"]!r} changes input_height from '
-            f'{int(old)} to {int(new)}: landmark clouds must now have a grid of {int(new) // 32} rows, '
-            f'so clouds of an extractor still at input_height {int(old)} ({int(old) // 32} rows) are '
-            f'refused as bad_query / bad_keyframe until the extractor and its model_info agree'
-        )
 
     def landmark_decoding(self, counter: str) -> dict | None:
         """kwargs for msgs.cloud_to_landmarks (expected_dim, descriptor_space, limits), or None when
@@ -286,6 +270,8 @@ class Localizer:
 
     def _store_keyframe(self, lset, stamp_ns: int, kps, odom=None) -> int:
         kid = self.store.add(lset, divmod(int(stamp_ns), 1_000_000_000))
+        if self.session is not None:
+            self.session.stored(kid)
         geom = self.reg.keyframe_geometry(lset.image_size, odom)  # checked again by the store: no broken pose
         if geom['camera'] is not None or geom['pose'] is not None:
             self.store.set_geometry(kid, geom)
@@ -296,7 +282,7 @@ class Localizer:
                 self.store.set_geometry(kid, {'depth': kps.depth})
         elif self.reloc is not None:  # its keypoints may still come
             self.unmatched_keyframes[stamp_ns] = kid
-            _bound(self.unmatched_keyframes)
+            keep_newest(self.unmatched_keyframes, PENDING)
         self.count('keyframes_stored')
         return kid
 
@@ -365,7 +351,7 @@ class Localizer:
             prefilter_k=prefilter_k,
             k=(prefilter_k or max(len(self.store), 1)) if sequence else c['k'],
             min_score=None if sequence else c['min_score'],
-            exclude_recent=max(c['exclude_recent'], self.reg.recent(stamp_ns, odom)) if self.mapping else 0,
+            exclude_recent=self._own(max(c['exclude_recent'], self.reg.recent(stamp_ns, odom))) if self.mapping else 0,
             method_rerank=c['method'] == 'lln',
             scale=c['offset_scale'],
         )
@@ -392,6 +378,7 @@ class Localizer:
                 'holistic_score': m.holistic_score,
                 'stamp_sec': m.stamp[0],
                 'stamp_nanosec': m.stamp[1],
+                'session_id': float(m.session_id),
                 **({'inliers': inliers.get(m.keyframe_id, float('nan'))} if self.reloc else {}),
             }
             for m in found
@@ -404,11 +391,17 @@ class Localizer:
                 row.update(pose.fields() if mine else registration_mod.nan_fields())
         # a zero-row answer carries the same optional fields as the others
         extra = (
-            ('inliers',) * (self.reloc is not None)
+            ('session_id',)
+            + ('inliers',) * (self.reloc is not None)
             + ('sequence_score',) * sequence
             + registration_mod.POSE_FIELDS * self.geometry
         )
         return Answer(rows, extra, found[0] if found else None, inliers, pose)
+
+    def _own(self, n: int, stored_now: int = 0) -> int:
+        """The n newest keyframes are excluded only when this session stored them (issue 29): another
+        robot's, or an earlier run's, is a valid answer. stored_now: the query's own keyframe is in."""
+        return n if self.session is None else max(0, min(n, self.session.count - stored_now))
 
     @property
     def geometry(self) -> bool:
@@ -452,7 +445,7 @@ class Localizer:
         size = len(self.store) - int(self.mapping)  # mapping: the query was just stored, never its own answer
         if size != len(self.sequence.ids):  # keyframes only append (or ~/clear): re-read the ids then
             self.sequence.set_map(self.store.ids()[:size])
-        allowed = size - c['exclude_recent'] if self.mapping else None
+        allowed = size - self._own(c['exclude_recent'], stored_now=1) if self.mapping else None
         reason, ranked = self.sequence.update(stamp_ns, {m.keyframe_id: m.score for m in found}, allowed, c['k'])
         if reason:
             self.count(f'sequence_reset_{reason}')
@@ -473,6 +466,9 @@ class Localizer:
                     'stamp_sec': stamp[0],
                     'stamp_nanosec': stamp[1],
                     'sequence_score': seq_score,
+                    'session_id': float(
+                        m.session_id if m else getattr(self.store.origins([kf]).get(kf), 'session_id', 0)
+                    ),
                     **({'inliers': inliers.get(kf, float('nan'))} if inliers is not None else {}),
                 }
             )
@@ -486,12 +482,6 @@ class Localizer:
         if self.sequence is not None:
             self.sequence.set_map([])
         return removed
-
-
-def _bound(pending: dict, size: int = PENDING) -> None:
-    """Keep the newest `size` entries of an insertion-ordered dict."""
-    while len(pending) > size:
-        pending.pop(next(iter(pending)))
 
 
 __all__ = ['Answer', 'LimitError', 'Localizer', 'default_conf']

@@ -43,6 +43,7 @@ class LoopClosure:
     transform: np.ndarray | None = None  # (4, 4) T(keyframe <- query), camera optical frames, when accepted
     covariance: np.ndarray | None = None  # (6, 6) of [x y z roll pitch yaw] (ROS order)
     metric: bool = False  # PnP with depth; False: essential matrix, |t| = 1
+    keyframe_session_id: int = 0  # the map's session that stored the keyframe (~/info: robot, label); 0 = unknown
 
     def as_dict(self) -> dict:
         return {
@@ -56,6 +57,7 @@ class LoopClosure:
             'transform': None if self.transform is None else np.round(self.transform, 6).tolist(),
             'covariance': None if self.covariance is None else self.covariance.ravel().tolist(),
             'metric': self.metric,
+            'keyframe_session_id': self.keyframe_session_id,
         }
 
 
@@ -118,6 +120,7 @@ class LoopClosureFilter:
             transform,
             covariance,
             accepted and float(row['pose_metric']) == 1.0,
+            int(row['session_id']) if 'session_id' in row.dtype.names else 0,
         )
 
 

@@ -38,3 +38,9 @@ class Pending:
 
     def __len__(self) -> int:
         return len(self._items)
+
+
+def keep_newest(entries: dict, size: int) -> None:
+    """Keep the newest `size` entries of an insertion-ordered dict."""
+    while len(entries) > size:
+        entries.pop(next(iter(entries)))

@@ -35,6 +35,8 @@ class MapCandidate:
                                  the query set's cell_size; equal when the images are the same size)
         similarity               cosine of the pair
         weight                   spatial-consistency weight of the pair
+    session_id: the map's number of the session that stored the keyframe (store.sessions(); 0 =
+    unknown, a keyframe of before schema 3).
     """
 
     keyframe_id: int
@@ -45,6 +47,7 @@ class MapCandidate:
     cell_size: tuple = (0.0, 0.0)
     image_size: tuple = (0.0, 0.0)
     pairs: dict = field(default_factory=dict)
+    session_id: int = 0
 
     @property
     def n_pairs(self) -> int:
@@ -81,6 +84,7 @@ class MapStore(abc.ABC):
     URI names (see backend_for): SQLiteMapStore (default) or MilvusMapStore. Both keep this API:
 
     add(lset, stamp) -> id; add_many(sets, stamps, ids=None) -> ids; query(lset, ...) -> [MapCandidate];
+    start_session(robot) -> Session; sessions(); set_origin(id, session_id, seq); origins(ids);
     get(id) -> LandmarkSet; delete(ids); ids(); len(); `id in store`; model; use_model(model); clear();
     info() -> dict; save(); compact(); check() -> [problem]; keyframes(batch) -> iterator of
     (id, stamp, LandmarkSet); close(); context manager.
@@ -148,6 +152,12 @@ class MapStore(abc.ABC):
 
     @abc.abstractmethod
     def close(self) -> None: ...
+
+    # keyframe identity (sessions.py): start_session(robot, label=None, started_ns=None) -> Session,
+    # sessions() -> [Session], set_origin(keyframe_id, session_id, seq), origins(ids=None) -> {id: Origin}
+
+    @abc.abstractmethod
+    def origins(self, keyframe_ids=None) -> dict: ...
 
     # ------------------------------------------------------------------ shared by the backends
 
@@ -361,6 +371,9 @@ class MapStore(abc.ABC):
             )
             if len(out) == k:
                 break
+        origins = self.origins([m.keyframe_id for m in out]) if out else {}
+        for m in out:
+            m.session_id = origins[m.keyframe_id].session_id if m.keyframe_id in origins else 0
         return out
 
     def add(self, lset: LandmarkSet, stamp=(0, 0)) -> int:

@@ -15,8 +15,8 @@ is created in it. ``milvus-lite://PATH`` opens Milvus Lite at PATH (must end in 
 pymilvus MilvusClient API; tested on Milvus Lite 3.2.2 and on a real Milvus 2.3.5 standalone server
 (test/test_milvus_server.py).
 
-Schema version 3 (collections; Milvus 2.3 allows one vector field per collection; 3 added
-{map}_geometry, milvus_geometry.py)::
+Schema version 4 (collections; Milvus 2.3 allows one vector field per collection; 3 added
+{map}_geometry, milvus_geometry.py; 4 {map}_sessions and {map}_origins, milvus_sessions.py)::
 
     {map}_meta       key VARCHAR primary, value VARCHAR, unused FLOAT_VECTOR(2)   -- format,
                      schema_version, model, descriptor_space, descriptor_dim, next_id (ids never
@@ -86,13 +86,14 @@ from .milvus_rows import (  # noqa: F401  (pack, unpack, parse_uri, RowCache: th
     unpack,
 )
 from .milvus_schema1 import MIGRATIONS
+from .milvus_sessions import MilvusSessions
 
 log = logging.getLogger(__name__)
 
 ID_BLOCK = 1024  # ids reserved per meta write
 
 
-class MilvusMapStore(MilvusCollections, MilvusLandmarks, MilvusKeypoints, MilvusGeometry, MapStore):
+class MilvusMapStore(MilvusCollections, MilvusLandmarks, MilvusKeypoints, MilvusGeometry, MilvusSessions, MapStore):
     """A map in Milvus collections (see the module docstring); MapStore's API and error behaviour."""
 
     default_conf = {

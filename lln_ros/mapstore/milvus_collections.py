@@ -1,5 +1,5 @@
 """A part of MilvusMapStore (milvus.py), as a mixin: creating the collections and the meta record
-(schema version 3, laid out in milvus.py's docstring), and the map-wide operations delete, clear,
+(schema version 4, laid out in milvus.py's docstring), and the map-wide operations delete, clear,
 info, save, compact and check. State is MilvusMapStore's."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from .milvus_rows import _PIECES, _QUERY_ROWS, _SCALARS, explain, row_problem
 
 log = logging.getLogger(__name__.rsplit('_', 1)[0])  # lln_ros.mapstore.milvus, as the backend logs
 
-SCHEMA_VERSION = 3  # 3: the geometry collection (milvus_geometry.py)
+SCHEMA_VERSION = 4  # 3: the geometry collection (milvus_geometry.py); 4: sessions, origins (milvus_sessions.py)
 
 
 class MilvusCollections:
@@ -189,6 +189,7 @@ class MilvusCollections:
             if self._has_keypoints:
                 self._client.delete(self._kp_c, filter=f'keyframe_id in {chunk}')
             self._delete_geometry(chunk)
+            self._delete_origins(chunk)
 
     def delete(self, keyframe_ids) -> int:
         with self._lock, self._errors('delete'):

@@ -11,6 +11,7 @@ from ..errors import MapError
 from .base import MapStore
 from .milvus_geometry import migrate_2_to_3
 from .milvus_rows import scan_ids
+from .milvus_sessions import migrate_3_to_4
 
 # `store` below is a MilvusMapStore, annotated by its base: milvus.py imports this module, so
 # importing milvus.py here would make an import circle.
@@ -93,4 +94,4 @@ def _migrate_1_to_2(store: MapStore, meta: dict) -> None:
 
 
 # schema version v -> function(store, meta) that upgrades a v map to v + 1
-MIGRATIONS = {1: _migrate_1_to_2, 2: migrate_2_to_3}
+MIGRATIONS = {1: _migrate_1_to_2, 2: migrate_2_to_3, 3: migrate_3_to_4}

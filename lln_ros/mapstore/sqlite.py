@@ -39,12 +39,13 @@ from .sqlite_file import _KF_COLS, _KF_INSERT, _LM_COLS, _SQL_CHUNK, SQLiteFile
 from .sqlite_geometry import SQLiteGeometry
 from .sqlite_identity import SQLiteIdentity
 from .sqlite_landmarks import SQLiteLandmarks
+from .sqlite_sessions import SQLiteSessions
 from .uri import backend_for
 
 log = logging.getLogger(__name__)
 
 
-class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, SQLiteIdentity, SQLiteGeometry, MapStore):
+class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, SQLiteIdentity, SQLiteGeometry, SQLiteSessions, MapStore):
     """The embedded map: one SQLite file plus an in-memory FAISS index (see the module docstring).
 
     SQLiteMapStore(path, model=None, create=True, verify=True, conf=None). verify: run SQLite's

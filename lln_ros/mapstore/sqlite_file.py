@@ -6,10 +6,11 @@ Storage
 One SQLite file in WAL mode with ``synchronous=FULL``: ``add`` commits one transaction and fsyncs
 the WAL before it returns, so an acknowledged keyframe survives ``kill -9`` and power loss. New files
 are built under a temporary name and linked into place, so a file at the map path is always either a
-complete map or not ours (never half-created). Schema version 2 (1 without the geometry table)::
+complete map or not ours (never half-created). Schema version 3 (2 without sessions and origins, 1
+without the geometry table)::
 
     meta       key TEXT PRIMARY KEY, value TEXT
-               format='lln_ros-map', schema_version='2', created (unix s), created_by,
+               format='lln_ros-map', schema_version='3', created (unix s), created_by,
                model (JSON of Extractor.model_info, or {descriptor_space, descriptor_dim}; written on
                first use), descriptor_space, descriptor_dim
     keyframes  id INTEGER PRIMARY KEY AUTOINCREMENT   -- never reused, not even after clear()
@@ -30,6 +31,9 @@ complete map or not ours (never half-created). Schema version 2 (1 without the g
                -- 40 bytes per ORB keypoint (B = 32): 20 KB per keyframe at 500 keypoints
     geometry   (schema 2) keyframe_id, camera JSON, pose (7,) float64, frame_id, keypoint depths (N,)
                float32: what registration needs (sqlite_geometry.py, geometry_record.py)
+    sessions   (schema 3) id, robot, label, started_ns: who wrote into the map, run by run
+    origins    (schema 3) keyframe_id, session_id, seq: a keyframe's (robot, session, seq) identity
+               (sqlite_sessions.py, sessions.py)
 
 All landmarks of a keyframe are one row (a row per landmark would be ~50x more rows and far slower to
 insert and fetch). ``landmarks`` is its own table so the scan at open, which rebuilds the FAISS index,
@@ -45,7 +49,7 @@ headers, b-tree and overflow-page slack add ~2%). float32 descriptors would doub
 part.
 
 Migrations: ``MIGRATIONS[v]`` upgrades a map from schema v to v+1 inside one transaction at open
-(1 -> 2: the geometry table).
+(1 -> 2: the geometry table; 2 -> 3: sessions and origins).
 A map newer than this code is refused, never modified.
 """
 
@@ -66,10 +70,11 @@ from ..errors import DescriptorError, MapError
 from .base import FORMAT
 from .index import GlobalIndex
 from .sqlite_geometry import GEOMETRY_TABLE, migrate_1_to_2
+from .sqlite_sessions import SESSION_TABLES, migrate_2_to_3
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3  # 2: geometry (sqlite_geometry.py); 3: sessions and origins (sqlite_sessions.py)
 SQLITE_MAGIC = b'SQLite format 3\x00'
 
 SCHEMA = (
@@ -101,10 +106,12 @@ CREATE TABLE landmarks (
 """
     + GEOMETRY_TABLE
     + ';'
+    + SESSION_TABLES
+    + ';'
 )
 
 # schema version v -> function(conn) that upgrades a v map to v + 1 (called inside a transaction)
-MIGRATIONS: dict = {1: migrate_1_to_2}
+MIGRATIONS: dict = {1: migrate_1_to_2, 2: migrate_2_to_3}
 
 _KF_COLS = (
     'k.id, k.stamp_sec, k.stamp_nanosec, k.image_w, k.image_h, k.grid_rows, k.grid_cols, '
@@ -235,7 +242,7 @@ class SQLiteFile:
                 f'map {self.path} has schema version {version}; this lln_ros reads up to '
                 f'{SCHEMA_VERSION}: upgrade lln_ros'
             )
-        missing = {'keyframes', 'landmarks', 'geometry'} - tables
+        missing = {'keyframes', 'landmarks', 'geometry', 'sessions', 'origins'} - tables
         if missing and version == SCHEMA_VERSION:
             raise MapError(f'map {self.path} is damaged: missing tables {sorted(missing)}')
 

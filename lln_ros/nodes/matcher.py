@@ -10,17 +10,20 @@ Publishes   lln/candidates (PointCloud2: keyframe_id, score, holistic_score, sta
             lln/matches (PointCloud2: the matched region pairs of the best candidate), /diagnostics,
             lln/pose (geometry_msgs/PoseWithCovarianceStamped: localization mode, the camera in the
             frame of the keyframes' odometry poses, for each accepted metric pose)
-Services    ~/save, ~/clear, ~/info, ~/relocalize (std_srvs/Trigger; info answers JSON; relocalize
-            forgets the pose-consistency state: a kidnapped robot)
+Services    ~/save, ~/clear, ~/info, ~/relocalize, ~/new_session (std_srvs/Trigger; info answers
+            JSON; relocalize forgets the pose-consistency state: a kidnapped robot; new_session starts
+            a new mapping session of this robot)
 
 With verify and geometry (default on), the best candidate's T(keyframe <- query) and its 6x6
 covariance go in the candidates table as pose_* / tx..qw / cov_0..cov_35 fields (docs/interfaces.md;
 lln_ros.core.registration). Keyframes keep the camera model, keypoint depths and the odometry pose.
 
 mode=localization answers queries and leaves the map alone; mode=mapping answers each query, then
-stores it as a keyframe (online loop-closure detection; the newest `exclude_recent` keyframes are
-never answers). A keyframe is committed to the SQLite map before its query's answer is published,
-so whatever a subscriber has seen answered survives kill -9.
+stores it as a keyframe (online loop-closure detection; the newest `exclude_recent` keyframes of
+this session are never answers). Each stored keyframe records (robot_id, session, seq); answers
+carry the keyframe's session_id (~/info lists the sessions: robot and label). A keyframe is
+committed to the SQLite map before its query's answer is published, so whatever a subscriber has
+seen answered survives kill -9.
 
 verify=true: keypoints are paired with landmark sets by header stamp and stored per keyframe; the
 top candidates are re-ranked by region-constrained RANSAC inliers (lln_ros.core.reloc.verify_candidates).
@@ -67,6 +70,7 @@ from .common import (
     subscription_qos,
     worst,
 )
+from .matcher_fleet import FleetIdentity
 from .matcher_metric import MetricInputs
 from .parameters import Param, declare_all, diagnostics_period
 from .registration_params import KEYS as REG_KEYS
@@ -111,7 +115,7 @@ PARAMETERS = {
     'min_score': Param(LOC['min_score'], 'candidates scoring below this are not published', dynamic=True),
     'exclude_recent': Param(
         LOC['exclude_recent'],
-        'mapping mode: the newest N keyframes are never answers',
+        "mapping mode: this session's newest N keyframes are never answers (another robot's or run's are)",
         dynamic=True,
         range=(0, 1_000_000),
     ),
@@ -125,6 +129,11 @@ PARAMETERS = {
         LOC['offset_scale'], 'Gaussian width of the offset weights, in grid cells', dynamic=True, range=(1e-3, 1e3)
     ),
     'descriptor_space': Param('', "expected model, e.g. efficientnet_lite0/stage6/192; '' = the map's or first seen"),
+    'robot_id': Param(
+        '',
+        "this robot in a shared map (keyframes are stored as robot, session, seq); '' = the node's namespace, "
+        'or the host name in the root namespace',
+    ),
     'reliability': Param('reliable', 'keyframes/query subscriptions', choices=('reliable', 'best_effort')),
     'queue_depth': Param(100, 'keyframes/query subscription queue depth', range=(1, 100_000)),
     'verify': Param(LOC['verify'], "re-rank candidates by keypoint inliers (needs the extractor's publish_keypoints)"),
@@ -195,7 +204,7 @@ LOCALIZER_KEYS = (
 )
 
 
-class MatcherNode(MetricInputs, Node):
+class MatcherNode(MetricInputs, FleetIdentity, Node):
     def __init__(self, **kwargs):
         super().__init__('lln_matcher', **kwargs)
         p = self.params = declare_all(self, PARAMETERS, self.on_parameters)
@@ -230,6 +239,7 @@ class MatcherNode(MetricInputs, Node):
         self.last_query_age = None  # seconds, header stamp vs node clock (sim time with use_sim_time)
         self.create_subscription(String, topics.MODEL_INFO, self.on_model_info, MODEL_QOS)
         self.start_metric(p)  # camera_info, odom, lln/pose, ~/relocalize (matcher_metric.MetricInputs)
+        self.start_session(p)  # robot_id, the mapping session, ~/new_session (matcher_fleet.FleetIdentity)
         self.create_service(Trigger, '~/save', self.on_save)
         self.create_service(Trigger, '~/clear', self.on_clear)
         self.create_service(Trigger, '~/info', self.on_info)
@@ -420,6 +430,7 @@ class MatcherNode(MetricInputs, Node):
                 {
                     **self.store.info(),
                     'mode': self.params['mode'],
+                    **self.session_info(),
                     'counters': self.health.snapshot(),
                     # readers matched by the answer publishers: a client can wait until its own
                     # subscriptions are among them before it asks (answers are volatile)

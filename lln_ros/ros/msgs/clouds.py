@@ -411,7 +411,7 @@ def candidates_to_cloud(rows, header: Header | None = None, extra_fields: Sequen
         rows = np.zeros(
             0,
             [(name, _DATATYPES[dt]) for name, dt, _ in CANDIDATE_FIELDS]
-            + [(name, np.dtype('<f4')) for name in extra_fields],
+            + [(name, np.dtype('<f4')) for name in sorted(extra_fields)],  # in name order, as _records lays out rows
         )
     return array_to_cloud(_records(rows, CANDIDATE_FIELDS, 'candidates'), header)
 
