@@ -9,7 +9,10 @@ triplet is the paper's loss on the LLN-weighted embedding (the paper's recipe:
 
 SPEC: any lln-eval dataset (aligned:REF,QUERY[,TOL], vprbench:DIR, loop:DIR,GT, gardenspoint:DIR,
 poses:DIR[,MAX_DEG,MAX_M,MIN_GAP_S]), or places:DIR (DIR/<place>/*.jpg), or sfm:PICKLE,IMS_ROOT
-(Retrieval-SfM-120k layout). Datasets of different image shapes mix. --val is repeatable: the head
+(Retrieval-SfM-120k layout), or sequence:DIR[,POS_GAP,NEG_GAP]: one traverse of the user's own, no
+ground truth (pseudo-labels from frame order: lln_ros/core/adaptation.py; --range applies).
+--init shipped fine-tunes the shipped head (with --norm-prior 1, as it was trained), --init CKPT
+another head; the default starts from scratch. Datasets of different image shapes mix. --val is repeatable: the head
 with the best MEAN validation precision at 100% recall over all --val sets is DIR/best.pt;
 DIR/last.pt resumes an interrupted run.
 """
@@ -70,6 +73,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="weight of log feature norm (ACT's score) in the head's logits; > 0 starts the head "
         "at ACT's selection (default 0: the plain LLN head)",
     )
+    p.add_argument(
+        '--init',
+        default='',
+        metavar='shipped|CKPT',
+        help="start from this head (fine-tune): 'shipped' = the package's head; default: from scratch",
+    )
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--backbone', default='efficientnet_lite0')
     p.add_argument('--layer', default='')
@@ -84,6 +93,10 @@ def load_pairs(spec: str, frac, neg_margin: int):
     from ..core import training_pairs
 
     kind, _, rest = spec.partition(':')
+    if kind == 'sequence':
+        from ..core import adaptation
+
+        return adaptation.parse_sequence_spec(rest, frac)
     if kind == 'places':
         return training_pairs.pairs_from_places(rest)
     if kind == 'sfm':
@@ -107,6 +120,7 @@ def load_dataset(spec: str, frac):
 def run(args) -> dict:
     from ..core import training, training_pairs
     from ..core.extractor import Extractor
+    from ..errors import DatasetError
     from ..io import datasets
 
     size = args.train_size.lower()
@@ -143,6 +157,14 @@ def run(args) -> dict:
     trainer = training.Trainer(
         extractor, pairs, val, conf, cache_dir=args.cache, out_dir=args.out, meta={'command': command}
     )
+    if args.init:
+        from ..core import adaptation
+        from ..core.extractor import shipped_weights
+
+        init = shipped_weights(args.backbone, extractor.backbone.layer) if args.init == 'shipped' else args.init
+        if init is None:
+            raise DatasetError(f'--init shipped: no head is shipped for {args.backbone}/{extractor.backbone.layer}')
+        adaptation.start_from(trainer, init)
     return trainer.fit(resume=not args.no_resume)
 
 
