@@ -188,3 +188,30 @@ def test_a_camera_standing_still_closes_no_loop_with_itself(tmp_path, exclusion,
     assert any(a.rows for a in answers) == loops
     assert not any(a.rows for a in answers[:10])
     store.close()
+
+
+@pytest.mark.parametrize('novelty, keyframes, loops', [(0.0, 40, True), (15.0, 1, False)])
+def test_a_still_camera_without_odometry_closes_no_loop_with_novelty_gating(tmp_path, novelty, keyframes, loops):
+    """Without odometry, at the default exclude_recent (10 keyframes): storing every frame (novelty
+    off) lets the view answer itself once ten twins are stored; novelty gating judges each frame
+    against the last keyframe too (always among the excluded recent ones), so one keyframe is
+    stored and never answers while the camera stands still."""
+    import json
+
+    from test_mapstore import MODEL, make_set
+
+    from lln_ros.core.localizer import Localizer
+    from lln_ros.mapstore import open_for_matcher
+
+    rng = np.random.default_rng(7)
+    base = make_set(rng)
+    store, _ = open_for_matcher(str(tmp_path / 'still.db'), 'mapping', '')
+    loc = Localizer(store, {'mode': 'mapping', 'registration': {'keyframe_novelty_max_score': novelty}})
+    loc.model_info(json.dumps({**MODEL, 'input_height': 288}))
+    answers = [loc.query(make_set(rng, base=base, noise=0.05), 10 * S + i * S // 10) for i in range(40)]
+    assert len(store) == keyframes and all(a is not None for a in answers)
+    assert any(a.rows for a in answers) == loops
+    assert not any(a.rows for a in answers[:10])
+    # a new view is still a keyframe: the gate does not freeze the map
+    assert loc.query(make_set(rng), 20 * S) is not None and len(store) == keyframes + 1
+    store.close()

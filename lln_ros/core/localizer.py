@@ -275,7 +275,7 @@ class Localizer:
         geom = self.reg.keyframe_geometry(lset.image_size, odom)  # checked again by the store: no broken pose
         if geom['camera'] is not None or geom['pose'] is not None:
             self.store.set_geometry(kid, geom)
-        self.reg.stored(stamp_ns, odom)
+        self.reg.stored(stamp_ns, odom, lset)
         if kps is not None:
             self.store.add_keypoints(kid, kps.uv, kps.descriptors)
             if kps.depth is not None:
@@ -365,7 +365,8 @@ class Localizer:
             kf_geom = self.store.geometry(kid) if kf_kps is not None else None
             pose = self.reg.pose_of(kps, kf_kps, results.get(kid), kf_geom, best, odom, lset.image_size)
         if self.mapping:  # committed before the answer goes out: an answered keyframe is never lost
-            if self.reg.gate(stamp_ns, odom, found[0].score if found else None):
+            best = max((m.score for m in found), default=None)  # verify mode reorders by inliers
+            if self.reg.gate(stamp_ns, odom, best, lset, c['offset_scale']):
                 self._store_keyframe(lset, stamp_ns, kps, odom)
                 self.count('queries_stored')
             else:  # the gate (odometry motion, or novelty) says it is not a new keyframe

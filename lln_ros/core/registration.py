@@ -8,7 +8,7 @@ the best candidate with its acceptance.
     odom = reg.odometry_at(stamp_ns)               # OdomPose at the stamp (core.odometry), or None
     geom = reg.keyframe_geometry(image_size, odom) # what store.set_geometry keeps with a keyframe
     n = reg.recent(stamp_ns, odom)                 # newest keyframes closer than exclude_recent_s / _m
-    if reg.gate(odom): store the keyframe; reg.stored(stamp_ns, odom)
+    if reg.gate(stamp_ns, odom, best_score, lset): store it; reg.stored(stamp_ns, odom, lset)
     pose = reg.estimate(query_kps, kf_kps, matches, kf_geom, score, odom, image_size)   # PoseAnswer
     reg.reset()                                    # ~/relocalize: forget the consistency state
 
@@ -127,6 +127,9 @@ class Registration:
         self.history: list[tuple[int, np.ndarray | None]] = []  # this session's stored keyframes: stamp, position
         self.path_m = 0.0  # odometry path length of the stored keyframes, for exclude_recent_m
         self.last_stored: OdomPose | None = None
+        # the last keyframe stored (LandmarkSet): novelty is judged against it too, because it is
+        # always among the recent keyframes a query's answers exclude (a still camera's twin)
+        self.last_landmarks = None
         self.gate_ = self._make_gate()
 
     def _make_gate(self) -> KeyframeGate:
@@ -217,17 +220,34 @@ class Registration:
 
     # ------------------------------------------------------------------ mapping mode
 
-    def gate(self, stamp_ns: int, odom: OdomPose | None, best_score: float | None = None) -> bool:
+    def gate(
+        self, stamp_ns: int, odom: OdomPose | None, best_score: float | None = None, lset=None, scale: float = 1.0
+    ) -> bool:
         """Store this query as a keyframe? core.gating.KeyframeGate on the camera's odometry pose
         (moved keyframe_min_distance or turned keyframe_min_angle since the last keyframe), or
-        without odometry on novelty (the best answer's S below keyframe_novelty_max_score; 0 = every
-        frame). Odometry in a new frame_id starts the gate afresh (poses of two frames do not compare)."""
+        without odometry on novelty: the best S below keyframe_novelty_max_score (0 = every frame),
+        where the best S is that of the answers (best_score, None: no answer) or, when higher, the
+        query landmark set lset's S against the last stored keyframe. Without the latter a camera
+        standing still stores a keyframe per frame until its twins pass exclude_recent, then closes
+        loops with itself. Odometry in a new frame_id starts the gate afresh (poses of two frames do
+        not compare)."""
         if odom is not None and self.last_stored is not None and odom.frame_id != self.last_stored.frame_id:
             self.gate_ = self._make_gate()
         T = odom.T @ self.base_to_camera if odom is not None else None
+        if (
+            T is None
+            and lset is not None
+            and self.last_landmarks is not None
+            and self.conf['keyframe_novelty_max_score'] > 0
+        ):
+            from .similarity import match_pair
+
+            last = float(match_pair(lset, self.last_landmarks, scale).scores[0])
+            best_score = last if best_score is None else max(best_score, last)
         return self.gate_.decide(stamp_ns * 1e-9, T, best_score)[0]
 
-    def stored(self, stamp_ns: int, odom: OdomPose | None) -> None:
+    def stored(self, stamp_ns: int, odom: OdomPose | None, lset=None) -> None:
+        self.last_landmarks = lset
         if odom is not None and self.last_stored is not None and self.last_stored.frame_id == odom.frame_id:
             self.path_m += float(np.linalg.norm(odom.T[:3, 3] - self.last_stored.T[:3, 3]))
         if odom is not None:
@@ -256,7 +276,7 @@ class Registration:
 
     def forget(self) -> None:
         """~/clear: the stored keyframes are gone."""
-        self.history, self.path_m, self.last_stored = [], 0.0, None
+        self.history, self.path_m, self.last_stored, self.last_landmarks = [], 0.0, None, None
         self.gate_ = self._make_gate()
 
     # ------------------------------------------------------------------ the answer's pose

@@ -69,7 +69,8 @@ PARAMETERS = {
     ),
     'keyframe_novelty_max_score': Param(
         REG['keyframe_novelty_max_score'],
-        'mapping mode without odometry: a query is stored only when its best S is below this; 0 = every query',
+        'mapping mode without odometry: a query is stored only when its best S (answers and the last keyframe) is '
+        'below this; 0 = every query',
         dynamic=True,
         range=(0.0, 1e6),
     ),
