@@ -159,11 +159,9 @@ def test_novelty_gating_without_odometry():
     assert reg.gate(2 * S, None, 5.0) and reg.gate(3 * S, None, None)  # new, or nothing answered
 
 
-@pytest.mark.parametrize('exclusion, loops', [({'exclude_recent_m': 0.5}, False), ({'exclude_recent_s': 1.0}, True)])
-def test_a_camera_standing_still_closes_no_loop_with_itself(tmp_path, exclusion, loops):
-    """The Localizer in mapping mode on a real SQLite map, fed 4 s of one view with sensor noise at
-    10 Hz and constant odometry: the gate stores one keyframe, and exclude_recent_m keeps it from
-    answering however old it gets (exclude_recent in frames or seconds alone would let it answer)."""
+def still_camera(tmp_path, conf: dict):
+    """(rng, the view's landmark set, a real SQLite map, a mapping-mode Localizer with conf on it)
+    for a camera that sees one view: feed it make_set(rng, base=view, noise=...) frames."""
     import json
 
     from test_mapstore import MODEL, make_set
@@ -174,9 +172,19 @@ def test_a_camera_standing_still_closes_no_loop_with_itself(tmp_path, exclusion,
     rng = np.random.default_rng(7)
     base = make_set(rng)
     store, _ = open_for_matcher(str(tmp_path / 'still.db'), 'mapping', '')
-    conf = {'mode': 'mapping', 'exclude_recent': 0, 'registration': exclusion}
-    loc = Localizer(store, conf)
+    loc = Localizer(store, {'mode': 'mapping', **conf})
     loc.model_info(json.dumps({**MODEL, 'input_height': 288}))
+    return rng, base, store, loc
+
+
+@pytest.mark.parametrize('exclusion, loops', [({'exclude_recent_m': 0.5}, False), ({'exclude_recent_s': 1.0}, True)])
+def test_a_camera_standing_still_closes_no_loop_with_itself(tmp_path, exclusion, loops):
+    """The Localizer in mapping mode on a real SQLite map, fed 4 s of one view with sensor noise at
+    10 Hz and constant odometry: the gate stores one keyframe, and exclude_recent_m keeps it from
+    answering however old it gets (exclude_recent in frames or seconds alone would let it answer)."""
+    from test_mapstore import make_set
+
+    rng, base, store, loc = still_camera(tmp_path, {'exclude_recent': 0, 'registration': exclusion})
     answers = []
     for i in range(40):
         t = 10 * S + i * S // 10
@@ -196,18 +204,9 @@ def test_a_still_camera_without_odometry_closes_no_loop_with_novelty_gating(tmp_
     off) lets the view answer itself once ten twins are stored; novelty gating judges each frame
     against the last keyframe too (always among the excluded recent ones), so one keyframe is
     stored and never answers while the camera stands still."""
-    import json
+    from test_mapstore import make_set
 
-    from test_mapstore import MODEL, make_set
-
-    from lln_ros.core.localizer import Localizer
-    from lln_ros.mapstore import open_for_matcher
-
-    rng = np.random.default_rng(7)
-    base = make_set(rng)
-    store, _ = open_for_matcher(str(tmp_path / 'still.db'), 'mapping', '')
-    loc = Localizer(store, {'mode': 'mapping', 'registration': {'keyframe_novelty_max_score': novelty}})
-    loc.model_info(json.dumps({**MODEL, 'input_height': 288}))
+    rng, base, store, loc = still_camera(tmp_path, {'registration': {'keyframe_novelty_max_score': novelty}})
     answers = [loc.query(make_set(rng, base=base, noise=0.05), 10 * S + i * S // 10) for i in range(40)]
     assert len(store) == keyframes and all(a is not None for a in answers)
     assert any(a.rows for a in answers) == loops
