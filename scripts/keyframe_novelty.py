@@ -1,6 +1,6 @@
 """Keyframe novelty gating without odometry, measured: a camera standing still, and a loop sequence.
 
-    .venv/bin/python scripts/keyframe_novelty.py [--data ../shared/data] [--novelty 0,15,20]
+    .venv/bin/python scripts/keyframe_novelty.py [--data ../shared/data] [--novelty 0,25,30]
                                                  [--still-seconds 120] [--hz 30] [--accept 17.11]
 
 Both parts run the matcher's decision code (core.localizer.Localizer in mapping mode on a real
@@ -91,7 +91,7 @@ def loop(extractor, data: Path, novelties, folder: Path):
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('--data', default=str(REPO.parent / 'shared' / 'data'))
-    p.add_argument('--novelty', default='0,15,20', help='keyframe_novelty_max_score values, comma-separated')
+    p.add_argument('--novelty', default='0,25,30', help='keyframe_novelty_max_score values, comma-separated')
     p.add_argument('--still-seconds', type=float, default=120.0)
     p.add_argument('--hz', type=float, default=30.0)
     p.add_argument('--accept', type=float, default=17.11, help='S an answer needs to count as an accepted closure')
