@@ -7,6 +7,7 @@ queries and stores exactly its own keyframes."""
 from __future__ import annotations
 
 import json
+from functools import partial
 
 import cv2
 import numpy as np
@@ -17,6 +18,37 @@ from test_nodes import TIMEOUT, header, rig  # noqa: F401  (rig: the fixture)
 from lln_ros.ros import msgs, topics
 
 ROBOTS = ('robot1', 'robot2')
+
+
+def matcher_info(rig, ns: str) -> dict:
+    return json.loads(rig.probe.call(Trigger, f'/{ns}/lln_matcher/info', timeout=TIMEOUT).message)
+
+
+def wait_linked(rig, images: dict) -> None:
+    """Wait until every hop of each robot's pipeline (us -> extractor -> matcher -> us) is matched
+    at both ends. A DDS writer and reader match each on their own: a volatile reader drops what a
+    writer sent before the reader matched it, even when the writer had matched the reader already.
+    Both namespaced tests send a single frame per place, and a frame lost that way failed them
+    about one run in three under load, until the test waited on the reader ends too."""
+
+    ends: dict = {}
+
+    def linked(ns: str) -> bool:
+        extractor, matcher = rig.diag.get(f'/{ns}/lln_extractor', {}), matcher_info(rig, ns)
+        ends[ns] = {
+            'image writer': images[ns].get_subscription_count(),  # ours -> the extractor's reader
+            'image reader': int(extractor.get('image_publishers', 0)),  # ... and that reader -> ours
+            'landmark writer': int(extractor.get('landmark_subscribers', 0)),  # extractor -> matcher
+            'landmark reader': matcher['publishers']['query'],  # ... and the matcher's reader
+            'answer writer': matcher['subscriptions']['candidates'],  # matcher -> us
+            'answer reader': rig.probe.matched_writers(f'/{ns}/{topics.CANDIDATES}'),  # ... and ours
+        }
+        return all(n == 1 for n in ends[ns].values())
+
+    try:
+        rig.until(lambda: all([linked(ns) for ns in ROBOTS]), 'both pipelines linked, every hop matched at both ends')
+    except AssertionError as e:
+        raise AssertionError(f'{e}\nmatched ends: {ends}') from None
 
 
 def test_two_namespaced_pipelines_answer_only_their_own_queries(rig, photo, tmp_path):
@@ -33,23 +65,7 @@ def test_two_namespaced_pipelines_answer_only_their_own_queries(rig, photo, tmp_
         ns: rig.probe.collect(PointCloud2, f'/{ns}/{topics.CANDIDATES}', lambda m: msgs.stamp_to_ns(m.header))
         for ns in ROBOTS
     }
-    rig.until(
-        lambda: all(
-            images[ns].get_subscription_count() == 1
-            and rig.probe.node.count_publishers(f'/{ns}/{topics.CANDIDATES}') == 1
-            and rig.probe.node.count_subscribers(f'/{ns}/{topics.LANDMARKS}') == 1
-            for ns in ROBOTS
-        ),
-        'both pipelines up, one node of each kind per namespace',
-    )
-
-    def info(ns: str) -> dict:
-        return json.loads(rig.probe.call(Trigger, f'/{ns}/lln_matcher/info', timeout=TIMEOUT).message)
-
-    # answers are volatile: wait until each matcher has matched our answer subscription too
-    rig.until(
-        lambda: all(info(ns).get('subscriptions', {}).get('candidates', 0) > 0 for ns in ROBOTS), 'answers reach us'
-    )
+    wait_linked(rig, images)
     # real frames: robot1 sees crops of the left of the photograph, robot2 of its right half
     h, w = photo.shape[:2]
     frames = {
@@ -68,7 +84,7 @@ def test_two_namespaced_pipelines_answer_only_their_own_queries(rig, photo, tmp_
     rig.probe.spin_for(1.0)  # a crossed answer would arrive by now
     for ns in ROBOTS:
         assert answers[ns] == sent[ns], f'{ns} answered stamps {answers[ns]}, it was sent {sent[ns]}'
-        stored = info(ns)
+        stored = matcher_info(rig, ns)
         assert stored['keyframes'] == len(sent[ns]) and stored['path'] == str(tmp_path / f'{ns}.db')
     for proc in procs.values():
         assert proc.alive()
@@ -95,19 +111,8 @@ def test_two_robots_map_into_one_map_and_close_loops_across_robots(rig, photo, t
         )
     images = {ns: rig.probe.publisher(Image, f'/{ns}/{topics.IMAGE}') for ns in ROBOTS}
     answers = {ns: rig.probe.collect(PointCloud2, f'/{ns}/{topics.CANDIDATES}') for ns in ROBOTS}
-
-    def info(ns: str) -> dict:
-        return json.loads(rig.probe.call(Trigger, f'/{ns}/lln_matcher/info', timeout=TIMEOUT).message)
-
-    def linked(ns: str) -> bool:  # every hop matched: us -> extractor -> matcher -> us
-        i = info(ns)
-        return (
-            images[ns].get_subscription_count() == 1
-            and i['publishers']['query'] == 1
-            and i['subscriptions']['candidates'] > 0
-        )
-
-    rig.until(lambda: all(linked(ns) for ns in ROBOTS), 'both pipelines up, their answers reaching us')
+    wait_linked(rig, images)
+    info = partial(matcher_info, rig)
     h, w = photo.shape[:2]
     places = [np.ascontiguousarray(photo[y : y + h // 2, x : x + w // 3]) for y, x in ((0, 0), (h // 3, w // 2))]
     # robot1 maps both places; robot2 then passes the first one (the same view, 1 s later)

@@ -199,7 +199,7 @@ class ExtractorNode(Node):
         compressed = p['image_transport'] == 'compressed'
         image_topic = topics.IMAGE + '/compressed' if compressed else topics.IMAGE
         self.image_topic = self.resolve_topic_name(image_topic)
-        self.create_subscription(
+        self.image_sub = self.create_subscription(
             CompressedImage if compressed else Image,
             image_topic,
             self.on_image,
@@ -224,7 +224,13 @@ class ExtractorNode(Node):
             self,
             self.health,
             p['diagnostics_period'],
-            lambda: {'last_latency_ms': f'{self.latency_ms:.1f}'},
+            # image_publishers: the writers our reader has matched (the graph can list a publisher
+            # before that; a volatile reader never sees what was written before its match)
+            lambda: {
+                'last_latency_ms': f'{self.latency_ms:.1f}',
+                'image_publishers': str(self.image_sub.get_publisher_count()),
+                'landmark_subscribers': str(self.landmarks_pub.get_subscription_count()),
+            },
             self.status,
         )
         info = self.extractor.model_info
@@ -293,8 +299,9 @@ class ExtractorNode(Node):
             problems.append(
                 (
                     S.WARN,
-                    f'{publishers} publisher(s) on {self.image_topic} but no image for '
-                    f'{idle:.0f} s (QoS mismatch, or frames too large for the middleware: '
+                    f'{publishers} publisher(s) on {self.image_topic} ({self.image_sub.get_publisher_count()} '
+                    f'matched by our reader) but no image for {idle:.0f} s (QoS mismatch, '
+                    f'or frames too large for the middleware: '
                     f"docs/robot_integration.md 'Camera-sized images')",
                 )
             )

@@ -60,6 +60,7 @@ class Probe:
         self.bad_messages: list[str] = []
         self.diag: dict = {}  # node name -> {key: value}
         self._clients: dict = {}
+        self.readers: dict = {}  # topic -> the collect() subscription
 
     def close(self) -> None:
         try:
@@ -160,13 +161,18 @@ class Probe:
         from rclpy.qos import QoSProfile, ReliabilityPolicy
 
         got: list = []
-        self.node.create_subscription(
+        self.readers[topic] = self.node.create_subscription(
             msg_type,
             topic,
             lambda m: got.append(decode(m)),
             QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE),
         )
         return got
+
+    def matched_writers(self, topic: str) -> int:
+        """How many writers the collect() reader of `topic` has matched. A volatile reader gets
+        nothing a writer sent before this match, though the writer may count the reader already."""
+        return self.readers[topic].get_publisher_count()
 
     def call(self, srv_type, name: str, timeout: float = 30.0, request=None):
         """One service call: waits for the service, then for its answer."""
