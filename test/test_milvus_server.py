@@ -78,6 +78,7 @@ def test_real_server_suite(tmp_path):
         str(REPO / 'test' / 'test_map_backends.py'),
         str(REPO / 'test' / 'test_map_geometry.py'),
         str(REPO / 'test' / 'test_milvus_server.py'),
+        str(REPO / 'test' / 'test_milvus_fleet.py'),
     ]
     t = time.monotonic()
     out = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, env=child_env(), timeout=1800)

@@ -411,7 +411,8 @@ class MapStore(abc.ABC):
             return int(keyframe_id) in set(self._ids)
 
     def ids(self) -> list[int]:
-        """Keyframe ids in insertion order (ascending)."""
+        """Keyframe ids, ascending (insertion order, except in a Milvus map several processes write:
+        each takes ids from blocks of its own, milvus_claims.py)."""
         with self._lock:
             self._ready()
             return list(self._ids)

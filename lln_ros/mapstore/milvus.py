@@ -3,7 +3,8 @@
 The class is split by part: the row format, read cache and integrity check (each described there)
 are in milvus_rows.py; the collections, the meta record and the map-wide operations (delete, clear,
 info, save, compact, check, close) in milvus_collections.py; the open's read of every row and the
-keypoints in milvus_mixins.py; the schema 1 reader the migration needs in milvus_schema1.py.
+keypoints in milvus_mixins.py; the claimed id blocks and session numbers of many writers, and the
+refresh that follows them, in milvus_claims.py; the schema 1 reader in milvus_schema1.py.
 
     MapStore.open('milvus-lite:///data/map.db')                 # Milvus Lite (embedded, a directory)
     MapStore.open('milvus://milvus.fleet:19530/lln?map=city')   # a Milvus server or cluster
@@ -15,12 +16,14 @@ is created in it. ``milvus-lite://PATH`` opens Milvus Lite at PATH (must end in 
 pymilvus MilvusClient API; tested on Milvus Lite 3.2.2 and on a real Milvus 2.3.5 standalone server
 (test/test_milvus_server.py).
 
-Schema version 4 (collections; Milvus 2.3 allows one vector field per collection; 3 added
-{map}_geometry, milvus_geometry.py; 4 {map}_sessions and {map}_origins, milvus_sessions.py)::
+Schema version 5 (collections; Milvus 2.3 allows one vector field per collection; 3 added
+{map}_geometry, milvus_geometry.py; 4 {map}_sessions and {map}_origins, milvus_sessions.py;
+5 {map}_claims, milvus_claims.py)::
 
     {map}_meta       key VARCHAR primary, value VARCHAR, unused FLOAT_VECTOR(2)   -- format,
-                     schema_version, model, descriptor_space, descriptor_dim, next_id (ids never
-                     reused), map_uuid (names the map to this machine's landmark index file)
+                     schema_version, model, descriptor_space, descriptor_dim, next_id (the floor of
+                     claimed ids: what schema 4's one writer had reserved; 1 in a new map),
+                     map_uuid (names the map to this machine's landmark index file)
     {map}_frames     one row per keyframe: id INT64 primary, stamp_sec, stamp_nanosec INT64,
                      image_w, image_h, cell_w, cell_h FLOAT, grid_rows, grid_cols, n INT32,
                      global_descriptor FLOAT_VECTOR(D) (FLAT index, inner product; searched by Milvus),
@@ -38,12 +41,13 @@ to 3.1 MB of landmarks (n * D <= ~1.5 M). Schema 1 maps are migrated at open (MI
 
 Consistency: collections use Session consistency (this client reads its own writes at once; Milvus's
 default, Bounded, hid the meta record just written). Opening reads with Strong consistency, so a map
-written by another process is seen whole. One writer per map; readers in other processes see its new
-keyframes within conf['refresh_s'] (the id list is refreshed at most that often). ``add`` returns once
-Milvus acknowledged the insert; inserts go in batches of at most conf['insert_bytes'] (the server
-refuses gRPC messages over 64 MB). Every pymilvus / gRPC error becomes a MapError naming the map.
-Ids are reserved in blocks of ID_BLOCK in the meta record, so an add costs one insert; a process
-that stops skips the rest of its block (ids are never reused, not always consecutive).
+written by another process is seen whole. Any number of processes may write one map: each takes
+keyframe ids from blocks of ID_BLOCK it claimed and session numbers it claimed (milvus_claims.py),
+so an add costs one insert; a process that stops leaves the rest of its block unused (ids are
+unique and never reused, not consecutive: writers' blocks interleave). Every process sees the
+others' new keyframes within conf['refresh_s'] (the id list is refreshed at most that often). ``add``
+returns once Milvus acknowledged the insert; inserts go in batches of at most conf['insert_bytes']
+(the server refuses gRPC messages over 64 MB). Every pymilvus / gRPC error becomes a MapError naming the map.
 
 
 Landmark index: local FAISS (lln_ros.core.landmark_index), built from the rows at open; once trained
@@ -67,6 +71,7 @@ from ..core import landmark_index
 from ..core.landmarks import LandmarkSet
 from ..errors import LLNError, MapError
 from .base import FORMAT, MapStore
+from .milvus_claims import ID_BLOCK, MilvusClaims  # noqa: F401  (ID_BLOCK: this module's API too)
 from .milvus_collections import SCHEMA_VERSION, MilvusCollections
 from .milvus_geometry import MilvusGeometry
 from .milvus_mixins import MilvusKeypoints, MilvusLandmarks
@@ -90,10 +95,10 @@ from .milvus_sessions import MilvusSessions
 
 log = logging.getLogger(__name__)
 
-ID_BLOCK = 1024  # ids reserved per meta write
 
-
-class MilvusMapStore(MilvusCollections, MilvusLandmarks, MilvusKeypoints, MilvusGeometry, MilvusSessions, MapStore):
+class MilvusMapStore(
+    MilvusCollections, MilvusClaims, MilvusLandmarks, MilvusKeypoints, MilvusGeometry, MilvusSessions, MapStore
+):
     """A map in Milvus collections (see the module docstring); MapStore's API and error behaviour."""
 
     default_conf = {
@@ -131,7 +136,7 @@ class MilvusMapStore(MilvusCollections, MilvusLandmarks, MilvusKeypoints, Milvus
         # ids this process deleted: with Session consistency another read may still list them for a while,
         # and a refresh must not bring them back (into _ids or the landmark index)
         self._deleted: set[int] = set()
-        self._next_id = self._reserved = 1
+        self._claims_init()
         self._refreshed = time.monotonic()
         self._has_keypoints = False
         self._uuid, self._landmarks_dirty = None, False
@@ -255,7 +260,7 @@ class MilvusMapStore(MilvusCollections, MilvusLandmarks, MilvusKeypoints, Milvus
                 self._client.drop_collection(old)
         self._model = self._read_model_record(meta['model']) if 'model' in meta else None
         self._uuid = meta.get('map_uuid')
-        self._next_id = self._reserved = int(meta.get('next_id', 1))
+        self._floor = int(meta.get('next_id', 1))
         self._ids = []
         self._has_keypoints = self._client.has_collection(self._kp_c)
         if self._model is None:
@@ -264,50 +269,7 @@ class MilvusMapStore(MilvusCollections, MilvusLandmarks, MilvusKeypoints, Milvus
             self._create_frames(int(self._model['descriptor_dim']))
         self._load_landmarks()  # reads and checks every row
         self._refreshed = time.monotonic()
-        last = max(self._ids[-1] if self._ids else 0, max(self._quarantined, default=0))
-        if last >= self._next_id:
-            raise MapError(f'map {self.path} is damaged: keyframe {last} but next_id {self._next_id}')
-
-    def _refresh(self) -> None:
-        """See other processes' writes: new ids above ours, a rescan when the count disagrees."""
-        self._refreshed = time.monotonic()
-        try:
-            with self._errors('refresh'):
-                if self._model is None:
-                    meta = self._meta()
-                    if 'model' not in meta:
-                        return
-                    self._model = self._read_model_record(meta['model'])
-                    if not self._client.has_collection(self._fr_c):
-                        return
-                    self._client.load_collection(self._fr_c)
-                before = set(self._ids)
-                last = max(self._ids[-1] if self._ids else -1, max(self._quarantined, default=-1))
-                new = self._client.query(self._fr_c, filter=f'id > {last}', output_fields=['id'], limit=_QUERY_ROWS)
-                self._ids.extend(sorted(int(r['id']) for r in new))
-                count = int(self._client.query(self._fr_c, filter='', output_fields=['count(*)'])[0]['count(*)'])
-                if count != len(self._ids) + len(self._quarantined) or len(new) == _QUERY_ROWS:
-                    self._ids = self._scan_ids()
-                    present = set(self._ids)  # a quarantined keyframe another process deleted is gone
-                    self._quarantined = {k: v for k, v in self._quarantined.items() if k in present}
-                if self._deleted or self._quarantined:
-                    self._ids = [i for i in self._ids if i not in self._deleted and i not in self._quarantined]
-                # another process's keyframes reach this process's landmark index too
-                now = set(self._ids)
-                if self._landmarks is None:
-                    self._load_landmarks()
-                elif now != before:
-                    self._landmarks.remove_keyframes(sorted(before - now))
-                    self._cache.drop(before - now)
-                    self._index_landmarks(sorted(now - before))
-                    self._landmarks_dirty = True
-                    self._retrain_if_needed()
-                if self._ids and self._ids[-1] >= self._next_id:  # another process wrote
-                    self._next_id = self._reserved = self._ids[-1] + 1
-                if not self._has_keypoints:
-                    self._has_keypoints = self._client.has_collection(self._kp_c)
-        except MapError as e:  # a reader keeps answering from the ids it has
-            log.warning('%s', e)
+        self._check_claimed(max(self._ids[-1] if self._ids else 0, max(self._quarantined, default=0)))
 
     # ------------------------------------------------------------------ model
 
@@ -423,19 +385,15 @@ class MilvusMapStore(MilvusCollections, MilvusLandmarks, MilvusKeypoints, Milvus
                 self.use_model(given)
             elif not self._same_space(given):
                 raise self._mismatch(given, 'a landmark set')
-            if ids is None:
-                new_ids = list(range(self._next_id, self._next_id + len(sets)))
+            if ids is None:  # from this store's claimed block (milvus_claims.py): no other writer's
+                new_ids = self._allocate(len(sets))
             else:
                 new_ids = [int(i) for i in ids]
-                taken = sorted(set(new_ids) & set(self._ids))
+                taken = sorted(set(new_ids) & (set(self._ids) | set(self._quarantined)))
                 if taken:
                     raise MapError(f'map {self.path} already has keyframes {taken[:10]}')
+                self._claim_given(new_ids)
             rows = [self._frame_row(kid, lset, sec, nsec) for kid, lset, (sec, nsec) in zip(new_ids, sets, stamps)]
-            next_id = max(self._next_id, max(new_ids) + 1)
-            if next_id > self._reserved:
-                # reserve before writing: a crash between the writes may skip ids, never reuse them
-                self._put_meta({'next_id': next_id + ID_BLOCK})
-                self._reserved = next_id + ID_BLOCK
             batch, size = [], 0
             for row in rows + [None]:
                 nbytes = (
@@ -446,14 +404,12 @@ class MilvusMapStore(MilvusCollections, MilvusLandmarks, MilvusKeypoints, Milvus
                     for r in batch:  # acknowledged: what a later query reads
                         self._cache.put(compact_row(r))
                     self._ids.extend(r['id'] for r in batch)
-                    self._next_id = max(self._next_id, max(r['id'] for r in batch) + 1)
                     self._unsealed += len(batch)
                     batch, size = [], 0
                 if row is not None:
                     batch.append(row)
                     size += nbytes
-            if ids is not None:
-                self._ids.sort()
+            self._ids.sort()  # another writer's keyframes may have higher ids (blocks interleave)
             self._landmarks.add_sets(new_ids, sets)
             self._landmarks_dirty = True
             self._retrain_if_needed()

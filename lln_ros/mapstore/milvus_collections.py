@@ -1,5 +1,5 @@
 """A part of MilvusMapStore (milvus.py), as a mixin: creating the collections and the meta record
-(schema version 4, laid out in milvus.py's docstring), and the map-wide operations delete, clear,
+(schema version 5, laid out in milvus.py's docstring), and the map-wide operations delete, clear,
 info, save, compact and check. State is MilvusMapStore's."""
 
 from __future__ import annotations
@@ -14,7 +14,8 @@ from .milvus_rows import _PIECES, _QUERY_ROWS, _SCALARS, explain, row_problem
 
 log = logging.getLogger(__name__.rsplit('_', 1)[0])  # lln_ros.mapstore.milvus, as the backend logs
 
-SCHEMA_VERSION = 4  # 3: the geometry collection (milvus_geometry.py); 4: sessions, origins (milvus_sessions.py)
+SCHEMA_VERSION = 5  # 3: the geometry collection (milvus_geometry.py); 4: sessions, origins (milvus_sessions.py);
+# 5: claims (milvus_claims.py)
 
 
 class MilvusCollections:

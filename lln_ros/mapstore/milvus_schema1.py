@@ -9,6 +9,7 @@ import numpy as np
 from ..core.landmarks import LandmarkSet
 from ..errors import MapError
 from .base import MapStore
+from .milvus_claims import migrate_4_to_5
 from .milvus_geometry import migrate_2_to_3
 from .milvus_rows import scan_ids
 from .milvus_sessions import migrate_3_to_4
@@ -94,4 +95,4 @@ def _migrate_1_to_2(store: MapStore, meta: dict) -> None:
 
 
 # schema version v -> function(store, meta) that upgrades a v map to v + 1
-MIGRATIONS = {1: _migrate_1_to_2, 2: migrate_2_to_3, 3: migrate_3_to_4}
+MIGRATIONS = {1: _migrate_1_to_2, 2: migrate_2_to_3, 3: migrate_3_to_4, 4: migrate_4_to_5}

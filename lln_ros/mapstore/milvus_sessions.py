@@ -5,10 +5,12 @@ collections of schema 4 (issue 29; what they mean: sessions.py) and the migratio
                      started_ns; unused FLOAT_VECTOR(2)
     {map}_origins    keyframe_id INT64 primary, session_id INT64, seq INT64; unused FLOAT_VECTOR(2)
 
-A session number is the largest one plus 1, taken under the store's lock: one writer per map (as
-for keyframe ids), so two processes starting sessions at once are not safe yet (issue 29, part 3).
-Milvus has no transactions: a keyframe stored by a process killed before its origin row is written
-has no origin (it reads as session 0, unknown), never a wrong one.
+A session number is claimed (milvus_claims.py) above every stored session, so two processes starting
+sessions at once get different numbers, and two writers given one robot id get a session each (the
+label's random suffix tells them apart too). Two processes starting a session of the same robot
+and the same given label at once (two imports of one session) may each make one. Milvus has no
+transactions: a keyframe stored by a process killed before its origin row is written has no
+origin (it reads as session 0, unknown), never a wrong one.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import json
 import time
 
 from ..errors import MapError
+from .milvus_claims import KIND_SESSION
 from .sessions import Origin, Session, check_label, check_robot_id, new_label
 
 
@@ -64,9 +67,17 @@ class MilvusSessions:
             for s in known:
                 if (s.robot, s.label) == (robot, label):
                     return s
-            sid = max((s.id for s in known), default=0) + 1
             data = json.dumps({'robot': robot, 'label': label, 'started_ns': started_ns})
             with self._errors('starting a session'):
+                # above every session stored, also those of before schema 5 (read Strong: all of them)
+                stored = self._client.query(
+                    self._sessions_ready()[0],
+                    filter='id >= 0',
+                    output_fields=['id'],
+                    limit=16384,
+                    consistency_level='Strong',
+                )
+                sid = self._claim(KIND_SESSION, max((int(r['id']) for r in stored), default=0) + 1)
                 self._client.upsert(self._sessions_ready()[0], [{'id': sid, 'data': data, 'unused': [0.0, 0.0]}])
             return Session(sid, robot, label, started_ns)
 
