@@ -73,6 +73,20 @@ def test_exhaustive_query_scores_every_allowed_keyframe(uri, rng):
             store.query(query, prefilter_k=-1)
 
 
+def test_exclude_ids_are_never_answers(uri, rng):
+    """exclude_ids (a session's own newest keyframes, which need not be the highest ids when several
+    processes write one Milvus map) drops exactly those keyframes from every first stage, and the
+    others still fill the k answers."""
+    sets = [make_set(rng) for _ in range(6)]
+    with MapStore.open(uri, model=MODEL) as store:
+        ids = store.add_many(sets, [(i, 0) for i in range(6)])
+        view = make_set(rng, base=sets[1], noise=0.1)
+        for prefilter in ('landmarks', 'holistic', 'exhaustive'):
+            assert store.query(view, k=1, prefilter=prefilter)[0].keyframe_id == ids[1]
+            found = [c.keyframe_id for c in store.query(view, k=4, prefilter=prefilter, exclude_ids=ids[:2])]
+            assert len(found) == 4 and not set(found) & set(ids[:2]), (prefilter, found)
+
+
 def test_insert_query_get(uri, rng):
     with MapStore.open(uri, model=MODEL) as store:
         sets = [make_set(rng) for _ in range(25)]

@@ -289,3 +289,44 @@ def test_schema4_map_migrates_and_takes_two_writers(milvus_map):
         b.close()
     count, rows = frames_rows(milvus_map)
     assert count == len(rows) == 17 and sorted(rows) == sorted(old + ids)
+
+
+@server
+def test_recent_exclusion_names_this_sessions_keyframes_when_blocks_interleave(milvus_map):
+    """Two mapping Localizers write one map through two stores (two writers: A's id block below B's).
+    exclude_recent keeps A's own newest keyframes out of A's answers although B's ids are higher
+    (an exclusion of the highest ids would let A answer its own keyframe of a moment ago), and B's
+    newest keyframes, however recent, are A's answers."""
+    from test_localizer import ask
+
+    from lln_ros.core.localizer import Localizer
+    from lln_ros.mapstore import open_for_matcher as open_map
+    from lln_ros.mapstore.sessions import SessionLog
+
+    rng = np.random.default_rng(31)
+    sets = [make_set(rng) for _ in range(6)]
+    store_a, _ = open_map(milvus_map, 'mapping', MODEL['descriptor_space'], conf={'refresh_s': 0.0})
+    store_b, _ = open_map(milvus_map, 'mapping', MODEL['descriptor_space'], conf={'refresh_s': 0.0})
+    with store_a, store_b:
+        a = Localizer(store_a, {'mode': 'mapping', 'exclude_recent': 3, 'k': 3, 'min_score': 0.0})
+        a.session = SessionLog(store_a, 'robot_a')
+        b = Localizer(store_b, {'mode': 'mapping', 'exclude_recent': 3, 'k': 3, 'min_score': 0.0})
+        b.session = SessionLog(store_b, 'robot_b')
+        for i, s in enumerate(sets[:3]):
+            ask(a, s, i)  # A claims the first block: ids 1, 2, 3
+        for i, s in enumerate(sets[3:]):
+            ask(b, s, 10 + i)  # B the next one: higher ids
+        a_ids, b_ids = (
+            sorted(k for k, o in store_b.origins().items() if o.session_id == x.session.session.id) for x in (a, b)
+        )
+        assert len(a_ids) == len(b_ids) == 3 and max(a_ids) < min(b_ids), (a_ids, b_ids)
+        deadline = time.monotonic() + WAIT_S  # B's keyframes reach A (another client's writes)
+        while not set(b_ids) <= set(store_a.ids()) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        mine = set(a_ids)
+        answer = ask(a, make_set(rng, base=sets[2], noise=0.1), 20)  # a view of A's newest place
+        got = {r['keyframe_id'] for r in answer.rows}
+        assert got and got <= set(b_ids), (mine, answer.rows)
+        answer = ask(a, make_set(rng, base=sets[5], noise=0.1), 21)  # B's newest: a valid answer
+        assert answer.rows[0]['keyframe_id'] == b_ids[-1], answer.rows
+        assert answer.rows[0]['session_id'] == b.session.session.id

@@ -345,15 +345,16 @@ class Localizer:
         odom = self.reg.odometry_at(stamp_ns)
         sequence = self.sequence is not None  # the sequence search needs every reranked candidate
         prefilter_k = candidates_k(c['prefilter_k'], c['sequence_prefilter_k'], sequence)
+        recent = self._own(max(c['exclude_recent'], self.reg.recent(stamp_ns, odom))) if self.mapping else 0
         found = self.store.query(
             lset,
             prefilter=c['prefilter'],
             prefilter_k=prefilter_k,
             k=(prefilter_k or max(len(self.store), 1)) if sequence else c['k'],
             min_score=None if sequence else c['min_score'],
-            exclude_recent=self._own(max(c['exclude_recent'], self.reg.recent(stamp_ns, odom))) if self.mapping else 0,
             method_rerank=c['method'] == 'lln',
             scale=c['offset_scale'],
+            **self._recent(recent),
         )
         inliers, results = {}, {}
         if self.reloc is not None:
@@ -403,6 +404,13 @@ class Localizer:
         """The n newest keyframes are excluded only when this session stored them (issue 29): another
         robot's, or an earlier run's, is a valid answer. stored_now: the query's own keyframe is in."""
         return n if self.session is None else max(0, min(n, self.session.count - stored_now))
+
+    def _recent(self, n: int) -> dict:
+        """The query's exclusion of this session's n newest keyframes: by their ids (in a map that other
+        processes write they need not be the highest), or the n highest ids without a session."""
+        if self.session is None:
+            return {'exclude_recent': n}
+        return {'exclude_ids': self.session.ids[-n:] if n else ()}
 
     @property
     def geometry(self) -> bool:

@@ -79,6 +79,14 @@ def _stamp(stamp) -> tuple[int, int]:
     return sec, nsec
 
 
+def _without(drop: set, keep: int, ids, *arrays) -> tuple:
+    """(*arrays, ids) without the ids in drop, at most keep of each (a first stage's ranking)."""
+    if not drop:
+        return (*arrays, ids)
+    mask = np.array([int(i) not in drop for i in ids], bool)
+    return (*(np.asarray(a)[mask][:keep] for a in arrays), np.asarray(ids, np.int64)[mask][:keep])
+
+
 class MapStore(abc.ABC):
     """The map interface; ``MapStore(uri, ...)`` / ``MapStore.open(uri, ...)`` returns the backend the
     URI names (see backend_for): SQLiteMapStore (default) or MilvusMapStore. Both keep this API:
@@ -171,6 +179,7 @@ class MapStore(abc.ABC):
         method_rerank: bool = True,
         scale: float = 1.0,
         prefilter: str | None = None,
+        exclude_ids=None,
     ) -> list[MapCandidate]:
         """The best k keyframes for a query landmark set, best first: first stage -> fetch -> rerank.
 
@@ -196,19 +205,23 @@ class MapStore(abc.ABC):
             if exclude_recent >= len(self._ids):
                 return []
             cutoff = self._ids[-exclude_recent] if exclude_recent else None
-            first = None
+            drop = {int(i) for i in exclude_ids} if exclude_ids is not None and len(exclude_ids) else set()
+            first, more = None, len(drop)  # each stage asks for `more` extra, then drops them
             if prefilter == 'exhaustive':
                 hol, ids, sets = self._every_keyframe(lset, exclude_recent)
+                hol, ids = _without(drop, len(ids), ids, hol)
             elif prefilter == 'holistic':
-                hol, ids, sets = self._holistic(lset, min(prefilter_k, len(self._ids)), cutoff)
+                hol, ids, sets = self._holistic(lset, min(prefilter_k + more, len(self._ids)), cutoff)
+                hol, ids = _without(drop, prefilter_k, ids, hol)
             else:
                 if self._landmarks is None:
                     raise MapError(f'map {self.path} has no landmark index')
-                ids, first = self._landmarks.shortlist(lset, prefilter_k, below=cutoff, scale=scale)
+                ids, first = self._landmarks.shortlist(lset, prefilter_k + more, below=cutoff, scale=scale)
+                first, ids = _without(drop, prefilter_k, ids, first)
                 sets = {}
                 if len(ids) < prefilter_k:
-                    _, hol_ids, sets = self._holistic(lset, min(prefilter_k, len(self._ids)), cutoff)
-                    ids, first = landmark_index.fill(ids, first, hol_ids, prefilter_k)
+                    _, hol_ids, sets = self._holistic(lset, min(prefilter_k + more, len(self._ids)), cutoff)
+                    ids, first = landmark_index.fill(ids, first, _without(drop, len(hol_ids), hol_ids)[0], prefilter_k)
                 sets.update(self._fetch([i for i in ids if int(i) not in sets]))
                 self._check_fetched(ids, sets)
                 hol = self._cosines(lset, ids, sets)

@@ -88,7 +88,9 @@ def content_digest(lset, stamp) -> str:
 class SessionLog:
     """A mapping matcher's session: started in the store at construction (and by new()), numbering
     the keyframes it stores. count: keyframes stored in this session (the recent-keyframe exclusion
-    applies to them only: another robot's or an earlier session's keyframe is a valid answer)."""
+    applies to them only: another robot's or an earlier session's keyframe is a valid answer);
+    ids: theirs, in the order stored (in a map several processes write they need not be the
+    map's highest ids, so the exclusion names them)."""
 
     def __init__(self, store, robot: str):
         self.store, self.robot = store, check_robot_id(robot)
@@ -98,12 +100,13 @@ class SessionLog:
     def new(self) -> Session:
         with self._lock:
             self.session = self.store.start_session(self.robot)
-            self.count = 0
+            self.count, self.ids = 0, []
             return self.session
 
     def stored(self, keyframe_id: int) -> Origin:
         with self._lock:
             self.count += 1
+            self.ids.append(int(keyframe_id))
             origin = Origin(self.session.id, self.count)
         self.store.set_origin(keyframe_id, origin.session_id, origin.seq)
         return origin
