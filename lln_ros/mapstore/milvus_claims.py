@@ -85,13 +85,15 @@ class MilvusClaims:
             self._claims_client = client
         return _name(self)
 
-    def _claims(self, where: str, fields=('number', 'owner', 'kind')) -> list[dict]:
+    def _claims(self, where: str, fields=('number', 'owner', 'kind'), strong: bool = True) -> list[dict]:
+        """Claims matching `where`; strong=False: the collection's consistency (a refresh: a Strong read
+        waits ~0.4 s, and a claim seen a refresh later only delays a watch the count check backs up)."""
         return self._client.query(
             self._claims_ready(),
             filter=where,
             output_fields=list(fields),
             limit=_QUERY_ROWS,
-            consistency_level='Strong',
+            **({'consistency_level': 'Strong'} if strong else {}),
         )
 
     def _top_claim(self, kinds: tuple[int, ...]) -> int:
@@ -161,7 +163,7 @@ class MilvusClaims:
     def _watch(self, known: set) -> list[str]:
         """Filter clauses for new ids in the open blocks of other writers, below the largest id known
         (above it `id > top` finds them): a writer fills only its newest claimed block, in id order."""
-        rows = self._claims(f'kind == {KIND_BLOCK} and number > {self._claims_seen}')
+        rows = self._claims(f'kind == {KIND_BLOCK} and number > {self._claims_seen}', strong=False)
         for r in rows:
             if r['owner'] != self._owner:
                 self._writers[r['owner']] = max(self._writers.get(r['owner'], -1), int(r['number']))
