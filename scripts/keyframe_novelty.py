@@ -5,7 +5,7 @@
 
 Both parts run the matcher's decision code (core.localizer.Localizer in mapping mode on a real
 SQLite map: shipped defaults, exclude_recent 10 keyframes, no odometry) with each
-keyframe_novelty_max_score of --novelty (0 = every frame is a keyframe, the shipped default), on
+keyframe_novelty_max_score of --novelty (0 = every frame is a keyframe; 25 is the shipped default), on
 landmarks of the shipped Extractor:
 
 1. **still**: the first rtabmap_loop frame with fresh sensor noise per frame (Gaussian, sigma 2

@@ -23,8 +23,9 @@ default_conf = {
     'min_angle_deg': 10.0,  # ... or turned this much
     'max_interval_s': 0.0,  # and at least every this many seconds (0 = off)
     # without odometry: a new keyframe when the best answer's S is below this (nothing alike in the
-    # map); 0 = every frame without odometry is a keyframe
-    'novelty_max_score': 0.0,
+    # map); 0 = every frame without odometry is a keyframe. 25: a still camera stores one keyframe
+    # and rtabmap_loop keeps every revisit (docs/geometry.md 'Novelty gating'); 15 lost revisits
+    'novelty_max_score': 25.0,
     'min_age_s': 2.0,  # a keyframe may answer once it is this much older than the query
 }
 

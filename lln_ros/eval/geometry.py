@@ -70,7 +70,9 @@ def replay(seq, extractor, conf: dict | None = None, progress: bool = False) -> 
         store, _ = open_for_matcher(str(Path(tmp) / 'map.db'), 'mapping', extractor.descriptor_space)
         with store:
             gated = bool(c['gate'])
-            mode = {'mode': 'localization'} if gated else {'mode': 'mapping', 'exclude_recent': exclude}
+            # the ungated protocol stores every query (novelty gating off), as the figures say
+            every = {'mode': 'mapping', 'exclude_recent': exclude, 'registration': {'keyframe_novelty_max_score': 0.0}}
+            mode = {'mode': 'localization'} if gated else every
             loc = Localizer(store, {**mode, 'k': int(c['k'])})
             gate = KeyframeGate({'min_distance_m': c['gate_m'], 'min_angle_deg': c['gate_deg']})
             held = HeldKeyframes(c['min_gap_s'])
