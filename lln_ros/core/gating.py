@@ -40,6 +40,11 @@ class KeyframeGate:
                 raise ValueError(f'{key} must be at least 0, got {c[key]}')
         self.last_T, self.last_stamp = None, None
 
+    @property
+    def judges_novelty(self) -> bool:
+        """Without odometry, is a frame judged by its best S (False: every frame is novel)?"""
+        return self.conf['novelty_max_score'] > 0
+
     def decide(self, stamp_s: float, T_odom: np.ndarray | None = None, best_score: float | None = None):
         """(keyframe?, why) for a frame at stamp_s with its odometry pose (4, 4) or None and, without
         odometry, the best S its query got (None: no answer, the map has nothing alike)."""
@@ -55,7 +60,7 @@ class KeyframeGate:
             if rotation_deg(D[:3, :3]) >= c['min_angle_deg']:
                 return self._take(stamp_s, T_odom, 'angle')
             return False, 'not moved enough'
-        if best_score is None or best_score < c['novelty_max_score'] or c['novelty_max_score'] <= 0:
+        if not self.judges_novelty or best_score is None or best_score < c['novelty_max_score']:
             return self._take(stamp_s, T_odom, 'novel')
         return False, 'seen before'
 
