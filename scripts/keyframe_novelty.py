@@ -2,13 +2,14 @@
 
     .venv/bin/python scripts/keyframe_novelty.py [--data ../shared/data] [--novelty 0,25,30]
                                                  [--still-seconds 120] [--hz 30] [--accept 17.11]
+                                                 [--still-frame IMAGE]
 
 Both parts run the matcher's decision code (core.localizer.Localizer in mapping mode on a real
 SQLite map: shipped defaults, exclude_recent 10 keyframes, no odometry) with each
-keyframe_novelty_max_score of --novelty (0 = every frame is a keyframe, the shipped default), on
+keyframe_novelty_max_score of --novelty (0 = every frame is a keyframe; 25 is the shipped default), on
 landmarks of the shipped Extractor:
 
-1. **still**: the first rtabmap_loop frame with fresh sensor noise per frame (Gaussian, sigma 2
+1. **still**: the first rtabmap_loop frame (or --still-frame) with fresh sensor noise per frame (Gaussian, sigma 2
    grey levels) for --still-seconds at --hz. Every answer is a loop closure with itself: printed
    are the keyframes stored, the frames answered at all (min_score 0) and those answered with
    S >= --accept (docs/slam_integration.md's threshold for precision 0.95).
@@ -95,6 +96,7 @@ def main() -> int:
     p.add_argument('--still-seconds', type=float, default=120.0)
     p.add_argument('--hz', type=float, default=30.0)
     p.add_argument('--accept', type=float, default=17.11, help='S an answer needs to count as an accepted closure')
+    p.add_argument('--still-frame', help='the image the still camera sees (default: the first rtabmap_loop frame)')
     args = p.parse_args()
     data = Path(args.data) / 'rtabmap_loop'
     if not data.is_dir():
@@ -108,10 +110,11 @@ def main() -> int:
     extractor = Extractor({'num_threads': 2})
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory() as tmp:
-        frame = load_image(list_images(data)[0]).astype(np.float32)
+        still_frame = Path(args.still_frame) if args.still_frame else list_images(data)[0]
+        frame = load_image(still_frame).astype(np.float32)
         n, still_out = still(extractor, frame, novelties, args.still_seconds, args.hz, args.accept, Path(tmp))
         frames, positives, loop_out = loop(extractor, data, novelties, Path(tmp))
-    print(f'still camera: {n} frames ({args.still_seconds:g} s at {args.hz:g} Hz, one rtabmap_loop frame + noise)')
+    print(f'still camera: {n} frames ({args.still_seconds:g} s at {args.hz:g} Hz, {still_frame.name} + noise)')
     print(f'loop: rtabmap_loop, {frames} frames, {positives} revisits; exclude_recent 10, no odometry\n')
     print(
         '| keyframe_novelty_max_score | still: keyframes | still: answered | still: S >= accept '

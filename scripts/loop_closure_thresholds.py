@@ -2,7 +2,7 @@
 offline on a loop sequence (default ../shared/data/rtabmap_loop), the best candidate's score of every
 query against the ground-truth matrix. Prints the table docs/slam_integration.md quotes.
 
-    .venv/bin/python scripts/loop_closure_thresholds.py [--data DIR] [--exclude-recent 10] [--prefilter-k 30]
+    .venv/bin/python scripts/loop_closure_thresholds.py [--data DIR] [--exclude-recent 10] [--prefilter-k 100]
 
 Same code path as the matcher node (MapStore.query, then add, with its defaults); every query is
 answered, so precision counts wrong answers of frames that revisit nothing (rtabmap_loop frames 1-40).
@@ -25,7 +25,9 @@ def main() -> int:
     p.add_argument('--data', default=str(REPO.parent / 'shared' / 'data' / 'rtabmap_loop'))
     p.add_argument('--gt', default='samples_GT.bmp', help='ground truth file inside --data')
     p.add_argument('--exclude-recent', type=int, default=10)
-    p.add_argument('--prefilter-k', type=int, default=30)
+    from lln_ros.core.localizer import default_conf as matcher_defaults
+
+    p.add_argument('--prefilter-k', type=int, default=matcher_defaults['prefilter_k'], help="default: the matcher's")
     args = p.parse_args()
     from lln_ros.core.extractor import Extractor
     from lln_ros.core.loop_closure import threshold_table

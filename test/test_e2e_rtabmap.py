@@ -40,12 +40,13 @@ def rtabmap_run(colcon_install, tmp_path_factory):
     return play_rtabmap(colcon_install, tmp_path_factory.mktemp('e2e'), ['-p', 'k:=5'])
 
 
-def play_rtabmap(colcon_install, tmp, matcher_params: list) -> dict:
-    """The rtabmap_loop bag through the installed nodes, the matcher in mapping mode with
-    exclude_recent GAP - 1 plus `matcher_params`; every `candidates` answer (stamp, table)."""
-    root = shared_data('rtabmap_loop')
-    frames = bag.list_images(root, '*.jpg')
-    assert len(frames) == 84
+def play_rtabmap(colcon_install, tmp, matcher_params: list, frames: list | None = None) -> dict:
+    """The rtabmap_loop bag (or a bag of `frames`, image paths) through the installed nodes, the
+    matcher in mapping mode with exclude_recent GAP - 1 plus `matcher_params`; every `candidates`
+    answer (stamp, table)."""
+    if frames is None:
+        frames = bag.list_images(shared_data('rtabmap_loop'), '*.jpg')
+        assert len(frames) == 84
     stamps = bag.write_image_bag(frames, tmp / 'rtabmap_bag', topic='/camera/image_raw', rate=RATE_HZ)
     env = installed_env(colcon_install, ros_env(tmp))
     lib = colcon_install / 'lln_ros' / 'lib' / 'lln_ros'
@@ -141,12 +142,38 @@ def play_rtabmap(colcon_install, tmp, matcher_params: list) -> dict:
     return {'stamps': stamps, 'answers': got, 'played': played, 'info': info, 'logs': logs}
 
 
-def test_every_frame_answered_and_stored(rtabmap_run):
+def test_every_frame_answered_and_the_novel_ones_stored(rtabmap_run):
+    """Every frame is answered; at the shipped keyframe_novelty_max_score (no odometry) the frames
+    too alike to what is stored are not stored, and each of the 84 is one or the other."""
     run = rtabmap_run
     assert 'published 84 messages' in run['played'], run['played']
     assert len(run['answers']) == 84, run['logs']
     assert [t for t, _ in run['answers']] == run['stamps'], 'answers carry the query header, in order'
-    assert run['info']['keyframes'] == 84 and run['info']['counters'].get('bad_query', 0) == 0
+    counters = run['info']['counters']
+    assert counters.get('bad_query', 0) == 0
+    assert run['info']['keyframes'] + counters.get('queries_not_stored', 0) == 84, counters
+    assert 40 <= run['info']['keyframes'] < 84, run['info']  # the first lap is new; some of the second is not
+
+
+def test_a_still_camera_closes_no_loop_with_itself(colcon_install, tmp_path):
+    """Issue 27: a camera standing still (one rtabmap_loop frame, fresh sensor noise per frame)
+    through the real nodes at the shipped defaults, no odometry: one keyframe is stored and no answer
+    names a keyframe, so nothing downstream sees a loop closure. Storing every frame
+    (keyframe_novelty_max_score 0) answers with the camera's own frames once exclude_recent are stored."""
+    first = bag.list_images(shared_data('rtabmap_loop'), '*.jpg')[0]
+    image, rng = cv2.imread(str(first)), np.random.default_rng(0)
+    still = tmp_path / 'still'
+    still.mkdir()
+    frames = []
+    for i in range(40):  # 4 times exclude_recent: with every frame stored, 30 would answer with a twin
+        noisy = np.clip(image + rng.normal(0, 2.0, image.shape), 0, 255).astype(np.uint8)
+        frames.append(still / f'{i:03d}.png')
+        cv2.imwrite(str(frames[-1]), noisy)
+    run = play_rtabmap(colcon_install, tmp_path, [], frames)
+    assert len(run['answers']) == 40, run['logs']
+    closures = [t for t, cands in run['answers'] if len(cands)]
+    assert closures == [], f'{len(closures)} of 40 frames answered with a keyframe: {run["info"]["counters"]}'
+    assert run['info']['keyframes'] == 1 and run['info']['counters']['queries_not_stored'] == 39
 
 
 def test_loop_detection_against_ground_truth(rtabmap_run):

@@ -380,3 +380,21 @@ def test_lln_eval_geometry_with_the_keyframe_gate(tmp_path):
     g = json.loads((tmp_path / 'results.json').read_text())['geometry']
     assert 0 < g['keyframes'] < g['frames'] and 'KeyframeGate' in g['keyframes_from']
     assert g['rot_err_deg_p50'] is not None and g['rot_err_deg_p50'] < 5
+
+
+def test_lln_eval_geometry_with_novelty_gating(tmp_path):
+    """--geometry-novelty: mapping mode with no odometry stores only the queries whose best S is
+    below S, so fewer keyframes than frames, and the revisits still get transforms."""
+    root = shared_data('tum_fr1rpy')
+    run = subprocess.run(
+        [sys.executable, '-m', 'lln_ros.cli.eval', '--geometry', '--geometry-step', '10', '--threads', '1']
+        + ['--geometry-novelty', '25', '--dataset', f'poses:{root}', '--out', str(tmp_path), '--quiet'],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert run.returncode == 0, run.stderr
+    g = json.loads((tmp_path / 'results.json').read_text())['geometry']
+    assert 0 < g['keyframes'] < g['frames'] and 'novelty' in g['keyframes_from']
+    assert g['answered'] > 0 and g['with_depth']['report']['accepted'] > 0, g['with_depth']['report']

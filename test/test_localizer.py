@@ -134,11 +134,12 @@ def test_recent_exclusion_applies_to_this_session_only(map_path, rng):
     sets = [make_set(rng) for _ in range(4)]
     store, _ = open_map(map_path, 'mapping', SPACE)
     with store:
-        other = Localizer(store, {'mode': 'mapping', 'exclude_recent': 10})
+        every = {'keyframe_novelty_max_score': 0.0}  # every query stored: robot_a's own copy too
+        other = Localizer(store, {'mode': 'mapping', 'exclude_recent': 10, 'registration': every})
         other.session = SessionLog(store, 'robot_b')
         for i, s in enumerate(sets[:3]):
             ask(other, s, i)  # robot_b maps three places
-        mine = Localizer(store, {'mode': 'mapping', 'exclude_recent': 10, 'k': 3})
+        mine = Localizer(store, {'mode': 'mapping', 'exclude_recent': 10, 'k': 3, 'registration': every})
         mine.session = SessionLog(store, 'robot_a')
         answer = ask(mine, sets[1], 100)  # robot_b's keyframe 2 is among the newest 10, yet an answer
         assert answer.rows[0]['keyframe_id'] == 2 and answer.rows[0]['session_id'] == other.session.session.id

@@ -419,7 +419,9 @@ def test_matcher_over_dds_in_mapping_mode(milvus_map, colcon_install, extractor,
     }
     rig = Rig(colcon_install, tmp_path)
     try:
-        proc = start_matcher(rig, milvus_map, places, '-p', 'mode:=mapping', '-p', 'exclude_recent:=2')
+        # novelty off: every answered query is stored, revisits included (the point of this test)
+        every = ('-p', 'keyframe_novelty_max_score:=0.0')
+        proc = start_matcher(rig, milvus_map, places, '-p', 'mode:=mapping', '-p', 'exclude_recent:=2', *every)
         q_pub = rig.probe.publisher(PointCloud2, 'lln/query')
         cands = rig.probe.collect(PointCloud2, 'lln/candidates', msgs.cloud_to_candidates)
         rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)

@@ -481,11 +481,14 @@ def test_matcher_min_score_new_place(rig, places, tmp_path):
     assert rig.info()['keyframes'] == 4
 
 
-def test_matcher_mapping_mode_exclude_recent(rig, places, tmp_path):
-    """mode=mapping: every query is answered, then stored; the newest exclude_recent keyframes are
-    never answers, an older revisit is found."""
+@pytest.mark.parametrize('novelty', [None, 0.0], ids=['default_novelty', 'novelty_off'])
+def test_matcher_mapping_mode_exclude_recent(rig, places, tmp_path, novelty):
+    """mode=mapping: every query is answered; the newest exclude_recent keyframes are never answers,
+    an older revisit is found. With novelty off every query is stored; at the shipped
+    keyframe_novelty_max_score the revisit (S above it: the place is in the map) is not."""
     map_path = tmp_path / 'map.db'
-    proc = start_matcher(rig, map_path, places, '-p', 'mode:=mapping', '-p', 'exclude_recent:=2')
+    novelty_args = () if novelty is None else ('-p', f'keyframe_novelty_max_score:={novelty}')
+    proc = start_matcher(rig, map_path, places, '-p', 'mode:=mapping', '-p', 'exclude_recent:=2', *novelty_args)
     q_pub = rig.probe.publisher(PointCloud2, 'lln/query')
     cands = rig.probe.collect(PointCloud2, 'lln/candidates', msgs.cloud_to_candidates)
     rig.until(lambda: q_pub.get_subscription_count() > 0, 'subscription', proc)
@@ -501,8 +504,10 @@ def test_matcher_mapping_mode_exclude_recent(rig, places, tmp_path):
     revisit = cands[5]
     assert (int(revisit['stamp_sec'][0]), int(revisit['stamp_nanosec'][0])) == stamp_of(header(1))
     info = rig.info()
-    assert info['keyframes'] == len(sequence) and info['mode'] == 'mapping'
+    revisits_kept_out = 0 if novelty == 0.0 else 1
+    assert info['keyframes'] == len(sequence) - revisits_kept_out and info['mode'] == 'mapping'
     assert info['counters']['queries_answered'] == len(sequence)
+    assert info['counters'].get('queries_not_stored', 0) == revisits_kept_out
 
 
 def bad_clouds(places) -> dict:
@@ -732,7 +737,8 @@ def test_matcher_kill9_in_mapping_mode_loses_no_answered_keyframe(rig, places, t
     """kill -9 during a stream of queries in mapping mode: every keyframe whose answer was received
     is in the map after the crash, the map is healthy, and a restarted node serves all of it."""
     map_path = tmp_path / 'map.db'
-    args = ('-p', 'mode:=mapping', '-p', 'exclude_recent:=3', '-p', 'k:=3')
+    # novelty off: every answered query is a keyframe, so every answer names one that must survive
+    args = ('-p', 'mode:=mapping', '-p', 'exclude_recent:=3', '-p', 'k:=3', '-p', 'keyframe_novelty_max_score:=0.0')
     proc = start_matcher(rig, map_path, places, *args)
     q_pub = rig.probe.publisher(PointCloud2, 'lln/query')
     answered = rig.probe.collect(PointCloud2, 'lln/candidates', lambda m: stamp_of(m.header))

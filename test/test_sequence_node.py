@@ -97,6 +97,8 @@ def test_matcher_sequence_in_mapping_mode(rig, places, tmp_path):
         'k:=2',
         '-p',
         'prefilter_k:=0',
+        '-p',
+        'keyframe_novelty_max_score:=0.0',  # the route and the revisit are stored as driven
     )
     q_pub = rig.probe.publisher(PointCloud2, 'lln/query')
     cands = rig.probe.collect(PointCloud2, 'lln/candidates', msgs.cloud_to_candidates)

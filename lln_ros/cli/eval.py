@@ -191,6 +191,13 @@ def build_parser() -> argparse.ArgumentParser:
         help='--geometry: keyframes by an odometry gate (a new one after M metres or DEG degrees), held until '
         '2 s old, queries in localization mode (default: mapping mode, every query a keyframe)',
     )
+    p.add_argument(
+        '--geometry-novelty',
+        type=float,
+        metavar='S',
+        help='--geometry: mapping mode without odometry, a query stored only when its best S is below S '
+        '(keyframe_novelty_max_score), answers at least 2 s older (default: every query a keyframe)',
+    )
     p.add_argument('--check', action='store_true', help='read and check every dataset and head, then stop')
     p.add_argument('--quiet', action='store_true', help='no progress output')
     return p
@@ -322,6 +329,10 @@ def run_geometry(args, argv, log) -> dict:
         if min(args.geometry_gate) < 0:
             raise UsageError(f'--geometry-gate M DEG must not be negative, got {args.geometry_gate}')
         conf.update(gate=True, gate_m=args.geometry_gate[0], gate_deg=args.geometry_gate[1])
+    if args.geometry_novelty is not None:
+        if not args.geometry_novelty > 0 or args.geometry_gate:
+            raise UsageError(f'--geometry-novelty S needs S > 0 and no --geometry-gate, got {args.geometry_novelty}')
+        conf.update(novelty=args.geometry_novelty)
     results = {s.name: evaluate_geometry(s, extractor, conf, progress=not args.quiet) for s in seqs}
     command = f'{PROG} ' + ' '.join(shlex.quote(a) for a in argv)
     obj = next(iter(results.values())) if len(results) == 1 else results

@@ -23,8 +23,9 @@ default_conf = {
     'min_angle_deg': 10.0,  # ... or turned this much
     'max_interval_s': 0.0,  # and at least every this many seconds (0 = off)
     # without odometry: a new keyframe when the best answer's S is below this (nothing alike in the
-    # map); 0 = every frame without odometry is a keyframe
-    'novelty_max_score': 0.0,
+    # map); 0 = every frame without odometry is a keyframe. 25: a still camera stores one keyframe
+    # and rtabmap_loop keeps every revisit (docs/geometry.md 'Novelty gating'); 15 lost revisits
+    'novelty_max_score': 25.0,
     'min_age_s': 2.0,  # a keyframe may answer once it is this much older than the query
 }
 
@@ -38,6 +39,11 @@ class KeyframeGate:
             if not float(c[key]) >= 0:
                 raise ValueError(f'{key} must be at least 0, got {c[key]}')
         self.last_T, self.last_stamp = None, None
+
+    @property
+    def judges_novelty(self) -> bool:
+        """Without odometry, is a frame judged by its best S (False: every frame is novel)?"""
+        return self.conf['novelty_max_score'] > 0
 
     def decide(self, stamp_s: float, T_odom: np.ndarray | None = None, best_score: float | None = None):
         """(keyframe?, why) for a frame at stamp_s with its odometry pose (4, 4) or None and, without
@@ -54,7 +60,7 @@ class KeyframeGate:
             if rotation_deg(D[:3, :3]) >= c['min_angle_deg']:
                 return self._take(stamp_s, T_odom, 'angle')
             return False, 'not moved enough'
-        if best_score is None or best_score < c['novelty_max_score'] or c['novelty_max_score'] <= 0:
+        if not self.judges_novelty or best_score is None or best_score < c['novelty_max_score']:
             return self._take(stamp_s, T_odom, 'novel')
         return False, 'seen before'
 

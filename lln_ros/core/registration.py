@@ -234,12 +234,7 @@ class Registration:
         if odom is not None and self.last_stored is not None and odom.frame_id != self.last_stored.frame_id:
             self.gate_ = self._make_gate()
         T = odom.T @ self.base_to_camera if odom is not None else None
-        if (
-            T is None
-            and lset is not None
-            and self.last_landmarks is not None
-            and self.conf['keyframe_novelty_max_score'] > 0
-        ):
+        if T is None and lset is not None and self.last_landmarks is not None and self.gate_.judges_novelty:
             from .similarity import match_pair
 
             last = float(match_pair(lset, self.last_landmarks, scale).scores[0])

@@ -46,6 +46,10 @@ eval_conf = {
     'gate': False,
     'gate_m': 0.05,
     'gate_deg': 10.0,
+    # novelty > 0 (no odometry, the gate a robot without odometry gets): mapping mode stores a query
+    # only when its best S is below this (registration's keyframe_novelty_max_score), and answers
+    # must be min_gap_s older in seconds (exclude_recent_s), since frames no longer count keyframes
+    'novelty': 0.0,
 }
 
 
@@ -69,8 +73,13 @@ def replay(seq, extractor, conf: dict | None = None, progress: bool = False) -> 
     with tempfile.TemporaryDirectory(prefix='lln_geometry_') as tmp:
         store, _ = open_for_matcher(str(Path(tmp) / 'map.db'), 'mapping', extractor.descriptor_space)
         with store:
-            gated = bool(c['gate'])
-            mode = {'mode': 'localization'} if gated else {'mode': 'mapping', 'exclude_recent': exclude}
+            gated, novelty = bool(c['gate']), float(c['novelty'])
+            # the ungated protocol stores every query (novelty gating off), as the figures say
+            reg, newest = {'keyframe_novelty_max_score': 0.0}, exclude
+            if novelty > 0:
+                reg, newest = {'keyframe_novelty_max_score': novelty, 'exclude_recent_s': float(c['min_gap_s'])}, 0
+            every = {'mode': 'mapping', 'exclude_recent': newest, 'registration': reg}
+            mode = {'mode': 'localization'} if gated else every
             loc = Localizer(store, {**mode, 'k': int(c['k'])})
             gate = KeyframeGate({'min_distance_m': c['gate_m'], 'min_angle_deg': c['gate_deg']})
             held = HeldKeyframes(c['min_gap_s'])
@@ -91,11 +100,11 @@ def replay(seq, extractor, conf: dict | None = None, progress: bool = False) -> 
                 for j_lset, j_kps, j in held.ready(stamps[i]):  # old enough to answer now
                     kid = loc.keyframe(j_lset, int(round(stamps[j] * 1e9)))
                     keypoints[kid], frame_of[kid] = j_kps, j
-                t2 = time.perf_counter()
+                t2, stored_before = time.perf_counter(), len(store)
                 answer = loc.query(lset, int(round(stamps[i] * 1e9)))
                 ms['extract'].append((t1 - t0) * 1e3)
                 ms['query'].append((time.perf_counter() - t2) * 1e3)
-                if not gated:
+                if not gated and len(store) > stored_before:
                     kid = store.ids()[-1]  # mapping mode stored this query as the newest keyframe
                     keypoints[kid], frame_of[kid] = kq, i
                 elif gate.decide(stamps[i], poses[i])[0]:
@@ -175,6 +184,9 @@ def evaluate_geometry(seq, extractor, conf: dict | None = None, progress: bool =
         'keyframes_from': (
             f'KeyframeGate on the odometry ({c["gate_m"]:g} m / {c["gate_deg"]:g} deg), held {c["min_gap_s"]:g} s'
             if c['gate']
+            else f'mapping mode, no odometry: a query stored when its best S < {c["novelty"]:g} (novelty), '
+            f'answers at least {c["min_gap_s"]:g} s older'
+            if c['novelty'] > 0
             else f'mapping mode: every query, the newest {timing["exclude_recent_frames"]} excluded'
         ),
         'timing_ms_median': timing,
