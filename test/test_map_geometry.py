@@ -89,7 +89,9 @@ def test_milvus_schema_2_map_is_migrated(tmp_path):
         store._client.drop_collection(name)  # back to schema 2
         store._put_meta({'schema_version': '2'})
     with MapStore.open(uri) as store:
-        assert store.info()['schema_version'] == 4 and len(store) == 3
+        from lln_ros.mapstore.milvus_collections import SCHEMA_VERSION
+
+        assert store.info()['schema_version'] == SCHEMA_VERSION and len(store) == 3  # migrated all the way
         assert store._client.has_collection(name)
         assert store.query(sets[2], k=1)[0].keyframe_id == ids[2]
         assert store.geometry(ids[0]) is None

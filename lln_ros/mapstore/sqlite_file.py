@@ -313,7 +313,21 @@ class SQLiteFile:
         return {k: v for k, v in self._conn.execute('SELECT key, value FROM meta')}
 
     def _load(self) -> None:
-        """(Re)read the model record and rebuild the FAISS index from the keyframes table."""
+        """(Re)read the model record and rebuild the FAISS index from the keyframes table, in one read
+        transaction: every statement sees one snapshot of the file, so keyframes another process
+        commits meanwhile cannot make the keyframes and landmarks tables disagree (a reader reloading
+        beside a writer process raised 'landmark index disagrees' before). WAL: it blocks no writer."""
+        c = self._conn
+        own = not c.in_transaction
+        if own:
+            c.execute('BEGIN')  # deferred: the snapshot starts at the first read
+        try:
+            self._load_snapshot()
+        finally:
+            if own and c.in_transaction:
+                c.execute('COMMIT')
+
+    def _load_snapshot(self) -> None:
         c = self._conn
         self._data_version = c.execute('PRAGMA data_version').fetchone()[0]
         meta = self._meta()
