@@ -463,6 +463,54 @@ def test_acknowledged_keyframes_survive_kill_9(map_path, tmp_path):
         assert store.get(acked[-1]).descriptors.shape == (50, 320)
 
 
+PACED_WRITER = """
+import sys, time
+import numpy as np
+sys.path.insert(0, sys.argv[2])
+from test_mapstore import make_set
+from lln_ros.mapstore import MapStore
+store = MapStore(sys.argv[1], create=False)
+rng = np.random.default_rng(8)
+for i in range(int(sys.argv[3])):
+    store.add(make_set(rng), stamp=(i, 0))
+    time.sleep(0.01)
+store.close()
+"""
+
+
+def test_reader_process_queries_beside_a_writer_process(map_path, tmp_path, rng):
+    """A matcher reading a map that another process writes (issue 29's shared SQLite map): each query
+    reloads what the writer committed meanwhile, and that reload must read one snapshot; before it
+    did, a keyframe committed between two of its reads raised 'landmark index disagrees' or 'in-memory
+    index disagrees' (found by bench/bench_milvus_writers.py; this test failed 3 of 3 runs then)."""
+    count = 120
+    with MapStore(map_path, model=MODEL):
+        pass  # the model is recorded before either process opens the map
+    script = tmp_path / 'writer.py'
+    script.write_text(PACED_WRITER)
+    here = os.path.dirname(os.path.abspath(__file__))
+    proc = subprocess.Popen(
+        [sys.executable, str(script), str(map_path), here, str(count)], stderr=subprocess.PIPE, text=True
+    )
+    probe = make_set(rng)
+    sizes = []  # the map's size as each query saw it
+    try:
+        with MapStore(map_path, create=False) as reader:
+            deadline = time.monotonic() + 120
+            while proc.poll() is None and time.monotonic() < deadline:
+                reader.query(probe, k=3)  # raises MapError on a torn reload
+                sizes.append(len(reader))
+            proc.wait(timeout=60)
+            assert proc.returncode == 0, proc.stderr.read()
+            assert len(reader) == count and reader.check() == []
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stderr.close()
+    assert len(set(sizes)) >= 10, sizes  # the writer committed between most of the queries
+
+
 # ---------------------------------------------------------------- lln-map: the exit contract
 
 
