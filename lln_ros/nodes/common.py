@@ -100,12 +100,17 @@ def run_node(make_node, name: str, args=None) -> int:
     weights) logs one fatal line naming the problem and exits 1, without a traceback.
     At the end the node's own state is released first (node.close(): the map closed, the worker
     joined); only then is the DDS teardown run, under a watchdog (lln_ros.ros.dds.exit_if_teardown_hangs)."""
+    import faulthandler
+
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
     from ..errors import LLNError
     from ..ros.dds import apply_large_data_profile, exit_if_teardown_hangs
 
+    # a crash in native code (DDS, FAISS, ONNX Runtime) prints every thread's Python stack to stderr,
+    # so a node that exits -11 says where (CI saw the matcher exit -11 at SIGINT, with no trace)
+    faulthandler.enable()
     dds_level, dds_note = apply_large_data_profile()  # before rclpy.init: Fast DDS reads it then
     rclpy.init(args=args)
     node, executor, status = None, None, 0
