@@ -6,7 +6,7 @@ DATA ?= ../shared/data
 export LLN_DATA ?= $(abspath $(DATA))
 NORDLAND := aligned:$(DATA)/nordland_trimmed/summer,$(DATA)/nordland_trimmed/winter,1
 
-.PHONY: setup test main results train loo bench bench-map bench-scale colcon clean
+.PHONY: setup test main results train loo bench bench-map bench-scale bench-writers colcon clean
 
 setup:
 	bash scripts/setup.sh
@@ -50,6 +50,11 @@ bench-map: setup
 # Nordland test split in maps padded with real distractor keyframes (docs/benchmarks.md, Accuracy at scale)
 bench-scale: setup
 	nice -n 10 $(PY) bench/bench_accuracy_at_scale.py --data $(DATA) $(ARGS)
+
+# many writer processes on one map: a real Milvus server beside SQLite, then a 10-min soak with a
+# SIGKILL and a server restart (docs/map_store.md, Many writers; ~20 min; loopback-only namespace)
+bench-writers: setup
+	$(PY) test/milvus_loopback.py -- $(PY) bench/bench_milvus_writers.py $(ARGS)
 
 colcon: setup
 	$(VENV)/bin/colcon build --base-paths . --build-base build --install-base install
