@@ -156,6 +156,34 @@ def test_recent_exclusion_applies_to_this_session_only(map_path, rng):
         invariants(mine.counters.snapshot())
 
 
+def test_sequence_search_follows_each_session_in_an_interleaved_map(map_path, rng):
+    """Issue 29: two robots mapping at once interleave their keyframe ids; the sequence search
+    orders the map by (session, seq), so each robot's keyframes are one route, and a third robot
+    driving robot_a's route gets robot_a's keyframes in step, answered from the sequence."""
+    from lln_ros.mapstore.sessions import SessionLog
+
+    route_a, route_b = [make_set(rng) for _ in range(8)], [make_set(rng) for _ in range(8)]
+    store, _ = open_map(map_path, 'mapping', SPACE)
+    with store:
+        every = {'keyframe_novelty_max_score': 0.0}
+        conf = {'mode': 'mapping', 'exclude_recent': 2, 'sequence_length': 4, 'registration': every}
+        a, b = Localizer(store, conf), Localizer(store, conf)
+        a.session, b.session = SessionLog(store, 'robot_a'), SessionLog(store, 'robot_b')
+        for i in range(8):  # ids 1, 3, 5 .. are robot_a's; 2, 4, 6 .. robot_b's
+            ask(a, route_a[i], 2 * i)
+            ask(b, route_b[i], 2 * i + 1)
+        assert a.session.ids == list(range(1, 16, 2))
+        third = Localizer(store, {'sequence_length': 4, 'k': 3})
+        for i in range(8):
+            answer = ask(third, route_a[i], 100 + i)
+            assert answer.rows[0]['keyframe_id'] == a.session.ids[i], (i, answer.rows)
+            assert answer.rows[0]['sequence_score'] > 0
+        sessions = sorted([a.session.session.id, b.session.session.id])
+        first = a.session.ids if sessions[0] == a.session.session.id else b.session.ids
+        assert third.sequence.ids[:8].tolist() == first  # a whole session, then the other
+        invariants(third.counters.snapshot())
+
+
 @pytest.mark.parametrize(
     'text, problem',
     [

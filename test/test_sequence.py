@@ -64,6 +64,47 @@ def test_online_keyframe_ids_give_the_offline_figures():
     assert len(online.matcher) == 10  # the ring never grows past L
 
 
+def test_interleaved_sessions_give_each_session_its_own_route():
+    """Two robots writing one map interleave their ids (issue 29): with their origins, each session's
+    keyframes are one route, and the figures are those of that session's map alone, whatever the
+    interleaving, and also when the other robot's keyframes join while the window is full."""
+    from lln_ros.mapstore.sessions import Origin
+
+    ranked, scores, _ = route_scores(seed=1)
+    offline, offline_scores = rank_sequences(ranked, scores, 80, {'length': 10}, k=5)
+    rng = np.random.default_rng(3)
+    owner = rng.permutation(np.r_[np.zeros(80, int), np.ones(60, int)])  # robot A: 80 keyframes, B: 60
+    ids = np.arange(1, 141)
+    a_ids, b_ids = ids[owner == 0], ids[owner == 1]
+    origins = {int(k): Origin(2, i + 1) for i, k in enumerate(a_ids)}
+    origins |= {int(k): Origin(1, i + 1) for i, k in enumerate(b_ids)}  # B's session comes first
+    online = KeyframeSequence({'length': 10})
+    online.set_map(a_ids, {k: o for k, o in origins.items() if k in set(a_ids.tolist())})
+    for q in range(len(ranked)):
+        if q == 30:  # B's keyframes join inside the route, before A's: the window is re-mapped by id
+            online.set_map(ids, {k: o for k, o in origins.items() if k in set(b_ids.tolist())})
+            assert online.ids[:60].tolist() == b_ids.tolist() and len(online.matcher) == 10
+        reason, out = online.update(q * S // 20, dict(zip(a_ids[ranked[q]].tolist(), scores[q].tolist())), k=5)
+        assert reason is None
+        assert [kf for kf, _ in out] == a_ids[offline[q]].tolist()
+        np.testing.assert_allclose([s for _, s in out], offline_scores[q], rtol=1e-6)
+    # in id order (no origins) the lines cross the interleaving: the answers differ
+    plain = KeyframeSequence({'length': 10})
+    plain.set_map(ids)
+    differ = 0
+    for q in range(len(ranked)):
+        _, out = plain.update(q * S // 20, dict(zip(a_ids[ranked[q]].tolist(), scores[q].tolist())), k=5)
+        differ += [kf for kf, _ in out][:1] != a_ids[offline[q]].tolist()[:1]
+    assert differ > 0
+
+
+def test_excluded_ids_are_never_answers():
+    ks = KeyframeSequence({'length': 3})
+    ks.set_map([1, 2, 3, 4, 5])
+    _, out = ks.update(0, {4: 0.9, 5: 1.0, 2: 0.1}, excluded=[5, 4], k=5)
+    assert {kf for kf, _ in out} <= {1, 2, 3} and out
+
+
 def test_stream_faults_reset_the_window():
     seq = SequenceMatcher({'length': 4, 'max_gap_s': 0.5})
     assert seq.push(1 * S, [1], [0.5]) is None

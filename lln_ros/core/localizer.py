@@ -356,7 +356,7 @@ class Localizer:
             scale=c['offset_scale'],
             **self._recent(recent),
         )
-        inliers, results = {}, {}
+        inliers, results, stored = {}, {}, False
         if self.reloc is not None:
             found, inliers, results = self.verify(lset, kps, found)
         pose = None
@@ -367,7 +367,8 @@ class Localizer:
             pose = self.reg.pose_of(kps, kf_kps, results.get(kid), kf_geom, best, odom, lset.image_size)
         if self.mapping:  # committed before the answer goes out: an answered keyframe is never lost
             best = max((m.score for m in found), default=None)  # verify mode reorders by inliers
-            if self.reg.gate(stamp_ns, odom, best, lset, c['offset_scale']):
+            stored = self.reg.gate(stamp_ns, odom, best, lset, c['offset_scale'])
+            if stored:
                 self._store_keyframe(lset, stamp_ns, kps, odom)
                 self.count('queries_stored')
             else:  # the gate (odometry motion, or novelty) says it is not a new keyframe
@@ -386,7 +387,7 @@ class Localizer:
             for m in found
         ]
         if sequence:
-            rows, found = self.sequence_rows(found, stamp_ns, inliers if self.reloc else None)
+            rows, found = self.sequence_rows(found, stamp_ns, inliers if self.reloc else None, stored)
         if self.geometry:  # the pose fields: on the row of the keyframe the pose is about, NaN elsewhere
             for row in rows:
                 mine = pose is not None and row['keyframe_id'] == pose.keyframe_id
@@ -446,22 +447,25 @@ class Localizer:
             {m.keyframe_id: r for m, r in ranked if r is not None},
         )
 
-    def sequence_rows(self, found: list, stamp_ns: int, inliers: dict | None = None) -> tuple[list, list]:
-        """Candidate rows ranked by sequence_score, and the MapCandidates among them (same order)
-        for the matches topic. Called before a mapping-mode query's own keyframe joins the ids.
-        inliers: verify mode's {keyframe_id: inliers} (rows get an `inliers` field, NaN if unknown)."""
-        c = self.conf
-        size = len(self.store) - int(self.mapping)  # mapping: the query was just stored, never its own answer
-        if size != len(self.sequence.ids):  # keyframes only append (or ~/clear): re-read the ids then
-            self.sequence.set_map(self.store.ids()[:size])
-        allowed = size - self._own(c['exclude_recent'], stored_now=1) if self.mapping else None
-        reason, ranked = self.sequence.update(stamp_ns, {m.keyframe_id: m.score for m in found}, allowed, c['k'])
+    def _sequence_excluded(self, stored: bool):
+        """Ids the sequence search may not answer (mapping mode): the query's own keyframe, when stored,
+        and this session's exclude_recent newest before it; another session's are answers."""
+        n = self._own(self.conf['exclude_recent'], stored_now=int(stored)) + int(stored) if self.mapping else 0
+        own = self.session.ids if self.session is not None else sorted(self.sequence.ids.tolist())
+        return own[-n:] if n else None
+
+    def sequence_rows(self, found: list, stamp_ns: int, inliers: dict | None = None, stored: bool = False):
+        """Rows ranked by sequence_score, and the MapCandidates among them (same order) for matches.
+        stored: the query's own keyframe was just stored. inliers: verify mode's {keyframe_id: inliers}."""
+        self.sequence.follow(self.store)
+        found_scores = {m.keyframe_id: m.score for m in found}
+        reason, ranked = self.sequence.update(stamp_ns, found_scores, self._sequence_excluded(stored), self.conf['k'])
         if reason:
             self.count(f'sequence_reset_{reason}')
         by_id = {m.keyframe_id: m for m in found}
         rows = []
         for kf, seq_score in ranked:
-            if seq_score < c['min_score']:
+            if seq_score < self.conf['min_score']:
                 continue
             m = by_id.get(kf)
             stamp = m.stamp if m else self.store.get(kf).meta['stamp']

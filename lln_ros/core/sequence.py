@@ -247,49 +247,84 @@ def contrast_enhance(difference: np.ndarray, window: int = 10) -> np.ndarray:
 
 
 class KeyframeSequence:
-    """Online: a SequenceMatcher over a map of keyframes in insertion (= route) order, keyed by id.
+    """Online: a SequenceMatcher over a map of keyframes in route order, keyed by id.
 
-    The caller tells it the map's ids when they change (`set_map`; ids ascending, as MapStore.ids
-    gives them) and feeds every answered query:
+    Route order is each session's keyframes in the order that session stored them, sessions one
+    after another (by session number): a map that several robots or runs write interleaves their
+    ids, and a line through interleaved ids would follow no trajectory (issue 29). Keyframes without
+    an origin (maps of schema < 5, stores without sessions) come first, by id, as before.
+
+    The caller tells it the map's ids when they change (`set_map`, with the origins of the new ones)
+    and feeds every answered query:
 
         seq = KeyframeSequence({'length': 10})
-        seq.set_map(store.ids())
-        reason, ranked = seq.update(stamp_ns, {keyframe_id: S, ...}, allowed=len(ids) - exclude_recent, k=5)
+        seq.follow(store)  # or seq.set_map(ids, {id: Origin}) of the new ids
+        reason, ranked = seq.update(stamp_ns, {keyframe_id: S, ...}, excluded=recent_ids, k=5)
         ranked: [(keyframe_id, sequence_score), ...] best first
 
-    Clearing the map (set_map with no ids) empties the window; ids that vanished from the map are
-    dropped from the entries already in the window."""
+    A keyframe that joins inside the route (another session's) moves the later positions: the
+    entries already in the window are re-mapped by id, so the window survives. Ids that vanished
+    are dropped from them; clearing the map (set_map with no ids) empties the window."""
 
     def __init__(self, conf: dict | None = None):
         self.matcher = SequenceMatcher(conf)
-        self.ids = np.zeros(0, np.int64)
+        self.ids = np.zeros(0, np.int64)  # (R,) keyframe ids in route order
+        self._route_key: dict[int, tuple[int, int]] = {}  # id -> (session_id, seq); (0, id) without origin
+        self._sorted, self._where = np.zeros(0, np.int64), np.zeros(0, np.int64)  # ids ascending, their positions
 
     @property
     def resets(self) -> dict:
         return self.matcher.resets
 
-    def set_map(self, ids) -> None:
-        ids = np.asarray(ids, np.int64)
-        if not len(ids) or (len(self.ids) and not np.array_equal(ids[: len(self.ids)], self.ids)):
-            self.matcher.reset()  # cleared or rewritten: old positions mean nothing now
-        self.ids = ids
+    def set_map(self, ids, origins: dict | None = None) -> None:
+        """ids: every keyframe of the map, any order; origins: {id: Origin} for (at least) the ids not
+        given before (an id without one is placed by its id, before every session)."""
+        ids = np.asarray(ids, np.int64).reshape(-1)
+        if not len(ids):
+            self.matcher.reset()
+            self._route_key.clear()
+        for kid, origin in (origins or {}).items():
+            self._route_key[int(kid)] = (int(origin.session_id), int(origin.seq))
+        keys = [self._route_key.setdefault(int(k), (0, int(k))) for k in ids.tolist()]
+        route = ids[sorted(range(len(ids)), key=keys.__getitem__)] if len(ids) else ids
+        old_ids, self.ids = self.ids, route
+        self._sorted = np.sort(route)
+        self._where = np.argsort(route, kind='stable')  # position of the i-th smallest id
+        if len(old_ids) and not np.array_equal(route[: len(old_ids)], old_ids):  # not an append: re-map
+            ring = list(self.matcher.ring)
+            self.matcher.ring.clear()
+            for stamp, pos, sc in ring:
+                new_pos, known = self.positions(old_ids[pos])
+                self.matcher.ring.append((stamp, new_pos[known], sc[known]))
+
+    def follow(self, store) -> None:
+        """Re-read a MapStore's ids when its size changed (keyframes only join, or ~/clear empties
+        it), with the origins of the new ones: they place them in route order."""
+        if len(store) != len(self.ids):
+            ids = store.ids()
+            new = np.setdiff1d(ids, self.ids)
+            self.set_map(ids, store.origins(new) if len(new) and hasattr(store, 'origins') else {})
+
+    def positions(self, ids) -> tuple[np.ndarray, np.ndarray]:
+        """Route positions (N,) of these ids and whether each is in the map (N,) bool."""
+        ids = np.asarray(ids, np.int64).reshape(-1)
+        if not len(self._sorted):
+            return np.zeros(len(ids), np.int64), np.zeros(len(ids), bool)
+        i = np.minimum(np.searchsorted(self._sorted, ids), len(self._sorted) - 1)
+        known = self._sorted[i] == ids
+        return self._where[i], known
 
     def update(
-        self, stamp_ns: int, scores: dict, allowed: int | None = None, k: int = 5
+        self, stamp_ns: int, scores: dict, excluded=None, k: int = 5
     ) -> tuple[str | None, list[tuple[int, float]]]:
-        """Push one query's single-frame scores {keyframe_id: S} and search. allowed: only the first
-        `allowed` keyframes may be answers (mapping mode's exclude_recent); None = all."""
+        """Push one query's single-frame scores {keyframe_id: S} and search. excluded: ids that may
+        not be answers (mapping mode: this session's newest, exclude_recent); None = none."""
         ids = np.fromiter(scores.keys(), np.int64, len(scores))
         values = np.fromiter(scores.values(), np.float64, len(scores))
-        pos = np.searchsorted(self.ids, ids)
-        known = (
-            (pos < len(self.ids)) & (self.ids[np.minimum(pos, len(self.ids) - 1)] == ids)
-            if len(self.ids)
-            else np.zeros(len(ids), bool)
-        )
+        pos, known = self.positions(ids)
         reason = self.matcher.push(stamp_ns, pos[known], values[known])
         mask = None
-        if allowed is not None:
-            mask = np.arange(len(self.ids)) < int(allowed)
+        if excluded is not None and len(excluded):
+            mask = ~np.isin(self.ids, np.asarray(excluded, np.int64))
         ends, seq_scores = self.matcher.search(len(self.ids), mask, k)
         return reason, [(int(self.ids[e]), float(s)) for e, s in zip(ends, seq_scores)]
