@@ -371,6 +371,47 @@ def test_second_connection_sees_new_keyframes(map_path, rng):
         assert len(b) == 0 and b.check() == []
 
 
+SMALL_IVF = {'landmark_index_threshold': 500, 'landmark_ivf_lists': 8, 'landmark_nprobe': 8, 'landmark_pq_bits': 4}
+
+
+@pytest.mark.parametrize('conf', [{}, SMALL_IVF], ids=['exact', 'compressed'])
+def test_second_connection_adds_appended_keyframes_without_a_reload(map_path, rng, conf):
+    """A reader beside a writer catches up by id (sqlite_catch_up.py): what the writer appended joins
+    the reader's indexes without a full reload (which retrains a compressed landmark index: seconds
+    per foreign commit on a fleet's map), and it answers as a map opened afresh; a delete falls back
+    to the full reload, so the deleted keyframe is never answered."""
+    with MapStore(map_path, model=MODEL, conf=conf) as a, MapStore(map_path, conf=conf) as b:
+        sets, ids = fill(a, rng, 12)  # 600 landmarks: compressed from the start with SMALL_IVF
+        b.query(sets[0])
+        reloads = []
+        full_load = b._load
+        b._load = lambda: (reloads.append(len(a)), full_load())[1]
+        more, more_ids = [], []
+        for round_ in range(4):  # four foreign commits, each caught up at the reader's next call
+            new_sets, new_ids = fill(a, rng, 5, start_sec=200 + 10 * round_)
+            more, more_ids = more + new_sets, more_ids + new_ids
+            assert b.query(new_sets[-1], k=1)[0].keyframe_id == new_ids[-1]
+        assert reloads == [] and b.ids() == ids + more_ids and b.check() == []
+        # ids below ones the reader knows: another writer's, interleaved with its own, or an import
+        gap = [make_set(rng) for _ in range(2)]
+        gap_ids = a.add_many(gap, [(300, 0), (301, 0)], ids=[ids[-1] + 1000, ids[-1] + 1001])
+        assert b.query(gap[0], k=1)[0].keyframe_id == gap_ids[0]
+        low = [make_set(rng) for _ in range(2)]
+        low_ids = a.add_many(low, [(302, 0), (303, 0)], ids=[ids[-1] + 500, ids[-1] + 501])
+        assert b.query(low[1], k=1)[0].keyframe_id == low_ids[1]
+        more, more_ids = more + gap + low, more_ids + gap_ids + low_ids
+        assert reloads == [] and b.ids() == sorted(ids + more_ids) and b.check() == []
+        with MapStore(map_path, create=False, conf=conf) as fresh:
+            for s in sets + more:
+                got, want = b.query(s, k=3), fresh.query(s, k=3)
+                assert got[0].keyframe_id == want[0].keyframe_id
+                if not conf:  # exact indexes: the same answer to the last digit
+                    assert [(m.keyframe_id, m.score) for m in got] == [(m.keyframe_id, m.score) for m in want]
+        a.delete([more_ids[3]])
+        assert more_ids[3] not in [m.keyframe_id for m in b.query(more[3], k=5)]
+        assert reloads == [len(ids) + len(more_ids) - 1] and b.check() == []
+
+
 def test_threads_add_and_query_concurrently(map_path, rng):
     sets = [make_set(rng) for _ in range(60)]
     errors, added = [], []

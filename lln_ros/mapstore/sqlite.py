@@ -11,7 +11,8 @@ SQLite at open and checked against it (count and ids); nothing but SQLite is eve
 is no second file to disagree with after a crash. Landmarks stay on disk; a query
 fetches the prefiltered keyframes' landmarks with one ``SELECT ... WHERE id IN (...)``. If another
 connection (another process) commits to the file, the next call notices (``PRAGMA data_version``)
-and rebuilds the index.
+and adds the keyframes it appended to the indexes (sqlite_catch_up.py), or rebuilds them when it did
+anything else.
 
 Thread safety: every call takes one lock (the connection is shared, ``check_same_thread=False``);
 the landmark reranking of ``query`` runs outside the lock.
@@ -35,6 +36,7 @@ from ..core.landmarks import LandmarkSet
 from ..errors import MapError
 from .base import MapStore
 from .index import GlobalIndex
+from .sqlite_catch_up import SQLiteCatchUp
 from .sqlite_file import _KF_COLS, _KF_INSERT, _LM_COLS, _SQL_CHUNK, SQLiteFile
 from .sqlite_geometry import SQLiteGeometry
 from .sqlite_identity import SQLiteIdentity
@@ -45,7 +47,9 @@ from .uri import backend_for
 log = logging.getLogger(__name__)
 
 
-class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, SQLiteIdentity, SQLiteGeometry, SQLiteSessions, MapStore):
+class SQLiteMapStore(
+    SQLiteFile, SQLiteCatchUp, SQLiteLandmarks, SQLiteIdentity, SQLiteGeometry, SQLiteSessions, MapStore
+):
     """The embedded map: one SQLite file plus an in-memory FAISS index (see the module docstring).
 
     SQLiteMapStore(path, model=None, create=True, verify=True, conf=None). verify: run SQLite's
@@ -163,8 +167,9 @@ class SQLiteMapStore(SQLiteFile, SQLiteLandmarks, SQLiteIdentity, SQLiteGeometry
         # another connection (process) committed: our FAISS index may be stale
         with self._read_errors():
             if self._conn.execute('PRAGMA data_version').fetchone()[0] != self._data_version:
-                log.info('map %s changed on disk; reloading', self.path)
-                self._load()
+                if not self._catch_up():  # appended keyframes are added; anything else reloads
+                    log.info('map %s changed on disk; reloading', self.path)
+                    self._load()
 
     @contextlib.contextmanager
     def _read_errors(self):
