@@ -330,3 +330,41 @@ def test_recent_exclusion_names_this_sessions_keyframes_when_blocks_interleave(m
         answer = ask(a, make_set(rng, base=sets[5], noise=0.1), 21)  # B's newest: a valid answer
         assert answer.rows[0]['keyframe_id'] == b_ids[-1], answer.rows
         assert answer.rows[0]['session_id'] == b.session.session.id
+
+
+@server
+def test_a_writer_opening_while_another_creates_the_map_waits_for_it(milvus_map, monkeypatch):
+    """Fleet matchers started together on a new map: one finds the meta collection another writer
+    has just created but not yet filled. It waits for the creator's rows instead of refusing the map
+    as 'not an lln_ros map' (what stopped robot B's matcher in bench_fleet on the real server)."""
+    import threading
+
+    from lln_ros.mapstore.milvus import MilvusMapStore
+
+    created, opened = threading.Event(), []
+    put_meta = MilvusMapStore._put_meta
+
+    def slow_first_meta(self, values):  # the creator stalls between its collection and its rows
+        if 'format' in values and not created.is_set():
+            created.set()
+            time.sleep(2.0)
+        return put_meta(self, values)
+
+    monkeypatch.setattr(MilvusMapStore, '_put_meta', slow_first_meta)
+    creator = threading.Thread(target=lambda: opened.append(MapStore.open(milvus_map, model=MODEL)))
+    creator.start()
+    assert created.wait(WAIT_S)
+    try:
+        with MapStore.open(milvus_map, model=MODEL, conf={'refresh_s': 0.0}) as second:
+            creator.join(WAIT_S)
+            assert len(opened) == 1
+            first = opened[0]
+            kid = first.add(make_set(np.random.default_rng(5)), stamp=(1, 0))
+            deadline = time.monotonic() + WAIT_S
+            while kid not in second.ids() and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert second.ids() == [kid] and second.info()['descriptor_space'] == MODEL['descriptor_space']
+    finally:
+        creator.join(WAIT_S)
+        for store in opened:
+            store.close()

@@ -228,12 +228,24 @@ class MilvusMapStore(
     def _scan_ids(self) -> list[int]:
         return scan_ids(self._client, self._fr_c)
 
+    def _creators_meta(self) -> dict:
+        """The meta rows of a map another writer is creating right now: its meta collection exists but
+        is still empty (fleet matchers starting together on a new map; one refused to start with 'not
+        an lln_ros map' in bench_fleet). Waits up to conf['timeout'] s; {} if they never come."""
+        deadline = time.monotonic() + float(self.conf['timeout'])
+        while time.monotonic() < deadline:
+            time.sleep(0.2)
+            meta = self._meta(strong=True)
+            if meta:
+                return meta
+        return {}
+
     def _load(self) -> None:
         for name in (self._meta_c, self._fr_c, self._kp_c):
             # a fresh server process (Milvus Lite in a new process) starts with collections released
             if self._client.has_collection(name):
                 self._client.load_collection(name)
-        meta = self._meta(strong=True)
+        meta = self._meta(strong=True) or self._creators_meta()
         if meta.get('format') != FORMAT:
             raise MapError(
                 f'{self.path} is a Milvus database but not an lln_ros map '
