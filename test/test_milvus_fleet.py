@@ -368,3 +368,24 @@ def test_a_writer_opening_while_another_creates_the_map_waits_for_it(milvus_map,
         creator.join(WAIT_S)
         for store in opened:
             store.close()
+
+
+@server
+def test_a_writer_whose_database_another_creates_meanwhile_opens(milvus_map, monkeypatch):
+    """The database of the map URI appears between a writer's look and its create (another fleet
+    matcher made it): the server's 'database already exist' is not a failure to open."""
+    from pymilvus import MilvusClient
+
+    with MapStore.open(milvus_map, model=MODEL):
+        pass  # the database exists now
+    listed = MilvusClient.list_databases
+    looks = []
+
+    def stale_first_look(self, *args, **kwargs):  # the first look predates the other's create
+        names = listed(self, *args, **kwargs)
+        looks.append(names)
+        return [n for n in names if n != 'lln_test'] if len(looks) == 1 else names
+
+    monkeypatch.setattr(MilvusClient, 'list_databases', stale_first_look)
+    with MapStore.open(milvus_map, model=MODEL) as store:
+        assert len(store) == 0 and len(looks) == 2 and 'lln_test' in looks[0]

@@ -28,7 +28,13 @@ class MilvusCollections:
                 raise MapError(
                     f'no map at {self.path}: the server has no database {db!r} (it has {sorted(names)}; create=False)'
                 )
-            self._client.create_database(db)
+            try:
+                self._client.create_database(db)
+            except Exception:
+                # fleet matchers starting together: another one created it a moment ago
+                if db not in self._client.list_databases():
+                    raise
+                return
             log.info('created database %s for map %s', db, self.path)
 
     def _create(self, name: str, fields: list, vector: str, dim: int) -> None:
