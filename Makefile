@@ -6,7 +6,7 @@ DATA ?= ../shared/data
 export LLN_DATA ?= $(abspath $(DATA))
 NORDLAND := aligned:$(DATA)/nordland_trimmed/summer,$(DATA)/nordland_trimmed/winter,1
 
-.PHONY: setup test main results train loo bench bench-map bench-scale bench-writers colcon clean
+.PHONY: setup test main results train loo bench bench-map bench-scale bench-writers bench-fleet bench-fleet-milvus colcon clean
 
 setup:
 	bash scripts/setup.sh
@@ -55,6 +55,14 @@ bench-scale: setup
 # SIGKILL and a server restart (docs/map_store.md, Many writers; ~20 min; loopback-only namespace)
 bench-writers: setup
 	$(PY) test/milvus_loopback.py -- $(PY) bench/bench_milvus_writers.py $(ARGS)
+
+# two robots on one map through the nodes: Nordland summer (robot A) and winter (robot B) at once
+# (docs/map_store.md, Two robots through the nodes; ~4 min, ~20 on the server); -milvus: on a real server
+bench-fleet: setup
+	$(PY) bench/bench_fleet.py --data $(DATA) $(ARGS)
+
+bench-fleet-milvus: setup
+	$(PY) test/milvus_loopback.py --server -- $(PY) bench/bench_fleet.py --data $(DATA) --map milvus $(ARGS)
 
 colcon: setup
 	$(VENV)/bin/colcon build --base-paths . --build-base build --install-base install
