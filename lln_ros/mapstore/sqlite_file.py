@@ -365,22 +365,21 @@ class SQLiteFile:
             raise MapError(f'map {self.path}: in-memory index disagrees with the file: {"; ".join(problems)}')
         self._load_landmarks()
 
-    def _damaged(self, dim: int, above: int = -1) -> dict:
-        """{id: problem} of keyframes (ids > above) whose stored sizes do not fit their n and D (a
-        missing landmarks row, a blob of the wrong length, a bad grid or stamp). One SQL scan using
-        length(), which reads a blob's size from its record header without reading the blob: 0.87 s
-        at 100k keyframes against 4.1 s for quick_check (bench/bench_integrity.py, warm cache, loaded)."""
+    def _damaged(self, dim: int) -> dict:
+        """{id: problem} of keyframes whose stored sizes do not fit their n and D (a missing landmarks
+        row, a blob of the wrong length, a bad grid or stamp). One SQL scan using length(), which
+        reads a blob's size from its record header without reading the blob: 0.87 s at 100k
+        keyframes against 4.1 s for quick_check (bench/bench_integrity.py, warm cache, loaded)."""
         rows = self._conn.execute(
             'SELECT k.id, k.n, k.grid_rows, k.grid_cols, k.stamp_sec, k.stamp_nanosec, length(k.global_descriptor), '
             'length(l.cells), length(l.centers), length(l.scores), length(l.descriptors), l.keyframe_id IS NULL '
-            'FROM keyframes k LEFT JOIN landmarks l ON l.keyframe_id = k.id '
-            'WHERE k.id > :above AND (l.keyframe_id IS NULL OR k.n < 1 OR k.grid_rows < 1 OR k.grid_cols < 1 '
-            'OR k.stamp_nanosec < 0 OR k.stamp_nanosec >= 1000000000 '
-            'OR k.stamp_sec < -2147483648 OR k.stamp_sec > 2147483647 '
+            'FROM keyframes k LEFT JOIN landmarks l ON l.keyframe_id = k.id WHERE l.keyframe_id IS NULL '
+            'OR k.n < 1 OR k.grid_rows < 1 OR k.grid_cols < 1 OR k.stamp_nanosec < 0 '
+            'OR k.stamp_nanosec >= 1000000000 OR k.stamp_sec < -2147483648 OR k.stamp_sec > 2147483647 '
             'OR length(k.global_descriptor) IS NOT 4 * :d '
             'OR length(l.cells) IS NOT 4 * k.n OR length(l.centers) IS NOT 8 * k.n '
-            'OR length(l.scores) IS NOT 4 * k.n OR length(l.descriptors) IS NOT 2 * k.n * :d) ORDER BY k.id',
-            {'d': int(dim), 'above': int(above)},
+            'OR length(l.scores) IS NOT 4 * k.n OR length(l.descriptors) IS NOT 2 * k.n * :d ORDER BY k.id',
+            {'d': int(dim)},
         )
         out = {}
         for kid, n, rows_, cols_, sec, nsec, lg, lc, lce, ls, ld, orphan in rows:
