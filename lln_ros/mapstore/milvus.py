@@ -212,7 +212,7 @@ class MilvusMapStore(
             self._client = MilvusClient(**self._connect_kwargs)
             for name in (self._meta_c, self._fr_c, self._kp_c):
                 if self._client.has_collection(name):
-                    self._client.load_collection(name)
+                    self._load_ready(name)
             self._broken = False
             log.info('map %s: reconnected to the Milvus server', self.path)
 
@@ -244,7 +244,7 @@ class MilvusMapStore(
         for name in (self._meta_c, self._fr_c, self._kp_c):
             # a fresh server process (Milvus Lite in a new process) starts with collections released
             if self._client.has_collection(name):
-                self._client.load_collection(name)
+                self._load_ready(name)
         meta = self._meta(strong=True) or self._creators_meta()
         if meta.get('format') != FORMAT:
             raise MapError(

@@ -58,7 +58,7 @@ def create_claims(store) -> None:
             ('owner', 'VARCHAR', {'max_length': 64}),
         ]
         store._create(name, fields, 'unused', 2)
-    store._client.load_collection(name)
+    store._load_ready(name)
 
 
 def migrate_4_to_5(store, meta: dict) -> None:
@@ -192,7 +192,7 @@ class MilvusClaims:
                     self._model = self._read_model_record(meta['model'])
                     if not self._client.has_collection(self._fr_c):
                         return
-                    self._client.load_collection(self._fr_c)
+                    self._load_ready(self._fr_c)
                 before = set(self._ids)
                 known = before | set(self._quarantined) | self._deleted
                 where = ' or '.join([f'id > {max(known, default=-1)}'] + self._watch(known))

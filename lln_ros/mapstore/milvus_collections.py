@@ -52,6 +52,17 @@ class MilvusCollections:
             name, schema=schema, index_params=index, consistency_level=self.conf['consistency']
         )
 
+    def _load_ready(self, name: str) -> None:
+        """Load a collection once it has its index. Another writer may have created it a moment ago
+        (fleet matchers starting together): create_collection with index params is several calls,
+        and loading or inserting before the index exists fails 'index not found' (test_milvus_fleet's
+        concurrent writers on the claims collection, once in a fresh-clone CI). Waits up to
+        conf['timeout'] s; a collection still without one is loaded anyway, and its error is the server's."""
+        deadline = time.monotonic() + float(self.conf['timeout'])
+        while not self._client.list_indexes(name) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        self._client.load_collection(name)
+
     def _create_meta(self) -> None:
         self._create(
             self._meta_c,

@@ -29,7 +29,7 @@ def create_geometry(store) -> None:
             'unused',
             2,
         )
-    store._client.load_collection(name)
+    store._load_ready(name)
 
 
 def migrate_2_to_3(store, meta: dict) -> None:

@@ -37,8 +37,8 @@ def create_sessions(store) -> None:
     if not store._client.has_collection(origins):
         fields = [('keyframe_id', 'INT64', {'is_primary': True}), ('session_id', 'INT64', {}), ('seq', 'INT64', {})]
         store._create(origins, fields, 'unused', 2)
-    store._client.load_collection(sessions)
-    store._client.load_collection(origins)
+    store._load_ready(sessions)
+    store._load_ready(origins)
 
 
 def migrate_3_to_4(store, meta: dict) -> None:
