@@ -16,7 +16,8 @@ through one more random crop + brightness augmentation the map does not hold (no
 in the map verbatim), --queries of them.
 
 recall@k = |compressed top k  &  exact top k| / k per query landmark (exact = brute-force inner
-product over the same float32 vectors), at knn (the first stage's k) and 1, per nprobe, with the
+product over the same float32 vectors, centred per set as the shipped index holds them:
+landmark_center), at knn (the first stage's k) and 1, per nprobe, with the
 search time per query set (50 landmarks, one call, 1 thread) of each.
 """
 
@@ -183,15 +184,23 @@ def exact_knn(x: np.ndarray, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndar
 def index_recall(args, data: dict) -> list[dict]:
     """recall@1 / @knn of every --kinds x --nprobe against exact search (module doc), and the time
     of one query set's search."""
-    from lln_ros.core.landmark_index import LandmarkIndex
+    from lln_ros.core.landmark_index import LandmarkIndex, center
+    from lln_ros.core.landmark_index import default_conf as index_conf
+
+    def held(sets: np.ndarray) -> np.ndarray:
+        """sets (S, n, D) as the shipped index holds them (landmark_center: centred per set), (S*n, D)."""
+        x = unit(sets.reshape(-1, sets.shape[-1]).astype(np.float32))
+        if not index_conf['landmark_center']:
+            return x
+        return center(x, np.repeat(np.arange(len(sets)), sets.shape[1]))
 
     rng = np.random.default_rng(1)
-    real = unit(data['descriptors'].reshape(-1, data['descriptors'].shape[-1]).astype(np.float32))
+    real = held(data['descriptors'])
     total = max(len(real), args.keyframes * 50)
     x = grow(real, total, args.noise, rng)
     ids = np.arange(len(x), dtype=np.int64)
     qsets = data['query_descriptors'][rng.permutation(len(data['query_descriptors']))[: args.queries]]
-    q = unit(qsets.reshape(-1, x.shape[1]).astype(np.float32))
+    q = held(qsets)
     t = time.perf_counter()
     ex_s, ex_i = exact_knn(x, q, args.knn)
     exact_s = time.perf_counter() - t
@@ -205,7 +214,8 @@ def index_recall(args, data: dict) -> list[dict]:
     rows = []
     for kind in args.kinds.split(','):
         conf = {'landmark_compressed': kind, 'landmark_index_threshold': 0, 'landmark_pq_m': args.pq_m}
-        index = LandmarkIndex(x.shape[1], conf)
+        # x is already what the index holds (held()), and its ids are rows, not keyframes
+        index = LandmarkIndex(x.shape[1], {**conf, 'landmark_center': False})
         t = time.perf_counter()
         index.build(x, ids)
         build_s = time.perf_counter() - t

@@ -73,6 +73,38 @@ def test_index_add_search_remove_and_below(rng):
     assert index.remove_keyframes([12, 99]) == 50 and 12 not in index.keyframe_counts()
 
 
+@pytest.mark.parametrize('kind', ['exact', 'ivfpq-fs'])
+def test_centering_ignores_what_every_landmark_of_an_image_shares(kind):
+    """The query's 12 landmarks are 12 places seen under one strong condition (a component every
+    landmark of the image shares: snow, dusk). Keyframe 1 holds the same places under another
+    condition; keyframe 2 other places under the query's condition. On raw descriptors the shared
+    condition outvotes the places and keyframe 2 leads; centred (landmark_center, the default) on
+    each image's mean, keyframe 1 does. Many filler keyframes make the compressed index train."""
+    rng = np.random.default_rng(7)
+    d, n = 64, 12
+
+    def unit(x):
+        return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+    places, others = unit(rng.standard_normal((n, d))), unit(rng.standard_normal((n, d)))
+    winter, summer = 2.0 * unit(rng.standard_normal(d)), 2.0 * unit(rng.standard_normal(d))
+    cells = np.stack([np.arange(n) % 4, np.arange(n) // 4], axis=1)
+    query = unit(places + winter + 0.05 * rng.standard_normal((n, d)))
+    sets = [unit(places + summer), unit(others + winter)]
+    sets += [unit(rng.standard_normal((n, d)) + c) for c in (winter, summer) for _ in range(30)]
+    found = {}
+    for center in (False, True):
+        conf = {'landmark_center': center, 'landmark_tau': 0.35 if not center else 0.0}
+        if kind != 'exact':
+            conf.update({'landmark_index_threshold': 100, 'landmark_ivf_lists': 4, 'landmark_nprobe': 4})
+        index = LandmarkIndex(d, conf)
+        index.add(np.concatenate(sets), np.repeat(np.arange(1, len(sets) + 1), n), np.tile(cells, (len(sets), 1)))
+        assert index.kind == kind
+        sims, kfs, map_cells = index.search(query, 20)
+        found[center] = score_hits(cells, sims, kfs, map_cells, index.conf)[0][0]
+    assert found == {False: 2, True: 1}
+
+
 @pytest.mark.parametrize('compressed', KINDS)
 def test_index_type_switch_remove_reset_and_file(compressed, tmp_path, rng):
     """Exact up to landmark_index_threshold, the configured compressed type once add() crosses it
@@ -160,7 +192,8 @@ def test_map_keeps_landmark_index_consistent(kind, index, tmp_path, rng):
 @pytest.mark.parametrize('compressed', KINDS)
 def test_compressed_index_persisted_stale_corrupt_missing_foreign(compressed, tmp_path, rng, caplog):
     """Compressed maps (threshold lowered to 500 landmarks) persist their index next to the map; a
-    stale file is caught up, a corrupt / missing / foreign one rebuilt with a warning, never silently empty."""
+    stale file is caught up, a corrupt / missing / foreign one, or one of raw descriptors (an older
+    lln_ros), rebuilt with a warning, never silently empty."""
     SMALL_IVF = {**globals()['SMALL_IVF'], 'landmark_compressed': compressed}
     path = str(tmp_path / 'map.db')
     sets = [make_set(rng) for _ in range(30)]
@@ -184,9 +217,14 @@ def test_compressed_index_persisted_stale_corrupt_missing_foreign(compressed, tm
     open(lm_path, 'wb').write(bytes(data))
     with pytest.raises(MapError, match='checksum'):
         LandmarkIndex.read(lm_path, 320)
-    for damage in ('corrupt', 'missing', 'foreign'):
+    for damage in ('corrupt', 'missing', 'foreign', 'raw'):
         if damage == 'missing':
             (tmp_path / 'map.db.landmarks').unlink()
+        if damage == 'raw':  # written by an lln_ros before landmark_center: uncentred vectors
+            with MapStore.open(path, conf={**SMALL_IVF, 'landmark_center': False}) as store:
+                pass
+            with pytest.raises(MapError, match='raw descriptors; landmark_center is True'):
+                LandmarkIndex.read(lm_path, 320)
         if damage == 'foreign':
             with MapStore.open(str(tmp_path / 'other.db'), model=MODEL, conf=SMALL_IVF) as other:
                 other.add_many(sets[:20], [(i, 0) for i in range(20)])

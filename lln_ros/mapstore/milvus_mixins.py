@@ -102,7 +102,7 @@ class MilvusLandmarks:
             every = max(1, total // max(1, int(self.conf['landmark_train_points'])))
             pick, parts = self._ids[::every], []
             for start in range(0, len(pick), 512):  # from the read cache (the rows were just read)
-                parts += [s.descriptors for s in self._fetch(pick[start : start + 512]).values()]
+                parts += [index.prepare(s.descriptors) for s in self._fetch(pick[start : start + 512]).values()]
             index.index = index._compressed(np.concatenate(parts), total)
         self._landmarks = index
         self._index_landmarks(self._ids)

@@ -140,11 +140,11 @@ class SQLiteLandmarks:
         if total > self.conf['landmark_index_threshold']:
             # train on a sample of keyframes, then stream every landmark in: never all of them as float32
             every = max(1, int(total // max(1, self.conf['landmark_train_points'])))
-            sample = np.concatenate([d for _, _, d in self._landmark_rows(every=every)])
+            sample = np.concatenate([index.prepare(d, kf) for kf, _, d in self._landmark_rows(every=every)])
             index.index = index._compressed(sample, total)
             del sample
         for kf, cells, desc in self._landmark_rows():
-            index.index.add_with_ids(desc, landmark_index.encode_ids(kf, cells))
+            index.index.add_with_ids(index.prepare(desc, kf), landmark_index.encode_ids(kf, cells))
         return index
 
     def _persist_landmarks(self) -> None:
