@@ -71,9 +71,10 @@ default_conf = {
     'landmark_knn': 20,  # map landmarks each query landmark retrieves
     # Centre each keyframe's landmarks (and the query's) on their own mean before indexing, then
     # renormalise: what all landmarks of one image share (snow, dusk, the camera's colour) is the
-    # condition, not the place. Chosen on Nordland 0.6:0.7 (validation) inside ~9.3k keyframes of
-    # real distractors, with tau: first-stage R@100 0.429 -> 0.546 (tau 0.35 -> 0), refs alone
-    # R@1 0.361 -> 0.465 (docs/benchmarks.md, Accuracy at scale). False: the raw descriptors.
+    # condition, not the place. Chosen with tau on Nordland 0.6:0.7 (validation) among 8,927 real
+    # distractors: first-stage R@100 0.429 -> 0.546 (raw at tau 0.35 -> centred at 0), references
+    # alone R@1 0.342 -> 0.459 (bench/bench_first_stage_scale.py --range 0.6:0.7, docs/benchmarks.md,
+    # Accuracy at scale). False: the raw descriptors.
     'landmark_center': True,
     'landmark_tau': 0.0,  # cosine below which a hit does not vote (0.35 on raw, uncentred descriptors)
     'landmark_alpha': 3.0,  # selectivity exponent of a hit's vote
