@@ -9,7 +9,6 @@ import uuid
 
 import numpy as np
 
-from ..core import landmark_index
 from ..core.landmark_index import LandmarkIndex
 from ..errors import MapError
 from .sqlite_file import _SQL_CHUNK
@@ -144,7 +143,7 @@ class SQLiteLandmarks:
             index.index = index._compressed(sample, total)
             del sample
         for kf, cells, desc in self._landmark_rows():
-            index.index.add_with_ids(index.prepare(desc, kf), landmark_index.encode_ids(kf, cells))
+            index.add(desc, kf, cells)  # prepared and encoded as every add; trained above, so no retrain here
         return index
 
     def _persist_landmarks(self) -> None:
