@@ -45,13 +45,14 @@ SETTINGS = {'raw, tau 0.35': {'landmark_center': False, 'landmark_tau': 0.35}, '
 
 def source_kinds(data: Path, n_refs: int, n_map: int) -> list[str]:
     """What each map position is: 'reference', or the distractor's source (bench_accuracy_at_scale's
-    order: its real pool, then the pool again flipped)."""
+    order: its real pool, then the pool flipped, then seeded crops of it round after round)."""
     pool = distractor_paths(data)
     out = ['reference'] * n_refs
     for d in range(n_map - n_refs):
-        p = pool[d % len(pool)]
+        round_, i = divmod(d, len(pool))
+        p = pool[i]
         kind = f'nordland {p.parent.name}' if 'nordland' in str(p) else p.relative_to(data).parts[0]
-        out.append(kind + (' (flipped)' if d >= len(pool) else ''))
+        out.append(kind + ('', ' (flipped)', ' (cropped)')[min(round_, 2)])
     return out
 
 
