@@ -369,6 +369,26 @@ def test_cli_trained_vs_untrained_in_one_command(tiny, tiny_run, other_head, tmp
     assert not list((tmp_path / 'b').glob('*.png'))
 
 
+def test_cli_similarity_center_reaches_every_rerank(tiny, tiny_run, extractor, tmp_path, capsys):
+    """--similarity-center: the rows are S on centred sets (rank_all(center=True)), and the report says so."""
+    _, results_dir, ds = tiny_run
+    args = ['--dataset', f'aligned:{tiny / "ref"},{tiny / "query"},0', '--methods', 'act', '--top-n', 20]
+    args += ['--prefilter-k', 0, '--cache', results_dir.parent / 'cache', '--timing-images', 1]
+    args += ['--timing-queries', 1, '--examples', 0, '--no-plots', '--threads', 1, '--quiet']
+    assert run_cli(*args, '--similarity-center', '--out', tmp_path / 'c') == 0, capsys.readouterr().err
+    results = json.loads((tmp_path / 'c' / 'results.json').read_text())
+    assert results['parameters']['similarity_center'] is True
+    from lln_ros.io.image import load_image
+
+    v = variant(extractor, 'act', 20)
+    refs = stack_landmarks(v.extract_batch([load_image(str(p)) for p in ds.ref_paths]))
+    queries = v.extract_batch([load_image(str(p)) for p in ds.query_paths])
+    ranked, _ = rank_all(queries, refs, 0, center=True)
+    top1 = np.mean(ds.gt[np.arange(12), ranked[:, 0]])
+    # within one query: features are cached as float16
+    assert abs(results['datasets']['ref-vs-query']['methods']['act']['p_at_100r'] - top1) <= 1 / 12 + 1e-9
+
+
 def test_cli_exhaustive_prefilter_scores_every_reference(tiny, tiny_run, extractor, tmp_path, capsys):
     """--prefilter-k 0: every local method ranks all 12 references by S (no holistic cap), X+seq too,
     and the report says so."""

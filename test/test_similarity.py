@@ -4,8 +4,9 @@ definition, on synthetic sets with known structure and on real image pairs with 
 import numpy as np
 import pytest
 
+from lln_ros.core.landmark_index import center
 from lln_ros.core.landmarks import LandmarkSet, l2_normalize, stack_landmarks
-from lln_ros.core.similarity import match_batch, match_pair, offset_mode, offset_weights
+from lln_ros.core.similarity import center_sets, match_batch, match_pair, match_sets, offset_mode, offset_weights
 from lln_ros.errors import DescriptorError
 
 
@@ -95,6 +96,29 @@ def test_batched_equals_single_pairs_with_padding():
         np.testing.assert_array_equal(batch.match[k], single.match[0])
         np.testing.assert_array_equal(batch.offsets[k], single.offsets[0])
     assert np.argmax(batch.scores) == 3
+
+
+def test_similarity_center_ignores_what_every_landmark_of_an_image_shares():
+    """Query: 12 places under a strong condition every landmark of the image shares. Candidate 0:
+    the same places under another condition; candidate 1: other places under the query's. Raw S
+    (the paper's, the default) prefers candidate 1, S on centred sets candidate 0; centred, a set
+    is what landmark_index.center makes of it (one landmark stays as it is), padded or in a list."""
+    rng = np.random.default_rng(7)
+    d, n = 64, 12
+    places, others = l2_normalize(rng.standard_normal((n, d))), l2_normalize(rng.standard_normal((n, d)))
+    winter, summer = 2.0 * l2_normalize(rng.standard_normal(d)), 2.0 * l2_normalize(rng.standard_normal(d))
+    cells = np.stack([np.arange(n) % 4, np.arange(n) // 4], axis=1)
+    query = make_set(places + winter + 0.05 * rng.standard_normal((n, d)), cells)
+    cands = [make_set(places + summer, cells), make_set(others + winter, cells)]
+    assert np.argmax(match_sets(query, cands).scores) == 1
+    assert np.argmax(match_sets(query, cands, center=True).scores) == 0
+    padded = stack_landmarks(cands + [make_set(places[:1], cells[:1])])
+    out = center_sets(padded.descriptors, padded.valid)
+    np.testing.assert_allclose(out[0], center(cands[0].descriptors), atol=1e-6)
+    np.testing.assert_allclose(out[2, :1], padded.descriptors[2, :1])
+    np.testing.assert_array_equal(out[2, 1:], padded.descriptors[2, 1:])  # padding untouched
+    batch = match_batch(query, padded, center=True).scores
+    np.testing.assert_allclose(batch[:2], match_sets(query, cands, center=True).scores, rtol=1e-5)
 
 
 def test_pairs_and_weights():

@@ -70,6 +70,12 @@ def build_parser() -> argparse.ArgumentParser:
     add_prefilter_argument(p, 'first-stage candidates every local method reranks')
     add_scale_argument(p)
     p.add_argument(
+        '--similarity-center',
+        action=argparse.BooleanOptionalAction,
+        default=conf['similarity_center'],
+        help='S on each landmark set minus its own mean (similarity.center_sets; docs/method.md)',
+    )
+    p.add_argument(
         '--sequence',
         type=int,
         default=conf['sequence'],
@@ -277,6 +283,7 @@ def run(args, argv) -> dict:
         'prefilter': args.prefilter,
         'prefilter_k': args.prefilter_k,
         'scale': args.scale,
+        'similarity_center': args.similarity_center,
         'sequence': args.sequence,
         'sequence_prefilter_k': args.sequence_prefilter_k,
         'timing_images': args.timing_images,

@@ -56,12 +56,14 @@ def rerank(
     holistic: np.ndarray,
     scale: float = 1.0,
     limit: int | None = None,
+    center: bool | None = None,
 ) -> list[Candidate]:
     """Score `batch` (the prefiltered candidates, in `indices` order: a LandmarkBatch, or a list of
     LandmarkSets, matched by similarity.match_sets in bounded chunks grouped by landmark count)
     against the query; sort by S. limit: only the best `limit` come back (their pair tables are
-    what costs, per candidate)."""
-    result = match_sets(query, batch, scale) if isinstance(batch, list) else match_batch(query, batch, scale)
+    what costs, per candidate); center: similarity's set centring (None = its default_conf)."""
+    match = match_sets if isinstance(batch, list) else match_batch
+    result = match(query, batch, scale, center)
     order = np.argsort(-result.scores, kind='stable')[:limit]
     return [
         Candidate(
@@ -170,6 +172,7 @@ def rank_all_at(
     prefilter: str = default_conf['prefilter'],
     conf: dict | None = None,
     index: LandmarkIndex | None = None,
+    center: bool | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """rank_all for several K at once: one first stage of max(ks) candidates, one rerank of them,
     and for each K in ks the rerank of the first K first-stage candidates (the same as rank_all
@@ -183,7 +186,7 @@ def rank_all_at(
     for i, q in enumerate(queries):
         ok = top[i] >= 0
         if ok.any():
-            s_top[i, ok] = match_batch(q, refs.take(top[i][ok]), scale).scores
+            s_top[i, ok] = match_batch(q, refs.take(top[i][ok]), scale, center).scores
     out = []
     for k in sizes:
         t, s = top[:, :k], s_top[:, :k]
@@ -203,13 +206,15 @@ def rank_all(
     prefilter: str = default_conf['prefilter'],
     conf: dict | None = None,
     index: LandmarkIndex | None = None,
+    center: bool | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Offline retrieval of many queries against a stacked map (evaluation and validation).
 
     refs: LandmarkBatch of R map sets; allowed (Q, R) bool: which refs each query may be answered
     with (None = all); prefilter: the first stage (module doc), its top prefilter_k (0 = every ref:
     exhaustive, K = R). Returns ranked (Q, K) ref indices, best first, and their scores (Q, K): S
-    after the first stage (the first-stage score when rerank_local is False).
+    after the first stage (the first-stage score when rerank_local is False); center: S's set
+    centring (similarity.default_conf['center'] when None).
     Rows with fewer than K candidates are padded with index -1 and score -inf.
     """
     prefilter, prefilter_k = check_prefilter(prefilter, prefilter_k)
@@ -223,7 +228,7 @@ def rank_all(
         idx = top[i][top[i] >= 0]
         if not len(idx):
             continue
-        s = match_batch(q, refs.take(idx), scale).scores
+        s = match_batch(q, refs.take(idx), scale, center).scores
         order = np.argsort(-s, kind='stable')
         ranked[i, : len(idx)], scores[i, : len(idx)] = idx[order], s[order]
     return ranked, scores

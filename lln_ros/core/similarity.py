@@ -5,6 +5,10 @@ For a query set A and K candidate sets B_k:
   2. offset_mode: the most frequent grid-cell offset (dx, dy) = cell(A_i) - cell(B_j) over the pairs;
   3. offset_weights: w_ij = exp(-1/2 * |offset_ij - mode|^2 / scale^2), offsets in grid cells;
   4. S = sum_ij w_ij * s_ij.
+With conf['center'] (off by default, as in the paper; docs/method.md) every set's descriptors, the query's and each
+candidate's, are first taken minus their own set's mean and renormalised (center_sets): what all
+landmarks of one image share (its season, light, weather) stops counting as similarity, and the pairs
+and S are decided by what makes the places differ.
 All K candidates are done with array operations (no Python loop per candidate), in chunks whose
 similarity tensor is bounded (MATCH_CHUNK_ELEMENTS): memory per query does not grow with K x n_max.
 """
@@ -20,7 +24,26 @@ from .landmarks import LandmarkBatch, LandmarkSet, stack_landmarks
 
 default_conf = {
     'scale': 1.0,  # Gaussian width of the offset weights, in grid cells
+    # each set minus its own mean landmark before matching (center_sets); off, as in the paper: on
+    # (lln-eval --similarity-center) it gains under condition change and loses elsewhere (shipped
+    # head, top-n 50, landmark first stage, P@100%R: Nordland validation 0.6:0.7 44.0 -> 51.8;
+    # essex3in1 64.3 -> 60.5, rtabmap_loop R@100%P 70.5 -> 50.0, the side-view fold 45.2 -> 34.0;
+    # docs/method.md). S is smaller on centred sets: min_score is chosen for one setting
+    'center': False,
 }
+
+
+def center_sets(descriptors: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Padded sets (K, n, D) minus the mean of each set's valid landmarks (valid (K, n) bool),
+    renormalised: float32 (K, n, D). A set of one landmark keeps it as it is (its mean is itself),
+    as landmark_index.center does; padded rows stay as given (they are never matched)."""
+    x = np.asarray(descriptors, np.float32)
+    count = valid.sum(axis=1)  # (K,)
+    mean = np.einsum('knd,kn->kd', x, valid.astype(np.float32)) / np.maximum(count, 1)[:, None]
+    mean[count < 2] = 0.0
+    out = x - mean[:, None, :]
+    out /= np.maximum(np.linalg.norm(out, axis=2, keepdims=True), 1e-12)
+    return np.where(valid[:, :, None], out, x)
 
 
 @dataclass
@@ -149,24 +172,30 @@ def chunk_size(n_a: int, n_b: int, d: int, cap: int | None = None) -> int:
     return max(1, cap // max(1, n_b * d))
 
 
-def match_batch(query: LandmarkSet, batch: LandmarkBatch, scale: float = 1.0) -> MatchResult:
+def match_batch(
+    query: LandmarkSet, batch: LandmarkBatch, scale: float = 1.0, center: bool | None = None
+) -> MatchResult:
     """Similarity S of one query against every set in a LandmarkBatch (an already padded stack),
-    in chunks of chunk_size() candidates, each cut to its own longest set."""
+    in chunks of chunk_size() candidates, each cut to its own longest set. center: centre every set
+    first (center_sets; None = default_conf['center'])."""
     k, n_b, d = batch.descriptors.shape
     if d != query.dim:
         raise DescriptorError(f'descriptor size mismatch: query has D={query.dim}, candidates have D={d}')
     step = chunk_size(len(query), n_b, d)
+    center = default_conf['center'] if center is None else bool(center)
     if k <= step:
-        return _match_chunk(query, batch, scale)
+        return _match_chunk(query, batch, scale, center)
     parts = []
     for start in range(0, k, step):
         part = batch.take(np.arange(start, min(k, start + step)))
         used = int(part.valid.any(axis=0).nonzero()[0].max(initial=-1)) + 1
-        parts.append(_match_chunk(query, _cut(part, max(used, 1)), scale))
+        parts.append(_match_chunk(query, _cut(part, max(used, 1)), scale, center))
     return _concat(parts)
 
 
-def match_sets(query: LandmarkSet, sets: list[LandmarkSet], scale: float = 1.0) -> MatchResult:
+def match_sets(
+    query: LandmarkSet, sets: list[LandmarkSet], scale: float = 1.0, center: bool | None = None
+) -> MatchResult:
     """match_batch against a list of sets (results in list order) without padding them all to the
     longest: the sets are grouped by landmark count (sorted) and stacked chunk by chunk, so the
     stacked descriptors and the similarity blocks stay within MATCH_CHUNK_ELEMENTS floats (one
@@ -186,7 +215,7 @@ def match_sets(query: LandmarkSet, sets: list[LandmarkSet], scale: float = 1.0) 
                 break
             stop += 1
         chunk = order[start:stop]
-        parts.append(match_batch(query, stack_landmarks([sets[i] for i in chunk]), scale))
+        parts.append(match_batch(query, stack_landmarks([sets[i] for i in chunk]), scale, center))
         idx.append(chunk)
         start = stop
     merged = _concat(parts)
@@ -204,10 +233,13 @@ def _concat(parts: list[MatchResult]) -> MatchResult:
     return MatchResult(*(np.concatenate([getattr(p, f) for p in parts]) for f in fields))
 
 
-def _match_chunk(query: LandmarkSet, batch: LandmarkBatch, scale: float) -> MatchResult:
+def _match_chunk(query: LandmarkSet, batch: LandmarkBatch, scale: float, center: bool) -> MatchResult:
     q = np.asarray(query.descriptors, np.float32)
     valid_q = np.ones(len(q), bool)
-    match, sims = cross_match(q, np.asarray(batch.descriptors, np.float32), valid_q, batch.valid)
+    cands = np.asarray(batch.descriptors, np.float32)
+    if center:
+        q, cands = center_sets(q[None], valid_q[None])[0], center_sets(cands, batch.valid)
+    match, sims = cross_match(q, cands, valid_q, batch.valid)
     matched = match >= 0
     partner = np.take_along_axis(batch.cells, np.maximum(match, 0)[:, :, None], axis=1)  # (K, n_a, 2)
     offsets = (query.cells[None, :, :] - partner).astype(np.int64)
@@ -217,10 +249,10 @@ def _match_chunk(query: LandmarkSet, batch: LandmarkBatch, scale: float) -> Matc
     return MatchResult(scores.astype(np.float32), mode, match, sims, weight)
 
 
-def match_pair(a: LandmarkSet, b: LandmarkSet, scale: float = 1.0) -> MatchResult:
+def match_pair(a: LandmarkSet, b: LandmarkSet, scale: float = 1.0, center: bool | None = None) -> MatchResult:
     """Similarity of two landmark sets: match_batch with K = 1."""
     check_comparable(a, b)
-    return match_batch(a, stack_landmarks([b]), scale)
+    return match_batch(a, stack_landmarks([b]), scale, center)
 
 
 def check_comparable(a: LandmarkSet, b: LandmarkSet) -> None:

@@ -65,6 +65,7 @@ from ..core.retrieval import default_conf as retrieval_defaults
 from ..core.sequence import check_conf as sequence_conf
 from ..core.sequence import default_conf as sequence_defaults
 from ..core.sequence import sad_conf
+from ..core.similarity import default_conf as similarity_defaults
 from ..core.similarity import match_batch
 from ..errors import DatasetError
 from ..io.features import FeatureCache
@@ -96,6 +97,7 @@ default_conf = {
     # X+seq rows of local methods rerank this many first-stage candidates (retrieval.candidates_k)
     'sequence_prefilter_k': retrieval_defaults['sequence_prefilter_k'],
     'scale': retrieval_defaults['scale'],  # offset-weight width in grid cells (similarity)
+    'similarity_center': similarity_defaults['center'],  # S on each set minus its mean (similarity)
     'sequence': 0,  # L > 0: an `X+seq` row per holistic/local row (sequence length L)
     'seqslam_length': sequence_defaults['length'],  # seqslam's L when 'sequence' is 0
     'timing_images': 5,  # images per dataset the extraction is timed on
@@ -196,6 +198,7 @@ def evaluate_dataset(
         methods = [m for m in methods if m != 'seqslam']
         conf = {**conf, 'sequence': 0}
     top_n, scale = int(conf['top_n']), float(conf['scale'])
+    center = bool(conf['similarity_center'])
     k = int(conf['prefilter_k']) or len(ds.ref_paths)  # 0: every reference
     prefilter, _ = check_prefilter(conf['prefilter'], conf['prefilter_k'])
     height = int(extractor.conf['input_height'])
@@ -275,11 +278,18 @@ def evaluate_dataset(
             if seq_len and k_seq != int(conf['prefilter_k']):
                 # one first stage of k_seq candidates, one rerank: the single-frame row is its first K
                 (ranked, scores), seq_bases[row] = rank_all_at(
-                    qs, batch, (int(conf['prefilter_k']), k_seq), ds.candidates, scale, prefilter, index=index
+                    qs,
+                    batch,
+                    (int(conf['prefilter_k']), k_seq),
+                    ds.candidates,
+                    scale,
+                    prefilter,
+                    index=index,
+                    center=center,
                 )
             else:
                 ranked, scores = rank_all(
-                    qs, batch, k, allowed=ds.candidates, scale=scale, prefilter=prefilter, index=index
+                    qs, batch, k, allowed=ds.candidates, scale=scale, prefilter=prefilter, index=index, center=center
                 )
             # the paper's protocol: the same holistic top-K for every local method, only reordered
             same = prefilter != 'holistic' or all(
@@ -295,7 +305,7 @@ def evaluate_dataset(
             extract_jobs[row] = [(extraction_job(v, im), 1) for im in timing_images]
             # keep only what the timed reranks need (the candidates of a few queries), not the map
             match_jobs[row] = [
-                (functools.partial(match_batch, qs[q], batch.take(c[c >= 0]), scale), int((c >= 0).sum()))
+                (functools.partial(match_batch, qs[q], batch.take(c[c >= 0]), scale, center), int((c >= 0).sum()))
                 for q, c in timed
             ]
             n = int(np.median([len(s) for s in qs]))
@@ -440,6 +450,7 @@ def evaluate(
             'prefilter_k': int(conf['prefilter_k']),
             'sequence_prefilter_k': candidates_k(conf['prefilter_k'], conf['sequence_prefilter_k'], True),
             'scale': float(conf['scale']),
+            'similarity_center': bool(conf['similarity_center']),
             'prefilter': check_prefilter(conf['prefilter'], conf['prefilter_k'])[0],
             'input_height': int(extractor.conf['input_height']),
             'backbone': extractor.conf['backbone']['name'],
