@@ -430,8 +430,10 @@ class MilvusMapStore(
                 self._unsealed = 0
             return new_ids
 
-    def _holistic(self, lset: LandmarkSet, k: int, below: int | None) -> tuple[np.ndarray, np.ndarray, dict]:
-        """The holistic first stage: one Milvus search that also returns the hits' landmarks."""
+    def _holistic(
+        self, lset: LandmarkSet, k: int, below: int | None, fetch: bool = True
+    ) -> tuple[np.ndarray, np.ndarray, dict]:
+        """The holistic first stage: one Milvus search, then the hits' landmarks (fetch=False: none)."""
         with self._errors('query'):
             where = f'id < {int(below)}' if below is not None else ''
             hits = self._client.search(
@@ -449,6 +451,8 @@ class MilvusMapStore(
             hits = [h for h in hits if int(h['id']) in live]
             ids = np.array([int(h['id']) for h in hits], np.int64)
             hol = np.array([float(h['distance']) for h in hits], np.float32)
+            if not fetch:
+                return hol, ids, {}
             sets = self._fetch(ids)
             keep = np.array([int(i) in sets for i in ids], bool)  # a damaged row was just quarantined
             return hol[keep], ids[keep], sets

@@ -334,9 +334,11 @@ class SQLiteMapStore(
                 self._ids.sort()
             return new_ids
 
-    def _holistic(self, lset: LandmarkSet, k: int, below: int | None) -> tuple[np.ndarray, np.ndarray, dict]:
+    def _holistic(
+        self, lset: LandmarkSet, k: int, below: int | None, fetch: bool = True
+    ) -> tuple[np.ndarray, np.ndarray, dict]:
         hol, ids = self._index.search(lset.global_descriptor, k, below=below)
-        return hol, ids, self._fetch(ids)
+        return hol, ids, self._fetch(ids) if fetch else {}
 
     # keypoints for verification (reloc.py): an optional table, created on first use, so maps
     # without it stay valid and readable; rows go with their keyframe (ON DELETE CASCADE)
