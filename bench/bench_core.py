@@ -37,7 +37,7 @@ import torch  # noqa: E402
 from lln_ros.core.extractor import Extractor, default_conf  # noqa: E402
 from lln_ros.core.landmarks import stack_landmarks  # noqa: E402
 from lln_ros.core.similarity import match_batch  # noqa: E402
-from lln_ros.io.image import load_image, resize_for_network  # noqa: E402
+from lln_ros.io.image import load_image, photo_views, resize_for_network  # noqa: E402
 
 PAPER_MS = {'extract_ms': 16.0, 'lln_50': 6.0, 'lln_75': 13.0, 'all': 27.0, 'holistic': 0.009}
 
@@ -107,25 +107,6 @@ def competing_load(on: bool = True):
     finally:
         proc.kill()
         proc.wait()
-
-
-def photo_views(count: int, width: int, height: int = 288) -> list[np.ndarray]:
-    """`count` different views (width x height, RGB uint8) of the photograph: crops of its aspect,
-    shifted and some mirrored, resized to the size so the network sees them as they are."""
-    import cv2
-    import matplotlib.cbook as cbook
-
-    with cbook.get_sample_data('grace_hopper.jpg') as f:
-        photo = load_image(f.name)
-    ph, pw = photo.shape[:2]
-    cw = min(pw, int(ph * width / height)) * 9 // 10
-    ch = int(cw * height / width)
-    out = []
-    for i in range(count):
-        y, x = (i * 37) % (ph - ch), (i * 53) % (pw - cw)
-        v = cv2.resize(photo[y : y + ch, x : x + cw], (width, height), interpolation=cv2.INTER_AREA)
-        out.append(np.ascontiguousarray(v[:, ::-1] if i % 2 else v))
-    return out
 
 
 RUNTIME_SIZES = ((384, 288), (512, 288), (576, 288))

@@ -1,6 +1,7 @@
 """Frame to answer: a camera image in, the matcher's candidates out, through the code the nodes run.
 
     python bench/bench_frame_to_answer.py [--sizes 1000,10000,100000] [--frames 60] [--threads 2]
+                                          [--runtimes onnxruntime,onnxruntime-int8]
                                           [--sequence 0] [--dir /tmp/lln_bench_f2a] [--json]
 
 Per frame, in this process and in the nodes' order: Extractor.__call__ (the extractor node's
@@ -16,7 +17,8 @@ keyframes' images again, brightened by 20% and with Gaussian pixel noise (sigma 
 says the map still answers.
 
 Each size is measured twice in one run, quiet (no process of ours besides this one) and beside one
-competing CPU-bound process this script starts and stops: p50 / p90 / p99 wall ms per frame, the
+competing CPU-bound process this script starts and stops, for each --runtimes entry (the
+extractor's runtime; the map is built with the first): p50 / p90 / p99 wall ms per frame, the
 CPU ms per frame (process time, all threads), and the p50 of each stage. The load average at the
 start of each row is printed: on a shared machine "quiet" means "nothing else of ours".
 """
@@ -98,6 +100,9 @@ def main(argv=None) -> int:
     ap.add_argument('--sizes', default='1000,10000', help='map sizes, keyframes (100000: ~2 GB in --dir)')
     ap.add_argument('--frames', type=int, default=60, help='frames timed per row')
     ap.add_argument('--threads', type=int, default=2, help="the extractor's runtime threads")
+    ap.add_argument(
+        '--runtimes', default='onnxruntime,onnxruntime-int8', help="the extractor's runtimes, one row set each"
+    )
     ap.add_argument('--sequence', type=int, default=0, help="the matcher's sequence_length (0 = single frame)")
     ap.add_argument('--dir', default='/tmp/lln_bench_f2a')
     ap.add_argument('--json', action='store_true')
@@ -107,7 +112,8 @@ def main(argv=None) -> int:
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
 
-    extractor = Extractor({'num_threads': args.threads})
+    extractors = {r: Extractor({'num_threads': args.threads, 'runtime': r}) for r in args.runtimes.split(',')}
+    extractor = next(iter(extractors.values()))
     rng = np.random.default_rng(0)
     views = photo_views(REAL_KEYFRAMES, 384)
     rows = []
@@ -121,11 +127,14 @@ def main(argv=None) -> int:
             grow(store, size, rng)
             loc = Localizer(store, {'sequence_length': args.sequence})
             loc.query(extractor(queries[0]), T0)  # first query builds what the open left lazy
-            for load in (False, True):
-                start_load = os.getloadavg()[0]
-                with competing_load(load):
-                    r = measure(extractor, loc, queries, truth)
-                rows.append({'keyframes': len(store), 'competing': load, 'load_avg': start_load, **r})
+            for runtime, ex in extractors.items():
+                ex(queries[0])  # warm
+                for load in (False, True):
+                    start_load = os.getloadavg()[0]
+                    with competing_load(load):
+                        r = measure(ex, loc, queries, truth)
+                    row = {'keyframes': len(store), 'runtime': ex.model_info['runtime'], 'competing': load}
+                    rows.append({**row, 'load_avg': start_load, **r})
     if args.json:
         print(json.dumps(rows, indent=1))
     print(table(rows, args))
@@ -136,16 +145,17 @@ def table(rows: list[dict], args) -> str:
     lines = [
         f'frame to answer, 384x288, {args.threads} runtime threads, sequence_length {args.sequence}, '
         f'{args.frames} frames per row ({os.cpu_count()} cores)',
-        f'{"keyframes":>9} {"beside":>10} {"load":>5} {"p50 ms":>7} {"p90 ms":>7} {"p99 ms":>7} '
+        f'{"keyframes":>9} {"runtime":>16} {"beside":>10} {"load":>5} {"p50 ms":>7} {"p90 ms":>7} {"p99 ms":>7} '
         f'{"cpu ms":>7} {"extract":>8} {"query":>7} {"top-1":>6} {"p50/quiet":>9}',
     ]
-    quiet = {r['keyframes']: r['p50'] for r in rows if not r['competing']}
+    quiet = {(r['keyframes'], r['runtime']): r['p50'] for r in rows if not r['competing']}
     for r in rows:
         lines.append(
-            f'{r["keyframes"]:>9} {"1 busy" if r["competing"] else "nothing":>10} {r["load_avg"]:>5.1f} '
+            f'{r["keyframes"]:>9} {r["runtime"]:>16} {"1 busy" if r["competing"] else "nothing":>10} '
+            f'{r["load_avg"]:>5.1f} '
             f'{r["p50"]:>7.1f} {r["p90"]:>7.1f} {r["p99"]:>7.1f} {r["cpu_ms_p50"]:>7.1f} '
             f'{r["extract_ms_p50"]:>8.1f} {r["query_ms_p50"]:>7.1f} {r["top1"]:>6.2f} '
-            f'{r["p50"] / quiet[r["keyframes"]]:>9.2f}'
+            f'{r["p50"] / quiet[r["keyframes"], r["runtime"]]:>9.2f}'
         )
     return '\n'.join(lines)
 

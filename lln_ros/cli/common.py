@@ -128,7 +128,8 @@ def add_runtime_argument(p: argparse.ArgumentParser) -> None:
         '--runtime',
         default=None,
         help='what runs the network: onnxruntime | torch (default onnxruntime, torch when ONNX Runtime is '
-        'not installed); the landmarks are the same. Checked by the extractor, as its conf is',
+        'not installed; the landmarks are the same) | onnxruntime-int8 (the backbone quantised: faster, '
+        'close landmarks). Checked by the extractor, as its conf is',
     )
 
 

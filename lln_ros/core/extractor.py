@@ -37,7 +37,7 @@ default_conf = {
     # untrained choice where the head meets kinds of place it never trained on
     # (docs/generalisation.md, "Unseen kinds of place")
     'act_fusion': 0.0,
-    'runtime': 'onnxruntime',  # torch | onnxruntime (falls back to torch when not installed)
+    'runtime': 'onnxruntime',  # torch | onnxruntime (falls back to torch when not installed) | onnxruntime-int8
     'num_threads': 0,  # intra-op threads of the runtime; 0 = the runtime's default
 }
 

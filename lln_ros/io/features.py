@@ -1,8 +1,9 @@
 """Backbone feature maps computed once and kept on disk.
 
 The backbone is frozen, so training the LLN head and evaluating many methods only ever need its
-output. A cache entry is keyed by the descriptor space (backbone/layer/D), the network input size
-rule and the image file's content (sha1 of its bytes), so renaming files costs nothing and
+output. A cache entry is keyed by the descriptor space (backbone/layer/D), the runtime's precision (int8
+features are close to, not equal to, float ones: their own folder), the network input size rule and
+the image file's content (sha1 of its bytes), so renaming files costs nothing and
 changing any of them never returns stale features.
 
     cache = FeatureCache('cache/features', extractor)
@@ -43,7 +44,12 @@ def resize_to(rgb: np.ndarray, size) -> np.ndarray:
 class FeatureCache:
     def __init__(self, root: str | os.PathLike, extractor, batch_size: int = 8):
         self.extractor = extractor
-        self.root = Path(root) / extractor.descriptor_space.replace('/', '_')
+        from ..core.runtime import QUANT_VERSION
+
+        int8 = getattr(extractor.network, 'runtime', '') == 'onnxruntime-int8'
+        self.root = Path(root) / (
+            extractor.descriptor_space.replace('/', '_') + (f'_int8q{QUANT_VERSION}' if int8 else '')
+        )
         self.batch_size = batch_size
 
     def _path(self, digest: str, size) -> Path:

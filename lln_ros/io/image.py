@@ -76,6 +76,26 @@ def load_image(path: str) -> np.ndarray:
     return check_image(bgr, 'bgr')
 
 
+def photo_views(count: int, width: int, height: int = 288, sample: str = 'grace_hopper.jpg') -> list[np.ndarray]:
+    """`count` different views (width x height, RGB uint8) of a photograph that ships with matplotlib
+    (an exec dependency, so every install has it): crops of the size's aspect, shifted and every
+    second one mirrored, resized so the network sees them as they are. The benchmarks' frames and
+    the int8 runtime's calibration images (core.runtime)."""
+    import matplotlib.cbook as cbook
+
+    with cbook.get_sample_data(sample) as f:
+        photo = load_image(f.name)
+    ph, pw = photo.shape[:2]
+    cw = min(pw, int(ph * width / height)) * 9 // 10
+    ch = int(cw * height / width)
+    out = []
+    for i in range(count):
+        y, x = (i * 37) % max(1, ph - ch), (i * 53) % max(1, pw - cw)
+        v = cv2.resize(photo[y : y + ch, x : x + cw], (width, height), interpolation=cv2.INTER_AREA)
+        out.append(np.ascontiguousarray(v[:, ::-1] if i % 2 else v))
+    return out
+
+
 # ---------------------------------------------------------------------------------------- heatmaps
 # OpenCV only (no matplotlib): the extractor node draws its `activation` image with these
 
