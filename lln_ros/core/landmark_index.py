@@ -50,6 +50,7 @@ bench/bench_landmark_index.py.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -197,6 +198,21 @@ def fill(ids: np.ndarray, scores: np.ndarray, holistic_ids: np.ndarray, k: int) 
     ).astype(np.float32)
 
 
+@contextlib.contextmanager
+def one_faiss_thread():
+    """FAISS's OpenMP threads at one inside, restored after: for every search of one query, and the
+    k-means. Its threads wait for each other at every barrier, and on a shared 2-core machine they
+    also wait for the extractor's. One query's kNN gains nothing from them. Frame to answer beside one
+    busy process (bench_frame_to_answer, 2026-12-05): query p50 13.0 ms at 1k keyframes and 17.5 at
+    10k with one thread, against 26.7 and 45.2 with two."""
+    threads = faiss.omp_get_max_threads()
+    faiss.omp_set_num_threads(1)
+    try:
+        yield
+    finally:
+        faiss.omp_set_num_threads(threads)
+
+
 def center(descriptors: np.ndarray, keyframe_ids: np.ndarray | None = None) -> np.ndarray:
     """Descriptors (N, D) minus the mean of their keyframe's (keyframe_ids (N,); None = one set),
     renormalised to unit length (float32 (N, D)): conf['landmark_center']. A keyframe of one landmark
@@ -286,14 +302,9 @@ class LandmarkIndex:
             if len(x) <= self.conf['landmark_train_points']
             else x[np.sort(rng.choice(len(x), int(self.conf['landmark_train_points']), replace=False))]
         )
-        # one OpenMP thread for the k-means: on a shared 2-core machine FAISS's threads wait for each
-        # other at every barrier, and a 2,000-landmark training under load took over 10 minutes
-        threads = faiss.omp_get_max_threads()
-        faiss.omp_set_num_threads(1)
-        try:
+        # one_faiss_thread: a 2,000-landmark training under load took over 10 minutes with two
+        with one_faiss_thread():
             index.train(np.ascontiguousarray(sample, np.float32))
-        finally:
-            faiss.omp_set_num_threads(threads)
         index.nprobe = int(self.conf['landmark_nprobe'])
         self.trained_on = n
         return index
@@ -399,7 +410,8 @@ class LandmarkIndex:
                 if self.kind != 'exact'
                 else faiss.SearchParameters(sel=sel)
             )
-        sims, ids = self.index.search(q, int(k), params=params)
+        with one_faiss_thread():
+            sims, ids = self.index.search(q, int(k), params=params)
         kf, cells = decode_ids(ids)
         return sims, kf, cells
 

@@ -8,6 +8,8 @@ import logging
 import faiss
 import numpy as np
 
+from ..core.landmark_index import one_faiss_thread
+
 log = logging.getLogger(__name__)
 
 
@@ -75,7 +77,10 @@ class GlobalIndex:
                 if self.kind == 'ivf'
                 else faiss.SearchParameters(sel=selector)
             )
-        scores, ids = self.index.search(np.ascontiguousarray(q, np.float32).reshape(1, self.dim), int(k), params=params)
+        with one_faiss_thread():  # one query: FAISS's threads only wait (landmark_index.one_faiss_thread)
+            scores, ids = self.index.search(
+                np.ascontiguousarray(q, np.float32).reshape(1, self.dim), int(k), params=params
+            )
         keep = ids[0] >= 0
         return scores[0][keep], ids[0][keep]
 
