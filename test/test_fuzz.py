@@ -358,10 +358,10 @@ def test_batched_match_at_the_landmark_limit(counts, n_q, seed):
     sets, query = [grid_set(rng, n) for n in counts], grid_set(rng, n_q)
     seen, inner = [], similarity._match_chunk
 
-    def recording(q, batch, scale):
+    def recording(q, batch, *args):
         k, n_b, d = batch.descriptors.shape
         seen.append((k, n_b, d))
-        return inner(q, batch, scale)
+        return inner(q, batch, *args)
 
     similarity._match_chunk = recording
     try:
