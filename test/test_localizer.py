@@ -479,3 +479,37 @@ def test_a_poisoned_keyframe_from_an_older_map_costs_little(map_path, rng):
         tracemalloc.stop()
     assert answer is not None and len(answer.rows) == 2
     assert peak < 64 * 2**20, f'{peak / 2**20:.0f} MB traced for one query'
+
+
+def test_a_query_runs_its_arithmetic_on_one_thread_and_restores_the_pools(map_path, rng):
+    """core.threads.one_thread around Localizer.query: inside the map's query every BLAS library
+    and FAISS run one thread (two only waited, and spun on the extractor's core); after it, the
+    process's pools are as they were."""
+    import faiss
+    from threadpoolctl import threadpool_info
+
+    def pools():
+        return {
+            (p['internal_api'], p['filepath']): p['num_threads'] for p in threadpool_info()
+        }, faiss.omp_get_max_threads()
+
+    seen = []
+    store, _ = open_map(map_path, 'localization', SPACE)
+    with store:
+        inner = store.query
+
+        def query(*args, **kwargs):
+            seen.append(pools())
+            return inner(*args, **kwargs)
+
+        store.query = query
+        loc = Localizer(store, {'k': 3})
+        sets = [make_set(rng) for _ in range(3)]
+        for i, s in enumerate(sets):
+            keyframe(loc, s, i)
+        faiss.omp_set_num_threads(2)
+        before = pools()
+        assert ask(loc, sets[1], 100).rows[0]['keyframe_id'] == 2
+        assert pools() == before
+    blas, omp = seen[0]
+    assert omp == 1 and blas and all(n == 1 for (api, _), n in blas.items() if api != 'openmp'), blas

@@ -50,7 +50,6 @@ bench/bench_landmark_index.py.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import os
@@ -62,6 +61,7 @@ import numpy as np
 
 from ..errors import MapError
 from .similarity import offset_mode, offset_weights
+from .threads import one_faiss_thread
 
 log = logging.getLogger(__name__)
 
@@ -196,21 +196,6 @@ def fill(ids: np.ndarray, scores: np.ndarray, holistic_ids: np.ndarray, k: int) 
     return np.concatenate([ids, extra]).astype(np.int64), np.concatenate(
         [scores, np.zeros(len(extra), np.float32)]
     ).astype(np.float32)
-
-
-@contextlib.contextmanager
-def one_faiss_thread():
-    """FAISS's OpenMP threads at one inside, restored after: for every search of one query, and the
-    k-means. Its threads wait for each other at every barrier, and on a shared 2-core machine they
-    also wait for the extractor's. One query's kNN gains nothing from them. Frame to answer beside one
-    busy process (bench_frame_to_answer, 2026-12-05): query p50 13.0 ms at 1k keyframes and 17.5 at
-    10k with one thread, against 26.7 and 45.2 with two."""
-    threads = faiss.omp_get_max_threads()
-    faiss.omp_set_num_threads(1)
-    try:
-        yield
-    finally:
-        faiss.omp_set_num_threads(threads)
 
 
 def center(descriptors: np.ndarray, keyframe_ids: np.ndarray | None = None) -> np.ndarray:

@@ -19,7 +19,6 @@ docs/interfaces.md §3.6) keep these sums for every input:
 
 (queries_stored: mapping mode's queries stored as keyframes; those the keyframe gate refuses are
 queries_not_stored. The metric side, camera, odometry, poses and gating, is core.registration's: loc.reg.)
-
 *_failed: the map, not the message, was at fault (a keyframe damaged after start, a write that
 failed, or an internal error): the message is not blamed as bad_*.
 """
@@ -38,6 +37,7 @@ from .pending import Pending, keep_newest
 from .retrieval import candidates_k
 from .retrieval import default_conf as retrieval_conf
 from .sequence import KeyframeSequence
+from .threads import one_thread
 
 default_conf = {
     'mode': 'localization',  # localization: answer queries only | mapping: answer, then store each query
@@ -56,9 +56,8 @@ default_conf = {
     'verify_margin': 1.0,
     'sequence_length': 0,  # 0 = single-frame ranking
     'sequence_max_gap': 1.0,
-    # verify: bytes of keypoints messages waiting for their landmark set (the oldest are evicted,
-    # counted as keypoints_evicted): 100 default messages of 500 keypoints are 2.8 MB; before
-    # (issue 25) 100 messages declaring 1 row and carrying 8 MB each stayed resident, 816 MB
+    # verify: bytes of keypoints messages waiting for their landmark set (the oldest are evicted, as
+    # keypoints_evicted): 100 of 500 keypoints are 2.8 MB; 100 declaring 1 row, 8 MB each were 816 MB
     'pending_keypoints_bytes': 16 * 2**20,
     'limits': limits_mod.default_conf,
     # the metric side (camera, depth, odometry, poses, gating): lln_ros.core.registration.default_conf
@@ -334,7 +333,8 @@ class Localizer:
             self.counters.problem('bad_query', str(e))
             return None
         try:
-            return self._answer(lset, stamp_ns)
+            with one_thread():  # one query's arithmetic is too small to split (core.threads)
+                return self._answer(lset, stamp_ns)
         except Exception as e:  # noqa: BLE001  MapError: the map's fault; anything else: ours
             self._failed('queries_failed', e)
             return None

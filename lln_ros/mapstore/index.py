@@ -8,7 +8,7 @@ import logging
 import faiss
 import numpy as np
 
-from ..core.landmark_index import one_faiss_thread
+from ..core.threads import one_faiss_thread
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +77,7 @@ class GlobalIndex:
                 if self.kind == 'ivf'
                 else faiss.SearchParameters(sel=selector)
             )
-        with one_faiss_thread():  # one query: FAISS's threads only wait (landmark_index.one_faiss_thread)
+        with one_faiss_thread():  # one query: FAISS's threads only wait (core.threads)
             scores, ids = self.index.search(
                 np.ascontiguousarray(q, np.float32).reshape(1, self.dim), int(k), params=params
             )
