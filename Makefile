@@ -6,7 +6,7 @@ DATA ?= ../shared/data
 export LLN_DATA ?= $(abspath $(DATA))
 NORDLAND := aligned:$(DATA)/nordland_trimmed/summer,$(DATA)/nordland_trimmed/winter,1
 
-.PHONY: setup test main results train loo bench bench-map bench-scale bench-writers bench-fleet bench-fleet-milvus colcon clean
+.PHONY: setup test main results train whitening loo bench bench-map bench-scale bench-writers bench-fleet bench-fleet-milvus colcon clean
 
 setup:
 	bash scripts/setup.sh
@@ -34,6 +34,11 @@ train: setup
 	  --norm-prior 1 --data $(NORDLAND) --val $(NORDLAND) --data $(RTABMAP) --val $(RTABMAP) \
 	  --data $(ESSEX) --val $(ESSEX) --data $(TUM) --val $(TUM) $(ARGS)
 	cp out/train/best.pt lln_ros/weights/lln_efficientnet_lite0_stage6.pt
+
+# the landmark first stage's learned whitening, lln_ros/weights/whiten_efficientnet_lite0_stage6.npz, from
+# Nordland's training part 0:0.6 (summer/winter pairs; docs/method.md, Whitening; ~2 min + features)
+whitening: setup
+	$(PY) scripts/learn_whitening.py --data $(NORDLAND) --range 0:0.6 --cache $${LLN_CACHE:-cache/features} $(ARGS)
 
 # leave-one-dataset-out validation of training recipes (docs/generalisation.md; ~1 h on 2 idle cores)
 loo: setup

@@ -10,7 +10,8 @@ alone (landmark_index.LandmarkIndex.shortlist, k = prefilter_k, no holistic top-
 - does the compressed index lose the references, or do the distractors outscore them? (--kinds:
   'exact' is brute-force inner product over the same vectors, ~6 min per row at 10k keyframes);
 - what centring each image's landmarks on their mean does (landmark_center, with its tau: raw
-  descriptors at tau 0.35, the setting before, against centred at tau 0.0, the default);
+  descriptors at tau 0.35, the setting before, against centred at tau 0.0), and the learned
+  whitening after it (landmark_whitening, core.whitening; the default);
 - whose keyframes win: the kinds of the top-1 keyframe (a reference, or a distractor by source).
 
 --range 0.6:0.7 swaps the test references for the validation part of the route (summer 0.6:0.7,
@@ -40,7 +41,11 @@ from lln_ros.io.features import FeatureCache  # noqa: E402
 from lln_ros.mapstore import MapStore  # noqa: E402
 
 TEST_REFS = 1073  # the Nordland test split's references, the first keyframes of the bench's map
-SETTINGS = {'raw, tau 0.35': {'landmark_center': False, 'landmark_tau': 0.35}, 'centred, tau 0': {}}
+SETTINGS = {
+    'raw, tau 0.35': {'landmark_center': False, 'landmark_tau': 0.35, 'landmark_whitening': False},
+    'centred, tau 0': {'landmark_whitening': False},
+    'whitened, tau 0': {},
+}
 
 
 def source_kinds(data: Path, n_refs: int, n_map: int) -> list[str]:
@@ -61,7 +66,7 @@ def first_stage(sets, queries, gt, n_refs, kind, conf, k) -> tuple[dict, Counter
     conf = {**conf, 'landmark_index_threshold': 1 << 40 if kind == 'exact' else 0}
     if kind != 'exact':
         conf['landmark_compressed'] = kind
-    index = LandmarkIndex(sets[0].dim, conf)
+    index = LandmarkIndex(sets[0].dim, conf, sets[0].descriptor_space)
     # build: trained on a sample of every landmark, as a map store's rebuild trains it
     index.build(
         np.concatenate([s.descriptors for s in sets]),

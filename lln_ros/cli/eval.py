@@ -76,6 +76,12 @@ def build_parser() -> argparse.ArgumentParser:
         help='S on each landmark set minus its own mean (similarity.center_sets; docs/method.md)',
     )
     p.add_argument(
+        '--landmark-whitening',
+        action=argparse.BooleanOptionalAction,
+        default=conf['landmark_whitening'],
+        help="the landmark first stage whitens with the model's shipped whitening (core.whitening; docs/method.md)",
+    )
+    p.add_argument(
         '--sequence',
         type=int,
         default=conf['sequence'],
@@ -284,6 +290,7 @@ def run(args, argv) -> dict:
         'prefilter_k': args.prefilter_k,
         'scale': args.scale,
         'similarity_center': args.similarity_center,
+        'landmark_whitening': args.landmark_whitening,
         'sequence': args.sequence,
         'sequence_prefilter_k': args.sequence_prefilter_k,
         'timing_images': args.timing_images,

@@ -12,9 +12,9 @@ change much better, and matching each query landmark against every map landmark 
 
 Scoring (score_hits) -- an approximation of the paper's S computed from the kNN hits only:
   0. centring (center, conf['landmark_center']): the index holds every landmark minus the mean of
-     its keyframe's landmarks, renormalised, and a query is centred on its own mean. What every
-     landmark of an image shares is its condition (snow, dusk); on Nordland winter queries in a map
-     with winter views of other places, raw cosines let that condition outvote the place;
+     its keyframe's landmarks, renormalised (a query: minus its own mean), then whitened (W x,
+     core.whitening). What every landmark of an image shares is its condition (snow, dusk), and
+     raw cosines let it outvote the place in a map with winter views of other places;
   1. every query landmark i retrieves its `knn` nearest map landmarks by cosine s (FAISS);
   2. burstiness: a query landmark votes at most once per keyframe (its best hit there), and a map
      landmark takes at most one query landmark (its best); ASMK / DELF limit repeated structure
@@ -60,6 +60,7 @@ import faiss
 import numpy as np
 
 from ..errors import MapError
+from . import whitening
 from .similarity import offset_mode, offset_weights
 from .threads import one_faiss_thread
 
@@ -77,6 +78,9 @@ default_conf = {
     # alone R@1 0.342 -> 0.459 (bench/bench_first_stage_scale.py --range 0.6:0.7, docs/benchmarks.md,
     # Accuracy at scale). False: the raw descriptors.
     'landmark_center': True,
+    # then x -> W x, renormalised, with the descriptor space's shipped whitening (core.whitening: the
+    # directions in which one place's landmarks change between visits count less); none ships: no-op
+    'landmark_whitening': True,
     'landmark_tau': 0.0,  # cosine below which a hit does not vote (0.35 on raw, uncentred descriptors)
     'landmark_alpha': 3.0,  # selectivity exponent of a hit's vote
     # Switch-over rule: exact search (IndexFlatIP: recall 1, D multiply-adds per query landmark and
@@ -228,9 +232,12 @@ class LandmarkIndex:
     With conf['landmark_center'] it holds center()ed descriptors: every entry point that takes stored
     descriptors (add, build, train) centres them by keyframe, and search centres the query."""
 
-    def __init__(self, dim: int, conf: dict | None = None):
+    def __init__(self, dim: int, conf: dict | None = None, space: str = ''):
+        """space: the descriptor space ('backbone/layer/D'), which picks the shipped whitening."""
         self.dim = int(dim)
         self.conf = {**default_conf, **(conf or {})}
+        self.space = space
+        self.whitening = whitening.shipped(space) if self.conf['landmark_whitening'] and space else None
         self.index = self._exact()
         self.trained_on = 0  # landmarks the IVF-PQ was trained on (0: exact)
 
@@ -296,10 +303,15 @@ class LandmarkIndex:
 
     def prepare(self, descriptors: np.ndarray, keyframe_ids: np.ndarray | None = None) -> np.ndarray:
         """The vectors this index holds for stored descriptors (N, D) of keyframe_ids (N,) (None =
-        one keyframe or one query): centre()d when conf['landmark_center'], else as given."""
+        one keyframe or one query): centre()d when conf['landmark_center'], then whitened (W x,
+        renormalised) when the index has a whitening, else as given."""
+        x = np.ascontiguousarray(descriptors, np.float32).reshape(-1, self.dim)
         if self.conf['landmark_center']:
-            return center(descriptors, keyframe_ids)
-        return np.ascontiguousarray(descriptors, np.float32).reshape(-1, self.dim)
+            x = center(x, keyframe_ids)
+        if self.whitening is None:
+            return x
+        x = x @ self.whitening.T
+        return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
 
     def needs_rebuild(self) -> bool:
         """An IVF-PQ trained on far fewer landmarks than it now holds (its cells are overfull and
@@ -421,6 +433,7 @@ class LandmarkIndex:
                 'landmarks': self.ntotal,
                 'trained_on': self.trained_on,
                 'center': bool(self.conf['landmark_center']),
+                'whitening': whitening.fingerprint(self.whitening),
                 'crc32': zlib.crc32(blob),
             }
         ).encode()
@@ -439,7 +452,7 @@ class LandmarkIndex:
                 os.remove(tmp)
 
     @classmethod
-    def read(cls, path: str, dim: int, conf: dict | None = None) -> tuple['LandmarkIndex', dict]:
+    def read(cls, path: str, dim: int, conf: dict | None = None, space: str = '') -> tuple['LandmarkIndex', dict]:
         """(index, header) from a file `write` made; MapError naming the problem when it is
         truncated, corrupt (CRC), of another descriptor size or not a landmark index at all."""
         try:
@@ -467,7 +480,12 @@ class LandmarkIndex:
                 f'landmark index {path} holds {type(index).__name__} of D={index.d} with '
                 f'{index.ntotal} landmarks; expected D={dim} and {header.get("landmarks")}'
             )
-        out = cls(dim, conf)
+        out = cls(dim, conf, space)
+        if header.get('whitening', '') != whitening.fingerprint(out.whitening):
+            raise MapError(
+                f'landmark index {path} holds vectors whitened with {header.get("whitening") or "nothing"}; '
+                f'this conf whitens with {whitening.fingerprint(out.whitening) or "nothing"}'
+            )
         if bool(header.get('center', False)) != bool(out.conf['landmark_center']):
             # a file of an older lln_ros (raw descriptors) or of another setting: its vectors are not
             # what this conf searches with, so the owner rebuilds it from the stored descriptors

@@ -103,13 +103,15 @@ def select_landmarks(score_map: np.ndarray, n: int, method: str = 'lln', seed: i
 class LandmarkBatch:
     """Many landmark sets stacked and padded to one n, for batched matching.
 
-    descriptors (K, n, D) float32, cells (K, n, 2) int32, valid (K, n) bool, globals (K, D) float32.
+    descriptors (K, n, D) float32, cells (K, n, 2) int32, valid (K, n) bool, globals (K, D) float32;
+    descriptor_space: the sets' (LandmarkSet.descriptor_space).
     """
 
     descriptors: np.ndarray
     cells: np.ndarray
     valid: np.ndarray
     globals: np.ndarray
+    descriptor_space: str = ''
 
     def __len__(self) -> int:
         return len(self.descriptors)
@@ -117,7 +119,9 @@ class LandmarkBatch:
     def take(self, indices) -> 'LandmarkBatch':
         """The sub-batch of the given set indices, in that order."""
         idx = np.asarray(indices, np.int64)
-        return LandmarkBatch(self.descriptors[idx], self.cells[idx], self.valid[idx], self.globals[idx])
+        return LandmarkBatch(
+            self.descriptors[idx], self.cells[idx], self.valid[idx], self.globals[idx], self.descriptor_space
+        )
 
 
 def stack_landmarks(sets: list[LandmarkSet], dtype=np.float32) -> LandmarkBatch:
@@ -130,7 +134,7 @@ def stack_landmarks(sets: list[LandmarkSet], dtype=np.float32) -> LandmarkBatch:
         raise DescriptorError(
             f'cannot stack landmark sets from different models: sizes {sorted(dims)}, spaces {sorted(spaces)}'
         )
-    k, n, d = len(sets), max(len(s) for s in sets), dims.pop()
+    k, n, d, space = len(sets), max(len(s) for s in sets), dims.pop(), spaces.pop()
     desc = np.zeros((k, n, d), dtype)
     cells = np.zeros((k, n, 2), np.int32)
     valid = np.zeros((k, n), bool)
@@ -140,4 +144,4 @@ def stack_landmarks(sets: list[LandmarkSet], dtype=np.float32) -> LandmarkBatch:
         cells[i, :m] = s.cells
         valid[i, :m] = True
     globals_ = np.stack([s.global_descriptor for s in sets]).astype(np.float32)
-    return LandmarkBatch(desc, cells, valid, globals_)
+    return LandmarkBatch(desc, cells, valid, globals_, space)

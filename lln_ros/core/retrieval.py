@@ -80,7 +80,7 @@ def rerank(
 def batch_index(refs: LandmarkBatch, conf: dict | None = None) -> LandmarkIndex:
     """The landmark index of a stacked map: every valid landmark, keyed by its set's position."""
     k, n, d = refs.descriptors.shape
-    index = LandmarkIndex(d, {**default_conf, **(conf or {})})
+    index = LandmarkIndex(d, {**default_conf, **(conf or {})}, refs.descriptor_space)
     owner = np.broadcast_to(np.arange(k)[:, None], (k, n))[refs.valid]
     index.add(refs.descriptors[refs.valid], owner, refs.cells[refs.valid])
     return index
@@ -277,7 +277,7 @@ class LandmarkDatabase:
             if self.descriptor_space is None:
                 self.descriptor_space = s.descriptor_space
                 self.index = faiss.IndexFlatIP(s.dim)
-                self.landmarks = LandmarkIndex(s.dim, self.conf)
+                self.landmarks = LandmarkIndex(s.dim, self.conf, s.descriptor_space)
             elif s.descriptor_space != self.descriptor_space or s.dim != self.index.d:
                 raise DescriptorError(
                     f'map holds {self.descriptor_space!r} descriptors (D={self.index.d}); '

@@ -58,6 +58,7 @@ import torch
 from ..core import metrics
 from ..core.extractor import default_conf as extractor_defaults
 from ..core.landmark_index import check_prefilter
+from ..core.landmark_index import default_conf as landmark_index_defaults
 from ..core.landmarks import LandmarkSet, l2_normalize, stack_landmarks
 from ..core.lln import head_fingerprint
 from ..core.retrieval import batch_index, candidates_k, rank_all, rank_all_at
@@ -98,6 +99,7 @@ default_conf = {
     'sequence_prefilter_k': retrieval_defaults['sequence_prefilter_k'],
     'scale': retrieval_defaults['scale'],  # offset-weight width in grid cells (similarity)
     'similarity_center': similarity_defaults['center'],  # S on each set minus its mean (similarity)
+    'landmark_whitening': landmark_index_defaults['landmark_whitening'],  # the first stage's (core.whitening)
     'sequence': 0,  # L > 0: an `X+seq` row per holistic/local row (sequence length L)
     'seqslam_length': sequence_defaults['length'],  # seqslam's L when 'sequence' is 0
     'timing_images': 5,  # images per dataset the extraction is timed on
@@ -274,7 +276,8 @@ def evaluate_dataset(
             report_stages = method == 'lln' and stages is None  # the first lln row reports the first stages
             # one landmark index per row, shared by its rerank and its first-stage report; built only
             # where one of them searches it (training it is the expensive part on a large map)
-            index = batch_index(batch) if prefilter == 'landmarks' or report_stages else None
+            lm_conf = {'landmark_whitening': bool(conf['landmark_whitening'])}
+            index = batch_index(batch, lm_conf) if prefilter == 'landmarks' or report_stages else None
             if seq_len and k_seq != int(conf['prefilter_k']):
                 # one first stage of k_seq candidates, one rerank: the single-frame row is its first K
                 (ranked, scores), seq_bases[row] = rank_all_at(
@@ -451,6 +454,7 @@ def evaluate(
             'sequence_prefilter_k': candidates_k(conf['prefilter_k'], conf['sequence_prefilter_k'], True),
             'scale': float(conf['scale']),
             'similarity_center': bool(conf['similarity_center']),
+            'landmark_whitening': bool(conf['landmark_whitening']),
             'prefilter': check_prefilter(conf['prefilter'], conf['prefilter_k'])[0],
             'input_height': int(extractor.conf['input_height']),
             'backbone': extractor.conf['backbone']['name'],

@@ -246,7 +246,7 @@ class MapStore(abc.ABC):
     # the landmark index (lln_ros/core/landmark_index.py) kept in step with the stored keyframes
 
     def _new_landmark_index(self) -> LandmarkIndex:
-        return LandmarkIndex(int(self._model['descriptor_dim']), self.conf)
+        return LandmarkIndex(int(self._model['descriptor_dim']), self.conf, self._model['descriptor_space'])
 
     def _landmark_problems(self, stored: dict) -> list[str]:
         """Disagreements between the landmark index and stored {keyframe id: n}."""

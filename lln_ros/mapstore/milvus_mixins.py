@@ -134,7 +134,9 @@ class MilvusLandmarks:
         if not path or not self._uuid or not os.path.exists(path):
             return None
         try:
-            index, header = landmark_index.LandmarkIndex.read(path, int(self._model['descriptor_dim']), self.conf)
+            index, header = landmark_index.LandmarkIndex.read(
+                path, int(self._model['descriptor_dim']), self.conf, self._model['descriptor_space']
+            )
         except MapError as e:
             log.warning('map %s: %s; rebuilding it from the map', self.path, e)
             return None

@@ -96,7 +96,9 @@ class SQLiteLandmarks:
         index, why = None, 'missing'
         if total > self.conf['landmark_index_threshold'] and os.path.exists(self.landmark_path):
             try:
-                index, header = LandmarkIndex.read(self.landmark_path, int(self._model['descriptor_dim']), self.conf)
+                index, header = LandmarkIndex.read(
+                    self.landmark_path, int(self._model['descriptor_dim']), self.conf, self._model['descriptor_space']
+                )
                 if header.get('map_uuid') != self._map_uuid():
                     index, why = None, 'from another map'
             except MapError as e:
