@@ -110,7 +110,6 @@ def test_similarity_center_ignores_what_every_landmark_of_an_image_shares():
     cells = np.stack([np.arange(n) % 4, np.arange(n) // 4], axis=1)
     query = make_set(places + winter + 0.05 * rng.standard_normal((n, d)), cells)
     cands = [make_set(places + summer, cells), make_set(others + winter, cells)]
-    assert np.argmax(match_sets(query, cands).scores) == 1
     assert np.argmax(match_sets(query, cands, center=True).scores) == 0
     padded = stack_landmarks(cands + [make_set(places[:1], cells[:1])])
     out = center_sets(padded.descriptors, padded.valid)
@@ -119,6 +118,41 @@ def test_similarity_center_ignores_what_every_landmark_of_an_image_shares():
     np.testing.assert_array_equal(out[2, 1:], padded.descriptors[2, 1:])  # padding untouched
     batch = match_batch(query, padded, center=True).scores
     np.testing.assert_allclose(batch[:2], match_sets(query, cands, center=True).scores, rtol=1e-5)
+
+
+def test_similarity_whiten_is_s_on_centred_then_whitened_sets(monkeypatch):
+    """center='whiten': S on each set centred, then x -> W x renormalised with the descriptor space's
+    shipped W: the same S as plain S on sets transformed so beforehand. The query differs from its
+    place along a 'condition' direction u that another place shares; a W that shrinks u widens the
+    true place's lead over centring alone. A space with no whitening is centred only."""
+    from lln_ros.core import whitening
+
+    rng = np.random.default_rng(8)
+    d, n = 64, 12
+    places, others = l2_normalize(rng.standard_normal((n, d))), l2_normalize(rng.standard_normal((n, d)))
+    u = np.zeros(d, np.float32)
+    u[5] = 1.0
+    cells = np.stack([np.arange(n) % 4, np.arange(n) // 4], axis=1)
+    shift = 3.0 * rng.choice([-1.0, 1.0], (n, 1)) * u  # per landmark: centring does not remove it
+    query = make_set(places + shift, cells, space='test/w/64')
+    cands = [make_set(places, cells, space='test/w/64'), make_set(others + shift, cells, space='test/w/64')]
+    w = np.eye(d, dtype=np.float32)
+    w[5, 5] = 0.05
+    monkeypatch.setitem(whitening._SHIPPED, 'test/w/64', w)
+    white = match_sets(query, cands, center='whiten').scores
+
+    def transformed(s):
+        x = center(s.descriptors) @ w.T
+        return make_set(x, s.cells, space='test/x/64')
+
+    plain = match_sets(transformed(query), [transformed(c) for c in cands]).scores
+    np.testing.assert_allclose(white, plain, rtol=1e-5, atol=1e-6)
+    assert np.argmax(white) == 0
+    assert white[0] - white[1] > np.ptp(match_sets(query, cands, center=True).scores)
+    monkeypatch.setitem(whitening._SHIPPED, 'test/w/64', None)
+    np.testing.assert_allclose(
+        match_sets(query, cands, center='whiten').scores, match_sets(query, cands, center=True).scores
+    )
 
 
 def test_pairs_and_weights():

@@ -76,6 +76,12 @@ def build_parser() -> argparse.ArgumentParser:
         help='S on each landmark set minus its own mean (similarity.center_sets; docs/method.md)',
     )
     p.add_argument(
+        '--similarity-whitening',
+        action=argparse.BooleanOptionalAction,
+        default=conf['similarity_whitening'],
+        help="S on each landmark set centred, then whitened with the model's shipped whitening (docs/method.md)",
+    )
+    p.add_argument(
         '--landmark-whitening',
         action=argparse.BooleanOptionalAction,
         default=conf['landmark_whitening'],
@@ -291,6 +297,7 @@ def run(args, argv) -> dict:
         'scale': args.scale,
         'similarity_center': args.similarity_center,
         'landmark_whitening': args.landmark_whitening,
+        'similarity_whitening': args.similarity_whitening,
         'sequence': args.sequence,
         'sequence_prefilter_k': args.sequence_prefilter_k,
         'timing_images': args.timing_images,

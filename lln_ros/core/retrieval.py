@@ -56,7 +56,7 @@ def rerank(
     holistic: np.ndarray,
     scale: float = 1.0,
     limit: int | None = None,
-    center: bool | None = None,
+    center: bool | str | None = None,
 ) -> list[Candidate]:
     """Score `batch` (the prefiltered candidates, in `indices` order: a LandmarkBatch, or a list of
     LandmarkSets, matched by similarity.match_sets in bounded chunks grouped by landmark count)
@@ -172,7 +172,7 @@ def rank_all_at(
     prefilter: str = default_conf['prefilter'],
     conf: dict | None = None,
     index: LandmarkIndex | None = None,
-    center: bool | None = None,
+    center: bool | str | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """rank_all for several K at once: one first stage of max(ks) candidates, one rerank of them,
     and for each K in ks the rerank of the first K first-stage candidates (the same as rank_all
@@ -206,7 +206,7 @@ def rank_all(
     prefilter: str = default_conf['prefilter'],
     conf: dict | None = None,
     index: LandmarkIndex | None = None,
-    center: bool | None = None,
+    center: bool | str | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Offline retrieval of many queries against a stacked map (evaluation and validation).
 

@@ -8,7 +8,8 @@ For a query set A and K candidate sets B_k:
 With conf['center'] (off by default, as in the paper; docs/method.md) every set's descriptors, the query's and each
 candidate's, are first taken minus their own set's mean and renormalised (center_sets): what all
 landmarks of one image share (its season, light, weather) stops counting as similarity, and the pairs
-and S are decided by what makes the places differ.
+and S are decided by what makes the places differ. With center = 'whiten' the centred sets are then
+whitened as the landmark first stage's index is (core.whitening, the descriptor space's shipped W).
 All K candidates are done with array operations (no Python loop per candidate), in chunks whose
 similarity tensor is bounded (MATCH_CHUNK_ELEMENTS): memory per query does not grow with K x n_max.
 """
@@ -20,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import DescriptorError
+from . import whitening
 from .landmarks import LandmarkBatch, LandmarkSet, stack_landmarks
 
 default_conf = {
@@ -28,7 +30,8 @@ default_conf = {
     # (lln-eval --similarity-center) it gains under condition change and loses elsewhere (shipped
     # head, top-n 50, landmark first stage, P@100%R: Nordland validation 0.6:0.7 44.0 -> 51.8;
     # essex3in1 64.3 -> 60.5, rtabmap_loop R@100%P 70.5 -> 50.0, the side-view fold 45.2 -> 34.0;
-    # docs/method.md). S is smaller on centred sets: min_score is chosen for one setting
+    # docs/method.md). S is smaller on centred sets: min_score is chosen for one setting. 'whiten':
+    # centred, then whitened (lln-eval --similarity-whitening; docs/method.md)
     'center': False,
 }
 
@@ -44,6 +47,13 @@ def center_sets(descriptors: np.ndarray, valid: np.ndarray) -> np.ndarray:
     out = x - mean[:, None, :]
     out /= np.maximum(np.linalg.norm(out, axis=2, keepdims=True), 1e-12)
     return np.where(valid[:, :, None], out, x)
+
+
+def whiten_sets(descriptors: np.ndarray, valid: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Padded sets (K, n, D) -> W x, renormalised, for the valid rows (valid (K, n)); W (D, D)."""
+    out = np.asarray(descriptors, np.float32) @ w.T
+    out /= np.maximum(np.linalg.norm(out, axis=2, keepdims=True), 1e-12)
+    return np.where(valid[:, :, None], out, descriptors)
 
 
 @dataclass
@@ -173,16 +183,16 @@ def chunk_size(n_a: int, n_b: int, d: int, cap: int | None = None) -> int:
 
 
 def match_batch(
-    query: LandmarkSet, batch: LandmarkBatch, scale: float = 1.0, center: bool | None = None
+    query: LandmarkSet, batch: LandmarkBatch, scale: float = 1.0, center: bool | str | None = None
 ) -> MatchResult:
     """Similarity S of one query against every set in a LandmarkBatch (an already padded stack),
     in chunks of chunk_size() candidates, each cut to its own longest set. center: centre every set
-    first (center_sets; None = default_conf['center'])."""
+    first (center_sets; 'whiten': then whiten it, whiten_sets; None = default_conf['center'])."""
     k, n_b, d = batch.descriptors.shape
     if d != query.dim:
         raise DescriptorError(f'descriptor size mismatch: query has D={query.dim}, candidates have D={d}')
     step = chunk_size(len(query), n_b, d)
-    center = default_conf['center'] if center is None else bool(center)
+    center = default_conf['center'] if center is None else center
     if k <= step:
         return _match_chunk(query, batch, scale, center)
     parts = []
@@ -194,7 +204,7 @@ def match_batch(
 
 
 def match_sets(
-    query: LandmarkSet, sets: list[LandmarkSet], scale: float = 1.0, center: bool | None = None
+    query: LandmarkSet, sets: list[LandmarkSet], scale: float = 1.0, center: bool | str | None = None
 ) -> MatchResult:
     """match_batch against a list of sets (results in list order) without padding them all to the
     longest: the sets are grouped by landmark count (sorted) and stacked chunk by chunk, so the
@@ -239,6 +249,9 @@ def _match_chunk(query: LandmarkSet, batch: LandmarkBatch, scale: float, center:
     cands = np.asarray(batch.descriptors, np.float32)
     if center:
         q, cands = center_sets(q[None], valid_q[None])[0], center_sets(cands, batch.valid)
+        w = whitening.shipped(query.descriptor_space) if center == 'whiten' else None
+        if w is not None:
+            q, cands = whiten_sets(q[None], valid_q[None], w)[0], whiten_sets(cands, batch.valid, w)
     match, sims = cross_match(q, cands, valid_q, batch.valid)
     matched = match >= 0
     partner = np.take_along_axis(batch.cells, np.maximum(match, 0)[:, :, None], axis=1)  # (K, n_a, 2)
@@ -249,7 +262,7 @@ def _match_chunk(query: LandmarkSet, batch: LandmarkBatch, scale: float, center:
     return MatchResult(scores.astype(np.float32), mode, match, sims, weight)
 
 
-def match_pair(a: LandmarkSet, b: LandmarkSet, scale: float = 1.0, center: bool | None = None) -> MatchResult:
+def match_pair(a: LandmarkSet, b: LandmarkSet, scale: float = 1.0, center: bool | str | None = None) -> MatchResult:
     """Similarity of two landmark sets: match_batch with K = 1."""
     check_comparable(a, b)
     return match_batch(a, stack_landmarks([b]), scale, center)

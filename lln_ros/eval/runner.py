@@ -99,6 +99,7 @@ default_conf = {
     'sequence_prefilter_k': retrieval_defaults['sequence_prefilter_k'],
     'scale': retrieval_defaults['scale'],  # offset-weight width in grid cells (similarity)
     'similarity_center': similarity_defaults['center'],  # S on each set minus its mean (similarity)
+    'similarity_whitening': False,  # S on each set centred, then whitened (similarity, center='whiten')
     'landmark_whitening': landmark_index_defaults['landmark_whitening'],  # the first stage's (core.whitening)
     'sequence': 0,  # L > 0: an `X+seq` row per holistic/local row (sequence length L)
     'seqslam_length': sequence_defaults['length'],  # seqslam's L when 'sequence' is 0
@@ -200,7 +201,7 @@ def evaluate_dataset(
         methods = [m for m in methods if m != 'seqslam']
         conf = {**conf, 'sequence': 0}
     top_n, scale = int(conf['top_n']), float(conf['scale'])
-    center = bool(conf['similarity_center'])
+    center = 'whiten' if conf['similarity_whitening'] else bool(conf['similarity_center'])
     k = int(conf['prefilter_k']) or len(ds.ref_paths)  # 0: every reference
     prefilter, _ = check_prefilter(conf['prefilter'], conf['prefilter_k'])
     height = int(extractor.conf['input_height'])
@@ -454,6 +455,7 @@ def evaluate(
             'sequence_prefilter_k': candidates_k(conf['prefilter_k'], conf['sequence_prefilter_k'], True),
             'scale': float(conf['scale']),
             'similarity_center': bool(conf['similarity_center']),
+            'similarity_whitening': bool(conf['similarity_whitening']),
             'landmark_whitening': bool(conf['landmark_whitening']),
             'prefilter': check_prefilter(conf['prefilter'], conf['prefilter_k'])[0],
             'input_height': int(extractor.conf['input_height']),
