@@ -73,15 +73,6 @@ def augmented(path: Path, k: int, rng) -> np.ndarray:
     return np.ascontiguousarray(img[y : y + ch, x : x + cw])
 
 
-def cached_sets(extractor, cache, paths, height) -> list:
-    feats = cache.load([str(p) for p in paths], size=height, progress='features')
-    out = []
-    for p, f in zip(paths, feats):
-        img = load_image(str(p))
-        out.append(extractor.from_features(f, (img.shape[1], img.shape[0])))
-    return out
-
-
 def score(store, sets, gt, ref_ids, seq_len) -> dict:
     """P@100%R of lln and lln+seq and the first stage's recall, over the queries in order."""
     id_to_ref = {int(k): i for i, k in enumerate(ref_ids)}
@@ -126,8 +117,8 @@ def main(argv=None) -> int:
     extractor = Extractor()
     height = int(extractor.conf['input_height'])
     cache = FeatureCache(args.cache, extractor)
-    refs = cached_sets(extractor, cache, ds.ref_paths, height)
-    queries = cached_sets(extractor, cache, ds.query_paths, height)
+    refs = cache.landmark_sets(ds.ref_paths, height)
+    queries = cache.landmark_sets(ds.query_paths, height)
     pool = distractor_paths(data)
     print(f'{len(refs)} references, {len(queries)} queries, {len(pool)} real distractor images', flush=True)
     rows, used, rng = [], {'real': 0, 'flip': 0, 'crop': 0}, np.random.default_rng(0)
@@ -146,7 +137,7 @@ def main(argv=None) -> int:
                 chunk = pool[idx : idx + n]
                 t = time.perf_counter()
                 if round_ == 0:
-                    sets = cached_sets(extractor, cache, chunk, height)
+                    sets = cache.landmark_sets(chunk, height)
                     used['real'] += len(sets)
                 else:
                     sets = [extractor(augmented(p, round_, rng)) for p in chunk]

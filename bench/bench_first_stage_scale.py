@@ -31,7 +31,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_accuracy_at_scale import cached_sets, distractor_paths  # noqa: E402
+from bench_accuracy_at_scale import distractor_paths  # noqa: E402
 
 from lln_ros.core.extractor import Extractor  # noqa: E402
 from lln_ros.core.landmark_index import LandmarkIndex, encode_ids  # noqa: E402
@@ -104,11 +104,11 @@ def main(argv=None) -> int:
     extractor = Extractor()
     height = int(extractor.conf['input_height'])
     cache = FeatureCache(args.cache, extractor)
-    queries = cached_sets(extractor, cache, ds.query_paths, height)
+    queries = cache.landmark_sets(ds.query_paths, height)
     with MapStore.open(args.map, model=extractor.model_info) as store:
         stored = [s for _, _, s in store.keyframes()]
     distractors = stored[TEST_REFS:]
-    refs = stored[:TEST_REFS] if args.range == '0.7:1' else cached_sets(extractor, cache, ds.ref_paths, height)
+    refs = stored[:TEST_REFS] if args.range == '0.7:1' else cache.landmark_sets(ds.ref_paths, height)
     kinds = source_kinds(data, len(refs), len(refs) + len(distractors))
     k = int(retrieval_conf['prefilter_k'])
     print(

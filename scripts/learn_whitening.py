@@ -23,27 +23,17 @@ from lln_ros.core import whitening  # noqa: E402
 from lln_ros.core.extractor import Extractor  # noqa: E402
 from lln_ros.io.datasets import parse_range, parse_spec  # noqa: E402
 from lln_ros.io.features import FeatureCache  # noqa: E402
-from lln_ros.io.image import load_image  # noqa: E402
 
 
-def landmark_sets(extractor, cache, paths, height) -> list:
-    feats = cache.load([str(p) for p in paths], size=height, progress='features')
-    out = []
-    for p, f in zip(paths, feats):
-        h, w = load_image(str(p)).shape[:2]
-        out.append(extractor.from_features(f, (w, h)))
-    return out
-
-
-def dataset_pairs(extractor, cache, ds, height) -> tuple[np.ndarray, np.ndarray, int]:
+def dataset_pairs(cache, ds, height) -> tuple[np.ndarray, np.ndarray, int]:
     """Matching landmark rows (A (M, D), B (M, D)) of every query with a reference, and the images used."""
     use = [
         (qi, refs[len(refs) // 2])
         for qi, refs in ((q, np.flatnonzero(ds.gt[q])) for q in range(len(ds.gt)))
         if len(refs)
     ]
-    qs = landmark_sets(extractor, cache, [ds.query_paths[q] for q, _ in use], height)
-    rs = landmark_sets(extractor, cache, [ds.ref_paths[r] for _, r in use], height)
+    qs = cache.landmark_sets([ds.query_paths[q] for q, _ in use], height)
+    rs = cache.landmark_sets([ds.ref_paths[r] for _, r in use], height)
     pairs = [whitening.landmark_pairs(r, q, whitening.default_conf['max_cell_distance']) for q, r in zip(qs, rs)]
     return np.concatenate([a for a, _ in pairs]), np.concatenate([b for _, b in pairs]), len(use)
 
@@ -62,7 +52,7 @@ def main(argv=None) -> int:
     a, b, images = [], [], []
     for spec in args.data:
         ds = parse_spec(spec, parse_range(args.range) if spec.startswith('aligned:') else None)
-        pa, pb, n = dataset_pairs(extractor, cache, ds, height)
+        pa, pb, n = dataset_pairs(cache, ds, height)
         print(f'{ds.name}: {n} image pairs, {len(pa)} landmark pairs', flush=True)
         a.append(pa)
         b.append(pb)

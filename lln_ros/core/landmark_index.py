@@ -236,7 +236,6 @@ class LandmarkIndex:
         """space: the descriptor space ('backbone/layer/D'), which picks the shipped whitening."""
         self.dim = int(dim)
         self.conf = {**default_conf, **(conf or {})}
-        self.space = space
         self.whitening = whitening.shipped(space) if self.conf['landmark_whitening'] and space else None
         self.index = self._exact()
         self.trained_on = 0  # landmarks the IVF-PQ was trained on (0: exact)
@@ -308,10 +307,7 @@ class LandmarkIndex:
         x = np.ascontiguousarray(descriptors, np.float32).reshape(-1, self.dim)
         if self.conf['landmark_center']:
             x = center(x, keyframe_ids)
-        if self.whitening is None:
-            return x
-        x = x @ self.whitening.T
-        return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+        return x if self.whitening is None else whitening.apply(x, self.whitening)
 
     def needs_rebuild(self) -> bool:
         """An IVF-PQ trained on far fewer landmarks than it now holds (its cells are overfull and

@@ -51,9 +51,7 @@ def center_sets(descriptors: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 def whiten_sets(descriptors: np.ndarray, valid: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Padded sets (K, n, D) -> W x, renormalised, for the valid rows (valid (K, n)); W (D, D)."""
-    out = np.asarray(descriptors, np.float32) @ w.T
-    out /= np.maximum(np.linalg.norm(out, axis=2, keepdims=True), 1e-12)
-    return np.where(valid[:, :, None], out, descriptors)
+    return np.where(valid[:, :, None], whitening.apply(descriptors, w), descriptors)
 
 
 @dataclass

@@ -14,10 +14,10 @@ descriptors and maps x -> C_S^(-beta) x: a direction in which matching landmarks
 less. Here the matches are mutual nearest centred landmarks, at most one grid cell apart, of
 ground-truth image pairs of the training data. beta = 0.5 (the full whitening) was chosen on the
 Nordland validation part 0.6:0.7 among 8,927 real distractors (first stage alone, top 100; 0.25,
-0.5, 0.75 and 1.0 tried): R@1 0.104 -> 0.179, R@100 0.560 -> 0.672.
+0.5, 0.75 and 1.0 tried): R@1 0.104 -> 0.182, R@100 0.546 -> 0.672.
 
 The index applies W after centring and renormalises (landmark_index.LandmarkIndex.prepare). The
-rerank S is not changed: it sees the descriptors as extracted.
+rerank S sees the descriptors as extracted unless asked otherwise (similarity, center='whiten').
 """
 
 from __future__ import annotations
@@ -37,17 +37,19 @@ default_conf = {
 }
 
 
-def _centred(x: np.ndarray) -> np.ndarray:
-    x = np.asarray(x, np.float32)
-    x = x - x.mean(axis=0, keepdims=True)
-    return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+def apply(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """W x renormalised, for vectors x (..., D) (D, D) -> float32 (..., D)."""
+    y = np.asarray(x, np.float32) @ w.T
+    return y / np.maximum(np.linalg.norm(y, axis=-1, keepdims=True), 1e-12)
 
 
 def landmark_pairs(a, b, max_cell_distance: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Matching landmarks of two LandmarkSets of one place: each set centred on its own mean, then
     the mutual nearest neighbours by cosine among those at most max_cell_distance cells apart.
     Returns (A (M, D), B (M, D)) float32, row i of A matching row i of B."""
-    ca, cb = _centred(a.descriptors), _centred(b.descriptors)
+    from .landmark_index import center  # the index's own centring (it imports this module)
+
+    ca, cb = center(a.descriptors), center(b.descriptors)
     if not len(ca) or not len(cb):
         d = ca.shape[1] if ca.ndim == 2 else 0
         return np.zeros((0, d), np.float32), np.zeros((0, d), np.float32)

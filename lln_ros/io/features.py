@@ -9,6 +9,7 @@ changing any of them never returns stale features.
     cache = FeatureCache('cache/features', extractor)
     feats = cache.load(paths, size=(352, 352))   # list of float16 (D, h, w), squashed to 352x352
     feats = cache.load(paths, size=288)          # height 288, aspect kept (what extraction uses)
+    sets = cache.landmark_sets(paths, 288)       # the extractor's LandmarkSets from those features
 """
 
 from __future__ import annotations
@@ -91,4 +92,13 @@ class FeatureCache:
                     os.replace(tmp, target)
             bar.update(len(chunk))
         bar.close()
+        return out
+
+    def landmark_sets(self, paths: list, size: int = 288, progress: str | None = 'features') -> list:
+        """The extractor's LandmarkSet of every image path, from its cached feature map (head and
+        selection run; the backbone only for the missing ones), in original image pixels."""
+        out = []
+        for p, f in zip(paths, self.load(paths, size=size, progress=progress)):
+            h, w = load_image(str(p)).shape[:2]
+            out.append(self.extractor.from_features(f, (w, h)))
         return out
