@@ -6,6 +6,7 @@
 #
 #   bash scripts/shift_eval.sh                 # folds + every run below, into out/shift-eval/
 #   FUSIONS="0.25 0.5" TOPNS="25 100" bash scripts/shift_eval.sh
+#   HEADS=shipped=shipped,new=out/train/best.pt FUSIONS=" " TOPNS=" " bash scripts/shift_eval.sh
 #   then: python scripts/shift_md.py out/shift-eval   (the tables)
 set -euo pipefail
 cd "${LLN_REPO:-$(dirname "$0")/..}"
@@ -20,7 +21,7 @@ TOPNS=${TOPNS:-25 100}
 $PY scripts/shift_folds.py --data "$DATA" --out out/shift
 specs=()
 for f in $FOLDS; do specs+=(--dataset "vprbench:out/shift/$f"); done
-heads=shipped=shipped
+heads=${HEADS:-shipped=shipped}  # LABEL=CKPT[,LABEL=CKPT...]: candidate heads beside the shipped one
 for a in $FUSIONS; do heads+=",f${a/./}=shipped@act_fusion=$a"; done  # f025, f05, f075
 run() {  # run DIR ARGS...: lln-eval on every fold, the shipped defaults but ARGS
   local dir=$1; shift

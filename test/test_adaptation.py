@@ -47,7 +47,7 @@ def test_lln_train_fine_tunes_the_shipped_head_on_a_traverse(tmp_path):
     out = tmp_path / 'adapt'
     args = train.build_parser().parse_args(
         [
-            '--data', f'sequence:{summer},1,10', '--range', '0.7:0.71', '--init', 'shipped', '--norm-prior', '1',
+            '--data', f'sequence:{summer},1,10', '--range', '0.7:0.71', '--init', 'shipped',
             '--epochs', '1', '--tuples-per-epoch', '20', '--threads', '2', '--cache', str(tmp_path / 'cache'),
             '--out', str(out),
         ]
@@ -75,19 +75,20 @@ def test_init_needs_the_head_configuration_of_the_checkpoint(tmp_path, extractor
     pairs = adaptation.pairs_from_sequence(summer, (0.7, 0.71), 1, 10)
     ckpt = shipped_weights('efficientnet_lite0', 'stage6')
     plain = training.Trainer(extractor, pairs, None, {}, cache_dir=str(tmp_path / 'c'), out_dir=str(tmp_path / 'o'))
-    with pytest.raises(ModelError, match='--norm-prior 1'):
+    with pytest.raises(ModelError, match="checkpoint's head configuration"):
         adaptation.start_from(plain, ckpt)
+    from lln_ros.core.lln import load_checkpoint
+
+    recorded = {k: v for k, v in load_checkpoint(ckpt)[0].conf.items() if k != 'seed'}
     prior = training.Trainer(
         extractor,
         pairs,
         None,
-        {'head': {'norm_prior': 1.0}},
+        {'head': recorded},
         cache_dir=str(tmp_path / 'c'),
         out_dir=str(tmp_path / 'o'),
     )
     adaptation.start_from(prior, ckpt)
-    from lln_ros.core.lln import load_checkpoint
-
     shipped, _ = load_checkpoint(ckpt)
     for k, v in shipped.state_dict().items():
         assert torch.equal(prior.head.state_dict()[k], v)

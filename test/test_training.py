@@ -242,16 +242,81 @@ def square_traverses(tmp_path_factory, photo):
     return root
 
 
-def test_padding_keeps_the_logits_of_real_cells():
-    """Zero padding at the right and bottom is what the head's convs already see past the border."""
+@pytest.mark.parametrize('padding', ['zeros', 'replicate'])
+def test_padding_keeps_the_logits_of_real_cells(padding):
+    """The trainer pads a small map to the batch grid as the head's convs pad past the border (zeros,
+    or the last row and column repeated), so a real cell's logit is the one it has on its own."""
     g = torch.Generator().manual_seed(0)
     small, big = torch.randn(12, 3, 2, generator=g).abs(), torch.randn(12, 3, 4, generator=g).abs()
-    feats, valid = training.pad_stack([small.numpy(), big.numpy()])
+    feats, valid = training.pad_stack([small.numpy(), big.numpy()], mode=padding)
     assert feats.shape == (2, 12, 3, 4) and valid.reshape(2, 3, 4)[0].tolist() == [[True, True, False, False]] * 3
     for prior in (0.0, 0.5):
-        head = LLNHead(12, {'channels': 4, 'norm_prior': prior})
+        head = LLNHead(12, {'channels': 4, 'norm_prior': prior, 'padding': padding})
         with torch.no_grad():
             torch.testing.assert_close(head.logits(feats)[0, :, :2], head.logits(small[None])[0])
+    # the other mode would change the real cells next to the padding: the test can tell them apart
+    other = training.pad_stack([small.numpy(), big.numpy()], mode='zeros' if padding == 'replicate' else 'replicate')
+    head = LLNHead(12, {'channels': 4, 'padding': padding})
+    with torch.no_grad():
+        assert not torch.allclose(head.logits(other[0])[0, :, :2], head.logits(small[None])[0])
+
+
+def test_correction_bound_keeps_the_head_within_b_of_act():
+    """correction_bound b: however large the learned weights, logit - log|f| stays in [-b, b], so
+    the feature norm (ACT) always keeps a say; b = 0 leaves the correction unbounded."""
+    feats = torch.randn(2, 16, 5, 7, generator=torch.Generator().manual_seed(2)).abs()
+    prior = torch.log(feats.norm(dim=1) + 1e-6)
+    for bound, within in ((0.5, True), (0.0, False)):
+        head = LLNHead(16, {'channels': 4, 'norm_prior': 1.0, 'correction_bound': bound})
+        with torch.no_grad():
+            head.fuse.weight.normal_(0, 100.0, generator=torch.Generator().manual_seed(3))
+            correction = head.logits(feats) - prior
+        assert (correction.abs().max() <= 0.5 + 1e-5) == within
+    with pytest.raises(Exception, match='correction_bound'):
+        LLNHead(16, {'correction_bound': -1})
+    with pytest.raises(Exception, match='padding'):
+        LLNHead(16, {'padding': 'reflect'})
+
+
+def test_lateral_crops_train_as_queries_with_their_originals_labels(traverses, tmp_path):
+    """crop_views: every usable query gains crops of its feature map (full height, a window of
+    crop_range x its width) that are queries with its positives and negatives."""
+    rng = np.random.default_rng(0)
+    feats = [np.arange(2 * 3 * 10, dtype=np.float32).reshape(2, 3, 10)] * 3
+    crops, origin = training.lateral_crops(feats, np.array([0, 2]), 4, (0.5, 0.8), rng)
+    assert origin.tolist() == [0] * 4 + [2] * 4
+    for c in crops:
+        w = c.shape[2]
+        assert c.shape[:2] == (2, 3) and 5 <= w <= 8
+        x0 = int(c[0, 0, 0])  # the first row of the map counts 0..9: a crop starts where it was cut
+        np.testing.assert_array_equal(c, feats[0][:, :, x0 : x0 + w])
+    assert len({int(c[0, 0, 0]) for c in crops}) > 1  # not always the same place
+    with pytest.raises(DatasetError, match='crop_range'):
+        training.lateral_crops(feats, np.array([0]), 1, (0.0, 0.5), rng)
+
+    ds = datasets.aligned(traverses / 'ref', traverses / 'query', tol=0, name='wide')
+    pairs = training_pairs.pairs_from_dataset(ds, 1)
+    t = training.Trainer(
+        small_extractor(),
+        pairs,
+        None,
+        conf(crop_views=2, crop_range=(0.5, 0.75), head={'channels': 4, 'norm_prior': 1.0}),
+        cache_dir=str(tmp_path / 'cache'),
+        out_dir=str(tmp_path / 'out'),
+    )
+    usable = t.queries.copy()
+    t.load_features()
+    n = len(pairs.query_paths)
+    assert len(t.queries) == 3 * len(usable) and t.fq.shape[0] == n + 2 * len(usable)
+    crop_rows = t.queries[len(usable) :]
+    origin = np.repeat(usable, 2)
+    np.testing.assert_array_equal(t.pairs.positive[crop_rows], pairs.positive[origin])
+    np.testing.assert_array_equal(t.pairs.negative[crop_rows], pairs.negative[origin])
+    full_w = int(t.q_valid[0].reshape(t.fq.shape[2:]).sum(1)[0])
+    crop_w = t.q_valid[crop_rows].reshape(-1, *t.fq.shape[2:]).sum(2)[:, 0]
+    assert (crop_w < full_w).all() and (crop_w >= 1).all()
+    t.prepare_rerank()  # every crop gets match tables against its original's candidates
+    assert len(t.rr_npos) == len(t.queries)
 
 
 def test_norm_prior_starts_at_act():

@@ -11,10 +11,11 @@ SPEC: any lln-eval dataset (aligned:REF,QUERY[,TOL], vprbench:DIR, loop:DIR,GT, 
 poses:DIR[,MAX_DEG,MAX_M,MIN_GAP_S]), or places:DIR (DIR/<place>/*.jpg), or sfm:PICKLE,IMS_ROOT
 (Retrieval-SfM-120k layout), or sequence:DIR[,POS_GAP,NEG_GAP]: one traverse of the user's own, no
 ground truth (pseudo-labels from frame order: lln_ros/core/adaptation.py; --range applies).
---init shipped fine-tunes the shipped head (with --norm-prior 1, as it was trained), --init CKPT
-another head; the default starts from scratch. Datasets of different image shapes mix. --val is repeatable: the head
-with the best MEAN validation precision at 100% recall over all --val sets is DIR/best.pt;
-DIR/last.pt resumes an interrupted run.
+--init shipped fine-tunes the shipped head, --init CKPT another head, each with the head
+configuration in its checkpoint (the head flags --norm-prior, --correction-bound and --padding are
+for a head trained from scratch); the default starts from scratch. Datasets of different image
+shapes mix. --val is repeatable: the head with the best MEAN validation precision at 100% recall
+over all --val sets is DIR/best.pt; DIR/last.pt resumes an interrupted run.
 """
 
 from __future__ import annotations
@@ -24,6 +25,9 @@ import json
 import shlex
 import sys
 
+from ..core.lln import PADDINGS
+from ..core.lln import default_conf as lln_defaults
+from ..core.training import default_conf as train_defaults
 from .common import run_cli
 
 
@@ -72,6 +76,30 @@ def build_parser() -> argparse.ArgumentParser:
         default=0.0,
         help="weight of log feature norm (ACT's score) in the head's logits; > 0 starts the head "
         "at ACT's selection (default 0: the plain LLN head)",
+    )
+    p.add_argument(
+        '--correction-bound',
+        type=float,
+        default=lln_defaults['correction_bound'],
+        help='with --norm-prior: bound b of the learned correction to log feature norm (b tanh(c / b)); 0 = unbounded',
+    )
+    p.add_argument(
+        '--padding',
+        choices=PADDINGS,
+        default=lln_defaults['padding'],
+        help="how the head's 3x3 / 5x5 convs pad the feature map",
+    )
+    p.add_argument(
+        '--crop-views',
+        type=int,
+        default=train_defaults['crop_views'],
+        help='lateral crops of every training query that train as queries too (0 = none)',
+    )
+    p.add_argument(
+        '--crop-range',
+        default=':'.join(str(v) for v in train_defaults['crop_range']),
+        metavar='LO:HI',
+        help='width of a lateral crop as a fraction of the image width',
     )
     p.add_argument(
         '--init',
@@ -141,8 +169,14 @@ def run(args) -> dict:
         'neg_margin': args.neg_margin,
         'seed': args.seed,
     }
+    try:
+        conf['crop_range'] = tuple(float(v) for v in args.crop_range.split(':'))
+    except ValueError:
+        raise DatasetError(f'--crop-range takes LO:HI fractions, got {args.crop_range!r}') from None
+    conf['crop_views'] = args.crop_views
+    conf['head'] = {'padding': args.padding}
     if args.norm_prior:
-        conf['head'] = {'norm_prior': args.norm_prior}
+        conf['head'].update(norm_prior=args.norm_prior, correction_bound=args.correction_bound)
     # every dataset is read and checked before any feature is computed
     frac, val_frac = datasets.parse_range(args.range), datasets.parse_range(args.val_range)
     pairs = training_pairs.combine([load_pairs(s, frac, args.neg_margin) for s in args.data])
@@ -153,17 +187,25 @@ def run(args) -> dict:
             'num_threads': args.threads,
         }
     )
-    command = 'lln-train ' + ' '.join(shlex.quote(a) for a in sys.argv[1:])
-    trainer = training.Trainer(
-        extractor, pairs, val, conf, cache_dir=args.cache, out_dir=args.out, meta={'command': command}
-    )
+    init = None
     if args.init:
-        from ..core import adaptation
         from ..core.extractor import shipped_weights
+        from ..core.lln import load_checkpoint
 
         init = shipped_weights(args.backbone, extractor.backbone.layer) if args.init == 'shipped' else args.init
         if init is None:
             raise DatasetError(f'--init shipped: no head is shipped for {args.backbone}/{extractor.backbone.layer}')
+        # fine-tuning keeps the checkpoint's architecture (norm prior, bound, padding): the head
+        # flags describe a head trained from scratch
+        head_conf = load_checkpoint(init)[0].conf
+        conf['head'] = {k: v for k, v in head_conf.items() if k != 'seed'}
+    command = 'lln-train ' + ' '.join(shlex.quote(a) for a in sys.argv[1:])
+    trainer = training.Trainer(
+        extractor, pairs, val, conf, cache_dir=args.cache, out_dir=args.out, meta={'command': command}
+    )
+    if init:
+        from ..core import adaptation
+
         adaptation.start_from(trainer, init)
     return trainer.fit(resume=not args.no_resume)
 

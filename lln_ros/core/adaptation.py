@@ -77,7 +77,8 @@ def parse_sequence_spec(rest: str, frac=None) -> PairSet:
 def start_from(trainer, path: str) -> dict:
     """Start trainer's head from the checkpoint at path (fine-tuning) and reset its optimiser.
     The checkpoint must fit the trainer's backbone, layer and head configuration (e.g. the
-    shipped head has norm_prior 1: train with --norm-prior 1). Returns the checkpoint's metadata."""
+    head configuration the checkpoint records, as lln-train --init sets it). Returns the checkpoint's
+    metadata."""
     bb = trainer.extractor.conf['backbone']
     head, meta = load_checkpoint(path, bb['name'], trainer.extractor.backbone.layer, trainer.head.in_dim)
     want = {k: v for k, v in trainer.head.conf.items() if k != 'seed'}
@@ -85,7 +86,7 @@ def start_from(trainer, path: str) -> dict:
     if want != have:
         raise ModelError(
             f'{path!r} has head configuration {have}, the training is configured for {want} '
-            '(the shipped head needs --norm-prior 1)'
+            "(fine-tuning needs the checkpoint's head configuration; lln-train --init takes it from the checkpoint)"
         )
     trainer.head.load_state_dict(head.state_dict())
     trainer.optimizer = torch.optim.Adam(trainer.head.parameters(), lr=trainer.conf['lr'])

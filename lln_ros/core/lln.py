@@ -1,8 +1,9 @@
 """The Landmark Localization Network head (Xin et al., ICRA 2019, Sec. III-A) and its checkpoints.
 
     features (B, D, h, w)  ->  parallel convs (k x k, one per kernel size, `channels` each)
-                           ->  concat (B, K*channels, h, w) -> ReLU -> 1x1 conv -> ReLU
-                           ->  activation (B, h, w), non-negative
+                           ->  concat (B, K*channels, h, w) -> ReLU -> 1x1 conv  = c (B, h, w)
+    norm_prior p > 0:       logits = p log|f| + c   (c -> b tanh(c / b) with correction_bound b > 0)
+                           ->  ReLU -> activation (B, h, w), non-negative
 
 A checkpoint is one torch file holding the head's state dict and the metadata that says which
 descriptor space it belongs to (backbone, layer, descriptor size), so a head, or a map built with it,
@@ -30,7 +31,17 @@ default_conf = {
     # 1x1 fuse at zero, so the untrained head ranks exactly as ACT and training learns a correction
     # to ACT's choice instead of a selection from scratch (see docs/generalisation.md)
     'norm_prior': 0.0,
+    # with norm_prior > 0: the learned correction c is squashed to bound * tanh(c / bound), so the head
+    # moves a cell's log-norm by at most +-bound. 0 = unbounded (heads trained before 2026-12-06):
+    # trained on a ranking-only loss, c grew to 1e4 times log|f|'s spread and the prior was switched
+    # off in practice, leaving a fixed centre prior that loses off-domain (docs/generalisation.md)
+    'correction_bound': 0.0,
+    # how the k > 1 branches pad the feature map: 'zeros' (heads trained before 2026-12-06) gives the
+    # border cells a signal of their own, from which the head learned where Nordland's discriminative
+    # cells usually are; 'replicate' gives the border no content the image does not have
+    'padding': 'zeros',
 }
+PADDINGS = ('zeros', 'replicate')
 
 
 class LLNHead(nn.Module):
@@ -38,8 +49,13 @@ class LLNHead(nn.Module):
         super().__init__()
         self.conf = conf = {**default_conf, **(conf or {})}
         self.in_dim = int(in_dim)
+        if conf['padding'] not in PADDINGS:
+            raise ModelError(f'LLN head padding must be one of {PADDINGS}, got {conf["padding"]!r}')
+        if float(conf['correction_bound']) < 0:
+            raise ModelError(f'LLN head correction_bound must be >= 0, got {conf["correction_bound"]}')
         self.branches = nn.ModuleList(
-            nn.Conv2d(in_dim, conf['channels'], k, padding=k // 2) for k in conf['kernel_sizes']
+            nn.Conv2d(in_dim, conf['channels'], k, padding=k // 2, padding_mode=conf['padding'])
+            for k in conf['kernel_sizes']
         )
         self.fuse = nn.Conv2d(conf['channels'] * len(conf['kernel_sizes']), 1, 1)
         generator = torch.Generator().manual_seed(int(conf['seed']))
@@ -62,6 +78,9 @@ class LLNHead(nn.Module):
         x = torch.relu(torch.cat([b(features) for b in self.branches], dim=1))
         out = self.fuse(x)[:, 0]
         if self.conf['norm_prior']:
+            bound = float(self.conf['correction_bound'])
+            if bound:
+                out = bound * torch.tanh(out / bound)
             out = out + float(self.conf['norm_prior']) * torch.log(features.norm(dim=1) + 1e-6)
         return out
 

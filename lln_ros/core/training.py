@@ -22,8 +22,9 @@ head. Training data is a `PairSet` (training_pairs.py): query and reference imag
 masks, made from any evaluation dataset (aligned traverses, VPR-Bench, loop and pose sequences),
 place-labelled folders or the Retrieval-SfM-120k pickle, and combinable. Images of different
 shapes (Nordland 18x9 cells, 4:3 sequences 12x9, square thumbnails 9x9) train together: feature
-maps are zero-padded at the right and bottom to one grid, which leaves the head's logits of the real
-cells unchanged (its convs pad with zeros too), and padded cells are never selected or matched.
+maps are padded at the right and bottom to one grid as the head's convs pad (zeros, or the last row
+and column repeated), which leaves the head's logits of the real cells unchanged, and padded cells
+are never selected or matched. crop_views adds lateral crops of the queries (lateral_crops).
 
 Validation is a list of evaluation datasets; the kept head (best.pt) is the one with the best MEAN
 P@100%R over them, so no single set decides (the per-set figures are in history.json).
@@ -70,22 +71,57 @@ default_conf = {
     'val_prefilter_k': 30,  # also the rerank objective's holistic candidates per query
     'tau': 0.05,  # rerank: softmax temperature on S~ (S~ is in [0, 1])
     'soft_temp': 1.0,  # rerank: width T of the soft top-n membership, in logit units
+    # lateral crops: every usable query also trains as this many copies of its feature map cut to a
+    # random window of crop_range x its width (full height, at a random place), with the same
+    # positives and negatives. A place's discriminative part is then not always where the full view
+    # has it, so the head cannot learn a fixed centre prior (docs/generalisation.md, issue 28)
+    'crop_views': 0,
+    'crop_range': (0.5, 0.9),
 }
 PAD_LOGIT = -1e4  # logit of a padded (not real) cell: never in the soft top-n
 OBJECTIVES = ('rerank', 'triplet')
 
 
-def pad_stack(feats: list, grid: tuple | None = None) -> tuple[torch.Tensor, np.ndarray]:
-    """Feature maps of any grid, list of (D, h_i, w_i) -> (M, D, H, W) zero-padded at the right and
-    bottom to grid (H, W) (default: the largest), and valid (M, H*W) bool: which flat cells are real."""
+def pad_stack(feats: list, grid: tuple | None = None, mode: str = 'zeros') -> tuple[torch.Tensor, np.ndarray]:
+    """Feature maps of any grid, list of (D, h_i, w_i) -> (M, D, H, W) padded at the right and bottom
+    to grid (H, W) (default: the largest), and valid (M, H*W) bool: which flat cells are real.
+
+    mode is the head's padding: 'zeros' fills with 0, 'replicate' repeats the last row and column,
+    so the head's convs see at a real cell what they see on that image alone either way."""
     d = feats[0].shape[0]
     h, w = grid or (max(f.shape[1] for f in feats), max(f.shape[2] for f in feats))
     out = np.zeros((len(feats), d, h, w), feats[0].dtype)
     valid = np.zeros((len(feats), h, w), bool)
     for i, f in enumerate(feats):
-        out[i, :, : f.shape[1], : f.shape[2]] = f
+        if mode == 'replicate':
+            out[i] = np.pad(f, ((0, 0), (0, h - f.shape[1]), (0, w - f.shape[2])), mode='edge')
+        else:
+            out[i, :, : f.shape[1], : f.shape[2]] = f
         valid[i, : f.shape[1], : f.shape[2]] = True
     return torch.from_numpy(out), valid.reshape(len(feats), h * w)
+
+
+def lateral_crops(
+    feats: list, queries: np.ndarray, views: int, crop_range: tuple, rng: np.random.Generator
+) -> tuple[list, np.ndarray]:
+    """`views` random lateral crops of every query's feature map.
+
+    feats: list of (D, h, w); queries (U,) indices into it. Each crop keeps the full height and a
+    window of u x w columns, u ~ U(crop_range), at a uniform random offset. Returns the crops (a list
+    of (D, h, w'), U * views of them) and (U * views,) the index of the query each came from."""
+    lo, hi = (float(v) for v in crop_range)
+    if not 0 < lo <= hi <= 1:
+        raise DatasetError(f'crop_range must satisfy 0 < lo <= hi <= 1, got {crop_range}')
+    crops, origin = [], []
+    for q in queries:
+        f = feats[int(q)]
+        w = f.shape[2]
+        for _ in range(int(views)):
+            cw = min(w, max(1, int(round(rng.uniform(lo, hi) * w))))
+            x0 = int(rng.integers(0, w - cw + 1))
+            crops.append(np.ascontiguousarray(f[:, :, x0 : x0 + cw]))
+            origin.append(int(q))
+    return crops, np.array(origin, np.int64)
 
 
 def soft_selection(logits: torch.Tensor, n: int, temp: float) -> torch.Tensor:
@@ -201,10 +237,13 @@ class Trainer:
             if self.pairs.ref_paths is self.pairs.query_paths
             else self.cache.load(self.pairs.ref_paths, size, progress='train features (refs)')
         )
+        if self.conf['crop_views']:
+            q = self._add_lateral_crops(q)
         # one grid for queries and refs (the triplet step batches them together)
         grid = (max(f.shape[1] for f in q + r), max(f.shape[2] for f in q + r))
-        self.fq, self.q_valid = pad_stack(q, grid)
-        self.fr, self.r_valid = (self.fq, self.q_valid) if r is q else pad_stack(r, grid)
+        mode = self.head.conf['padding']
+        self.fq, self.q_valid = pad_stack(q, grid, mode)
+        self.fr, self.r_valid = (self.fq, self.q_valid) if r is q else pad_stack(r, grid, mode)
         h = int(self.extractor.conf['input_height'])
         self.val_feats = [
             (
@@ -213,6 +252,24 @@ class Trainer:
             )
             for v in self.vals
         ]
+
+    def _add_lateral_crops(self, q: list) -> list:
+        """q + lateral crops of every usable query (lateral_crops); the crops become queries of
+        their own with their original's positives and negatives, and join self.queries."""
+        # a generator of its own: the epochs' query draws are the same with and without crops
+        rng = np.random.default_rng(int(self.conf['seed']) + 1)
+        crops, origin = lateral_crops(q, self.queries, self.conf['crop_views'], self.conf['crop_range'], rng)
+        p = self.pairs
+        self.pairs = PairSet(
+            f'{p.name}+crops',
+            list(p.query_paths) + [f'{p.query_paths[o]}#crop{i}' for i, o in enumerate(origin)],
+            p.ref_paths if p.ref_paths is not p.query_paths else list(p.ref_paths),
+            np.concatenate([p.positive, p.positive[origin]]),
+            np.concatenate([p.negative, p.negative[origin]]),
+            None if p.source is None else np.concatenate([p.source, p.source[origin]]),
+        )
+        self.queries = np.concatenate([self.queries, len(q) + np.arange(len(crops))])
+        return list(q) + crops
 
     @torch.no_grad()
     def embed_all(self, feats: torch.Tensor, batch: int = 256) -> torch.Tensor:
