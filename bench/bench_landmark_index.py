@@ -16,9 +16,11 @@ through one more random crop + brightness augmentation the map does not hold (no
 in the map verbatim), --queries of them.
 
 recall@k = |compressed top k  &  exact top k| / k per query landmark (exact = brute-force inner
-product over the same float32 vectors, centred per set as the shipped index holds them:
-landmark_center), at knn (the first stage's k) and 1, per nprobe, with the
-search time per query set (50 landmarks, one call, 1 thread) of each.
+product over the same float32 vectors: the real ones prepared as the shipped index holds them,
+LandmarkIndex.prepare -- centred per set (landmark_center), then whitened with the descriptor space's
+shipped W (landmark_whitening)), at knn (the first stage's k) and 1, per --kinds x --nprobe, with the
+search time per query set (50 landmarks, one call, 1 thread) of each (ivfpq-fs-refine: with its
+re-ranking of landmark_k_factor x knn candidates, --k-factor).
 """
 
 from __future__ import annotations
@@ -106,6 +108,16 @@ def nordland_test():
     return ds
 
 
+def descriptor_space(data: dict) -> str:
+    """The descriptor space of the cache's landmarks (recorded since the index holds whitened
+    vectors; a cache without it was made by the default extractor, whose space this is)."""
+    if 'space' in data:
+        return str(data['space'])
+    from lln_ros.core.extractor import Extractor
+
+    return Extractor({'num_threads': 1}).descriptor_space
+
+
 def extract(cache: Path, augs: int, limit: int = 0) -> dict:
     """Landmarks of the real images (interleaved, the first `limit`; 0 = all) x (1 + augs) views, and
     of a query view of every QUERY_EVERY-th; cached in `cache`, written every 200 images, so a run
@@ -150,6 +162,7 @@ def extract(cache: Path, augs: int, limit: int = 0) -> dict:
                 'query_cells': np.stack(qcells),
                 'source': np.array(source),  # path under ../shared/data of each image
                 'augs': np.array(augs),
+                'space': np.array(ex.descriptor_space),
             }
             cache.parent.mkdir(parents=True, exist_ok=True)
             np.savez(str(cache) + '.tmp.npz', **data)
@@ -184,15 +197,16 @@ def exact_knn(x: np.ndarray, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndar
 def index_recall(args, data: dict) -> list[dict]:
     """recall@1 / @knn of every --kinds x --nprobe against exact search (module doc), and the time
     of one query set's search."""
-    from lln_ros.core.landmark_index import LandmarkIndex, center
-    from lln_ros.core.landmark_index import default_conf as index_conf
+    import faiss
+
+    from lln_ros.core.landmark_index import LandmarkIndex
+
+    shipped = LandmarkIndex(data['descriptors'].shape[-1], {}, descriptor_space(data))
 
     def held(sets: np.ndarray) -> np.ndarray:
-        """sets (S, n, D) as the shipped index holds them (landmark_center: centred per set), (S*n, D)."""
+        """sets (S, n, D) as the shipped index holds them (LandmarkIndex.prepare, one keyframe per set), (S*n, D)."""
         x = unit(sets.reshape(-1, sets.shape[-1]).astype(np.float32))
-        if not index_conf['landmark_center']:
-            return x
-        return center(x, np.repeat(np.arange(len(sets)), sets.shape[1]))
+        return shipped.prepare(x, np.repeat(np.arange(len(sets)), sets.shape[1]))
 
     rng = np.random.default_rng(1)
     real = held(data['descriptors'])
@@ -208,35 +222,39 @@ def index_recall(args, data: dict) -> list[dict]:
         f'map: {len(x):,} landmarks ({len(real):,} real, of {len(data["source"]):,} images x '
         f'{1 + int(data["augs"])} views); {len(q):,} query landmarks ({len(qsets)} sets); exact search '
         f'{exact_s / len(qsets) * 1000:.0f} ms per set; median cosine of the exact 1st / {args.knn}th '
-        f'neighbour {np.median(ex_s[:, 0]):.3f} / {np.median(ex_s[:, -1]):.3f}',
+        f'neighbour {np.median(ex_s[:, 0]):.3f} / {np.median(ex_s[:, -1]):.3f}; whitening '
+        f'{"on" if shipped.whitening is not None else "off"}, centring {shipped.conf["landmark_center"]}',
         flush=True,
     )
     rows = []
     for kind in args.kinds.split(','):
         conf = {'landmark_compressed': kind, 'landmark_index_threshold': 0, 'landmark_pq_m': args.pq_m}
-        # x is already what the index holds (held()), and its ids are rows, not keyframes
+        if args.k_factor:
+            conf['landmark_k_factor'] = args.k_factor
+        # x is already what the index holds (held()): no centring, no whitening (no descriptor space)
         index = LandmarkIndex(x.shape[1], {**conf, 'landmark_center': False})
         t = time.perf_counter()
         index.build(x, ids)
         build_s = time.perf_counter() - t
+        nbytes = len(faiss.serialize_index(index.index)) + (len(index.refine.to_bytes()) if index.refine else 0)
         for nprobe in (int(v) for v in args.nprobe.split(',')):
-            index.index.nprobe = nprobe
-            index.index.search(q[:50], args.knn)  # warm
+            index.index.nprobe = nprobe or index.nprobe()  # 0: the kind's default
+            index.search_prepared(q[:50], args.knn)  # warm
             t = time.perf_counter()
-            _, got = index.index.search(q, args.knn)
+            _, got = index.search_prepared(q, args.knn)  # all query landmarks in one call
             ms = (time.perf_counter() - t) / len(qsets) * 1000
             hit_k = np.mean([len(set(a) & set(b)) / args.knn for a, b in zip(got, ex_i)])
             hit_1 = float(np.mean(got[:, 0] == ex_i[:, 0]))
             rows.append(
                 {
                     'kind': kind,
-                    'nprobe': nprobe,
+                    'nprobe': int(index.index.nprobe),
                     'lists': int(index.index.nlist),
                     'recall@1': hit_1,
                     f'recall@{args.knn}': float(hit_k),
                     'ms_per_set': ms,
                     'build_s': build_s,
-                    'bytes_per_landmark': len(__import__('faiss').serialize_index(index.index)) / len(x),
+                    'bytes_per_landmark': nbytes / len(x),
                 }
             )
             print(rows[-1], flush=True)
@@ -253,6 +271,7 @@ def nordland_first_stage(args, data: dict) -> list[dict]:
     from lln_ros.core.metrics import recall_at_k
 
     ds = nordland_test()
+    space = descriptor_space(data)
     n_ref, n_q = len(ds.ref_paths), len(ds.query_paths)
     expect = [str(p.relative_to(DATA)) for p in ds.ref_paths + ds.query_paths]
     if len(data['source']) < n_ref + n_q or list(data['source'][: n_ref + n_q]) != expect:
@@ -280,10 +299,13 @@ def nordland_first_stage(args, data: dict) -> list[dict]:
     ]
     rows = []
     for kind, nprobe in configs:
-        conf = {'landmark_index_threshold': len(x) if kind == 'exact' else 0, 'landmark_nprobe': nprobe or 1}
+        # nprobe 0: the kind's default (landmark_index.NPROBE)
+        conf = {'landmark_index_threshold': len(x) if kind == 'exact' else 0, 'landmark_nprobe': nprobe}
         if kind != 'exact':
             conf.update({'landmark_compressed': kind, 'landmark_pq_m': args.pq_m})
-        index = LandmarkIndex(d, conf)
+            if args.k_factor:
+                conf['landmark_k_factor'] = args.k_factor
+        index = LandmarkIndex(d, conf, space)  # centred and whitened as the shipped index
         index.build(x, ids)
         ranked = np.full((n_q, 100), -1, np.int64)
         t = time.perf_counter()
@@ -291,7 +313,7 @@ def nordland_first_stage(args, data: dict) -> list[dict]:
             top, _ = index.shortlist(q, 100)
             ranked[i, : len(top)] = top
         ms = (time.perf_counter() - t) / n_q * 1000
-        row = {'kind': kind, 'nprobe': nprobe, 'ms_per_query': ms}
+        row = {'kind': kind, 'nprobe': index.index.nprobe if kind != 'exact' else 0, 'ms_per_query': ms}
         row.update({f'R@{k}': recall_at_k(ranked, ds.gt, k) for k in (1, 5, 10, 30, 100)})
         rows.append(row)
         print(row, flush=True)
@@ -308,8 +330,9 @@ def main(argv=None) -> int:
     ap.add_argument('--queries', type=int, default=20, help='query sets (of 50 landmarks) searched')
     ap.add_argument('--knn', type=int, default=20)
     ap.add_argument('--kinds', default='ivfpq-fs,ivfpq')
-    ap.add_argument('--nprobe', default='8,16,32')
+    ap.add_argument('--nprobe', default='8,16,32', help='IVF cells probed, each tried (0 = the default of the kind)')
     ap.add_argument('--pq-m', type=int, default=0, help='PQ sub-quantisers (0 = the default of the kind)')
+    ap.add_argument('--k-factor', type=int, default=0, help='ivfpq-fs-refine shortlist factor (0 = the default)')
     ap.add_argument('--no-exact', dest='exact', action='store_false', help='--nordland: skip the exact row')
     ap.add_argument('--nordland', action='store_true', help='the first stage on the Nordland test split instead')
     args = ap.parse_args(argv)

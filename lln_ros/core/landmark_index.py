@@ -33,19 +33,26 @@ keyframe c" is ids < c << 24 (exclude_recent). Grids up to 4096 x 4096 cells, ke
 
 Index type: exact (IndexIDMap2(IndexFlatIP)) up to conf['landmark_index_threshold'] landmarks
 (the switch-over rule, commented in default_conf); above it conf['landmark_compressed']:
-'ivfpq-fs' (the default: IndexIVFPQFastScan, D sub-quantisers of 4 bits = D/2 bytes per
-landmark, scanned with SIMD register look-ups) or 'ivfpq' (IndexIVFPQ, D/4 sub-quantisers of 8
-bits = D/4 bytes, the format of older maps, still read). Both are trained on (a sample of) the
-map's own descriptors, those of the keyframes up to the one that crossed the threshold (so the index
-depends on the keyframe order only, not on how adds were batched), and probe conf['landmark_nprobe']
-of their IVF cells; all 50 query landmarks
-go to FAISS in one search call. Exact inner products grow with the map (one core: ~120 ms per
-query at 20k landmarks under load 14 on this 2-core machine), so only small maps stay exact; the
-fast-scan index keeps a 100k-keyframe map (5M landmarks) at ~520 MB with ids. A compressed index
-grown past conf['landmark_retrain_factor'] x the landmarks it was trained on is rebuilt by its
-owner (the map store) from the stored descriptors. Recall against exact search on descriptors of
-real images, and the first stage on the Nordland test split per index type:
-bench/bench_landmark_index.py.
+- 'ivfpq-fs-refine': IndexIVFPQFastScan with D/4 sub-quantisers of 4 bits (D/8 bytes per landmark,
+  cheap to scan, so many more IVF cells can be probed: NPROBE) gives a shortlist of
+  conf['landmark_k_factor'] x k, re-ranked by the cosine on a scalar-quantised copy of every vector
+  (RefineCodes, conf['landmark_refine'], SQ6: 3D/4 bytes): ~185 bytes per landmark with both ids;
+  at 5M landmarks it finds the exact nearest landmark for 0.83 of query landmarks, 'ivfpq-fs' for
+  0.60, which loses them both to its codes and to its partition (16 of 3,760 cells probed), at 1.3x
+  its search time (default_conf);
+- 'ivfpq-fs' (the default): IndexIVFPQFastScan, D sub-quantisers of 4 bits = D/2 bytes per landmark,
+  scanned with SIMD register look-ups; a 100k-keyframe map (5M landmarks) at ~530 MB with ids;
+- 'ivfpq': IndexIVFPQ, D/4 sub-quantisers of 8 bits = D/4 bytes (the oldest maps' format).
+All are trained on (a sample of) the map's own descriptors, those of the keyframes up to the one
+that crossed the threshold (so the index depends on the keyframe order only, not on how adds were
+batched), and probe conf['landmark_nprobe'] (0: the kind's NPROBE) of their IVF cells; all 50 query
+landmarks go to FAISS in one search call. Exact inner products grow with the map (one core: ~120 ms
+per query at 20k landmarks under load 14 on this 2-core machine), so only small maps stay exact.
+A compressed index grown past conf['landmark_retrain_factor'] x the landmarks it was trained on is
+rebuilt by its owner (the map store) from the stored descriptors, and so is a file of another kind
+(or centring, whitening, refine codes) than the conf asks for. Recall against exact search on
+descriptors of real images, and the first stage on the Nordland test split per index type:
+bench/bench_landmark_index.py (figures: docs/benchmarks.md, The landmark index, and default_conf).
 """
 
 from __future__ import annotations
@@ -88,20 +95,35 @@ default_conf = {
     # compressed (landmark_compressed) above it. Exact cost grows with the map: 50 query landmarks
     # against 20k landmarks took 118 ms of one core under load 14 on this 2-core machine, 100k 1.1 s.
     'landmark_index_threshold': 20_000,
-    # above the threshold: 'ivfpq-fs' (IVF + 4-bit PQ fast-scan, SIMD look-ups in registers; the
-    # default: faster than 'ivfpq' and on the Nordland test split at or above it at every R@K,
-    # bench/bench_landmark_index.py --nordland) or 'ivfpq' (IVF + 8-bit PQ, the older format, still read)
+    # above the threshold (module doc, Index type): 'ivfpq-fs' (IVF + 4-bit PQ fast-scan), 'ivfpq-fs-refine'
+    # (IVF + a coarser 4-bit PQ fast-scan shortlist of landmark_k_factor x knn, re-ranked on
+    # landmark_refine codes) or 'ivfpq' (IVF + 8-bit PQ, the oldest format). A file of another kind
+    # than this is rebuilt by its map store. 'ivfpq-fs' stays the default: at 100k keyframes (5M
+    # landmarks, bench/bench_landmark_index.py --keyframes 100000 --augment 1, one run, load 5-6) it
+    # finds the exact top-1 neighbour of 0.602 of query landmarks (top 20: 0.709) in 20.4 ms per 50
+    # landmarks at 106 bytes each; 'ivfpq-fs-refine' 0.829 (0.804) in 27.1 ms at nprobe 64, 0.863
+    # (0.831) in 35.6 ms at 128, at 185 bytes (925 MB at 5M): more recall, but not issue #30's 0.9 and
+    # not at today's cost; on the Nordland test split both give the exact first stage's R@K within
+    # 0.01 (--nordland), so the first stage does not need it yet.
     'landmark_compressed': 'ivfpq-fs',
     'landmark_retrain_factor': 8,  # a compressed index grown past this x its training size is rebuilt
     'landmark_ivf_lists': 0,  # 0 = sqrt(landmarks x sqrt(retrain factor)), in [64, 4096], <= landmarks / 39
-    'landmark_nprobe': 16,  # IVF cells visited per query landmark
-    # PQ sub-quantisers; 0 = D at 4 bits (ivfpq-fs: D/2 bytes per landmark; D/2 of them lost 2 points
-    # of Nordland R@10 against 'ivfpq', D kept every R@K at or above it), D / 4 at 8 bits (ivfpq)
+    'landmark_nprobe': 0,  # IVF cells visited per query landmark; 0 = the kind's (NPROBE)
+    # PQ sub-quantisers; 0 = the kind's (PQ_M): D at 4 bits (ivfpq-fs: D/2 bytes per landmark; D/2
+    # of them lost 2 points of Nordland R@10 against 'ivfpq', D kept every R@K at or above it), D / 4
+    # at 8 bits (ivfpq), D / 4 at 4 bits (ivfpq-fs-refine: only a shortlist, re-ranked)
     'landmark_pq_m': 0,
+    'landmark_refine': 'SQ6',  # ivfpq-fs-refine: codes of the re-ranking (FAISS scalar quantiser: SQ4|SQ6|SQ8|fp16)
+    'landmark_k_factor': 8,  # ivfpq-fs-refine: the fast-scan shortlist is k_factor x the k asked for
     'landmark_pq_bits': 8,  # bits per sub-quantiser code of 'ivfpq' (fast-scan codes are always 4 bits)
     'landmark_train_points': 100_000,  # sample the compressed index is trained on
 }
-COMPRESSED = ('ivfpq-fs', 'ivfpq')
+COMPRESSED = ('ivfpq-fs-refine', 'ivfpq-fs', 'ivfpq')
+# landmark_nprobe 0: ivfpq-fs-refine 64, where its search at 100k keyframes still cost what it cost at
+# 16 or 32 (27 ms per 50 landmarks, most of it the re-ranking; 128 took 36 ms for R@1 0.863 vs 0.829)
+NPROBE = {'ivfpq-fs-refine': 64, 'ivfpq-fs': 16, 'ivfpq': 16}
+PQ_M = {'ivfpq-fs-refine': 4, 'ivfpq-fs': 1, 'ivfpq': 4}  # landmark_pq_m 0: D / this
+_SQ_TYPES = {'SQ4': 'QT_4bit', 'SQ6': 'QT_6bit', 'SQ8': 'QT_8bit', 'fp16': 'QT_fp16'}
 
 _CELL_BITS = 12
 _KF_SHIFT = 2 * _CELL_BITS
@@ -227,6 +249,101 @@ def center(descriptors: np.ndarray, keyframe_ids: np.ndarray | None = None) -> n
     return out
 
 
+class RefineCodes:
+    """The second stage of 'ivfpq-fs-refine': a scalar-quantised copy (conf['landmark_refine']) of
+    every vector the fast-scan index holds, found by landmark id. ids are kept sorted (a map adds
+    keyframes in id order, so appending keeps them sorted; anything else is sorted once before the
+    next look-up) in buffers that grow by half, so adding one keyframe to a large map does not copy it."""
+
+    def __init__(self, dim: int, qtype: str):
+        if qtype not in _SQ_TYPES:
+            raise ValueError(f'landmark_refine must be one of {"|".join(_SQ_TYPES)}, got {qtype!r}')
+        self.qtype = qtype
+        self.sq = faiss.ScalarQuantizer(int(dim), getattr(faiss.ScalarQuantizer, _SQ_TYPES[qtype]))
+        self.n = 0
+        self._ids = np.zeros(0, np.int64)
+        self._codes = np.zeros((0, self.sq.code_size), np.uint8)
+        self._sorted = True
+
+    @property
+    def ids(self) -> np.ndarray:
+        return self._ids[: self.n]
+
+    @property
+    def codes(self) -> np.ndarray:
+        return self._codes[: self.n]
+
+    def train(self, x: np.ndarray) -> None:
+        self.sq.train(np.ascontiguousarray(x, np.float32))
+
+    def add(self, x: np.ndarray, ids: np.ndarray) -> None:
+        """Codes of vectors x (N, D) under landmark ids (N,)."""
+        ids = np.asarray(ids, np.int64)
+        if not len(ids):
+            return
+        codes = self.sq.compute_codes(np.ascontiguousarray(x, np.float32))
+        self._put(ids, codes)
+
+    def _put(self, ids: np.ndarray, codes: np.ndarray) -> None:
+        end = self.n + len(ids)
+        if end > len(self._ids):
+            size = max(end, int(len(self._ids) * 1.5), 1024)
+            grown_ids, grown = np.empty(size, np.int64), np.empty((size, self.sq.code_size), np.uint8)
+            grown_ids[: self.n], grown[: self.n] = self.ids, self.codes
+            self._ids, self._codes = grown_ids, grown
+        if self._sorted and (np.any(np.diff(ids) <= 0) or (self.n and ids[0] <= self._ids[self.n - 1])):
+            self._sorted = False
+        self._ids[self.n : end], self._codes[self.n : end] = ids, codes
+        self.n = end
+
+    def _sort(self) -> None:
+        if not self._sorted:
+            order = np.argsort(self.ids, kind='stable')
+            self._ids[: self.n], self._codes[: self.n] = self.ids[order], self.codes[order]
+            self._sorted = True
+
+    def remove(self, drop: np.ndarray) -> None:
+        """Forget the codes of landmark ids `drop`."""
+        keep = ~np.isin(self.ids, np.asarray(drop, np.int64))
+        m = int(keep.sum())
+        self._ids[:m], self._codes[:m] = self.ids[keep], self.codes[keep]
+        self.n = m
+
+    def reconstruct(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(decoded vectors (..., D), found (...) bool) of landmark ids (...); -1 or unknown ids: zeros."""
+        self._sort()
+        ids = np.asarray(ids, np.int64)
+        flat = ids.reshape(-1)
+        pos = np.minimum(np.searchsorted(self.ids, flat), max(self.n - 1, 0))
+        found = (flat >= 0) & (self.n > 0) & (self.ids[pos] == flat if self.n else False)
+        out = np.zeros((len(flat), self.sq.d), np.float32)
+        if found.any():
+            out[found] = self.sq.decode(np.ascontiguousarray(self.codes[pos[found]]))
+        return out.reshape(*ids.shape, self.sq.d), found.reshape(ids.shape)
+
+    def to_bytes(self) -> bytes:
+        self._sort()
+        trained = faiss.vector_to_array(self.sq.trained).astype(np.float32)
+        head = struct.pack('<QQ', len(trained), self.n)
+        return head + trained.tobytes() + self.ids.tobytes() + self.codes.tobytes()
+
+    @classmethod
+    def from_bytes(cls, dim: int, qtype: str, data) -> 'RefineCodes':
+        out = cls(dim, qtype)
+        n_trained, n = struct.unpack('<QQ', bytes(data[:16]))
+        at = 16
+        trained = np.frombuffer(data, np.float32, n_trained, at)
+        at += 4 * n_trained
+        ids = np.frombuffer(data, np.int64, n, at)
+        at += 8 * n
+        codes = np.frombuffer(data, np.uint8, n * out.sq.code_size, at).reshape(n, out.sq.code_size)
+        if at + codes.size != len(data):
+            raise ValueError(f'refine codes take {at + codes.size} bytes, the file holds {len(data)}')
+        faiss.copy_array_to_vector(trained, out.sq.trained)
+        out._ids, out._codes, out.n = ids.copy(), codes.copy(), int(n)
+        return out
+
+
 class LandmarkIndex:
     """FAISS inner-product index of landmark descriptors (D,), ids as encode_ids (module doc).
     With conf['landmark_center'] it holds center()ed descriptors: every entry point that takes stored
@@ -238,6 +355,7 @@ class LandmarkIndex:
         self.conf = {**default_conf, **(conf or {})}
         self.whitening = whitening.shipped(space) if self.conf['landmark_whitening'] and space else None
         self.index = self._exact()
+        self.refine: RefineCodes | None = None  # the re-ranking codes of 'ivfpq-fs-refine'
         self.trained_on = 0  # landmarks the IVF-PQ was trained on (0: exact)
 
     def _exact(self):
@@ -245,9 +363,9 @@ class LandmarkIndex:
 
     @property
     def kind(self) -> str:
-        """'exact', 'ivfpq-fs' or 'ivfpq' (module doc)."""
+        """'exact', 'ivfpq-fs-refine', 'ivfpq-fs' or 'ivfpq' (module doc)."""
         if isinstance(self.index, faiss.IndexIVFPQFastScan):
-            return 'ivfpq-fs'
+            return 'ivfpq-fs' if self.refine is None else 'ivfpq-fs-refine'
         return 'ivfpq' if isinstance(self.index, faiss.IndexIVF) else 'exact'
 
     @property
@@ -269,8 +387,8 @@ class LandmarkIndex:
         kind = self.conf['landmark_compressed']
         if kind not in COMPRESSED:
             raise ValueError(f'landmark_compressed must be one of {"|".join(COMPRESSED)}, got {kind!r}')
-        fast = kind == 'ivfpq-fs'
-        m = int(self.conf['landmark_pq_m']) or max(1, self.dim if fast else self.dim // 4)
+        fast = kind != 'ivfpq'
+        m = int(self.conf['landmark_pq_m']) or max(1, self.dim // PQ_M[kind])
         if self.dim % m:
             raise ValueError(f'landmark_pq_m {m} must divide the descriptor size {self.dim}')
         if fast:
@@ -294,11 +412,24 @@ class LandmarkIndex:
             else x[np.sort(rng.choice(len(x), int(self.conf['landmark_train_points']), replace=False))]
         )
         # one_faiss_thread: a 2,000-landmark training under load took over 10 minutes with two
+        refine = RefineCodes(self.dim, self.conf['landmark_refine']) if kind == 'ivfpq-fs-refine' else None
         with one_faiss_thread():
             index.train(np.ascontiguousarray(sample, np.float32))
-        index.nprobe = int(self.conf['landmark_nprobe'])
+            if refine is not None:
+                refine.train(sample)
+        index.nprobe = self.nprobe(kind)
         self.trained_on = n
+        self.refine = refine
         return index
+
+    def nprobe(self, kind: str | None = None) -> int:
+        """IVF cells visited per query landmark: conf['landmark_nprobe'], or the kind's (NPROBE)."""
+        return int(self.conf['landmark_nprobe']) or NPROBE.get(kind or self.kind, 16)
+
+    def _add(self, index, x: np.ndarray, ids: np.ndarray) -> None:
+        index.add_with_ids(x, ids)
+        if self.refine is not None and isinstance(index, faiss.IndexIVF):
+            self.refine.add(x, ids)
 
     def prepare(self, descriptors: np.ndarray, keyframe_ids: np.ndarray | None = None) -> np.ndarray:
         """The vectors this index holds for stored descriptors (N, D) of keyframe_ids (N,) (None =
@@ -321,9 +452,12 @@ class LandmarkIndex:
         x = np.ascontiguousarray(x, np.float32).reshape(-1, self.dim)
         if not prepared:
             x = self.prepare(x, decode_ids(ids)[0])
-        index = self._compressed(x) if len(ids) > self.conf['landmark_index_threshold'] else self._exact()
+        if len(ids) > self.conf['landmark_index_threshold']:
+            index = self._compressed(x)
+        else:
+            index, self.refine = self._exact(), None
         for start in range(0, len(ids), 200_000):
-            index.add_with_ids(x[start : start + 200_000], ids[start : start + 200_000])
+            self._add(index, x[start : start + 200_000], ids[start : start + 200_000])
         self.index = index
 
     def add(self, descriptors: np.ndarray, keyframe_ids: np.ndarray, cells: np.ndarray) -> None:
@@ -346,7 +480,7 @@ class LandmarkIndex:
             x, ids = x[p:], ids[p:]
             if not len(ids):
                 return
-        self.index.add_with_ids(x, ids)
+        self._add(self.index, x, ids)
 
     def add_sets(self, keyframe_ids, sets) -> None:
         """Add every landmark of the LandmarkSets `sets`, stored under `keyframe_ids`."""
@@ -359,6 +493,9 @@ class LandmarkIndex:
     def remove_keyframes(self, keyframe_ids) -> int:
         """Drop every landmark of these keyframes; returns how many landmarks went."""
         kids = sorted({int(i) for i in keyframe_ids})
+        if self.refine is not None and kids:
+            held = self.refine.ids
+            self.refine.remove(held[np.isin(decode_ids(held)[0], kids)])
         if len(kids) > 4:  # one pass over the index for many keyframes, not one per keyframe
             held = self.landmark_ids()
             drop = np.ascontiguousarray(held[np.isin(decode_ids(held)[0], kids)])
@@ -369,7 +506,7 @@ class LandmarkIndex:
         return removed
 
     def reset(self) -> None:
-        self.index = self._exact()
+        self.index, self.refine = self._exact(), None
 
     # ------------------------------------------------------------------ reading
     def landmark_ids(self) -> np.ndarray:
@@ -394,7 +531,15 @@ class LandmarkIndex:
         """kNN of each query landmark: sims (n, k), keyframe ids (n, k) (-1 = none), cells (n, k, 2).
         below: only keyframes with id < below (exclude_recent). descriptors (n, D) are one query's
         (centred together when conf['landmark_center'])."""
-        q = self.prepare(np.asarray(descriptors, np.float32).reshape(-1, self.dim))
+        sims, ids = self.search_prepared(
+            self.prepare(np.asarray(descriptors, np.float32).reshape(-1, self.dim)), k, below
+        )
+        kf, cells = decode_ids(ids)
+        return sims, kf, cells
+
+    def search_prepared(self, q: np.ndarray, k: int, below: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """sims (n, k) and landmark ids (n, k) (-1 = none) of vectors q (n, D) as the index holds them
+        (prepare()d), in one FAISS call (+ the re-ranking of 'ivfpq-fs-refine')."""
         params = None
         if below is not None:
             sel = faiss.IDSelectorRange(0, int(below) << _KF_SHIFT)
@@ -403,10 +548,25 @@ class LandmarkIndex:
                 if self.kind != 'exact'
                 else faiss.SearchParameters(sel=sel)
             )
+        k = int(k)
+        wide = k if self.refine is None else min(k * int(self.conf['landmark_k_factor']), max(self.ntotal, k))
         with one_faiss_thread():
-            sims, ids = self.index.search(q, int(k), params=params)
-        kf, cells = decode_ids(ids)
-        return sims, kf, cells
+            sims, ids = self.index.search(q, wide, params=params)
+        if self.refine is not None:
+            sims, ids = self._rerank(q, ids, k)
+        return sims, ids
+
+    def _rerank(self, q: np.ndarray, ids: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The k best of each query's fast-scan shortlist ids (n, k') by their cosine on the refine
+        codes: sims (n, k), ids (n, k); id -1 where the shortlist held fewer, as FAISS answers."""
+        vec, found = self.refine.reconstruct(ids)
+        sims = np.einsum('nkd,nd->nk', vec, q)
+        sims[~found] = -np.inf
+        top = np.argsort(-sims, axis=1, kind='stable')[:, :k]
+        sims, ids = np.take_along_axis(sims, top, 1), np.take_along_axis(ids, top, 1)
+        missing = ~np.isfinite(sims)
+        ids[missing], sims[missing] = -1, -np.finfo(np.float32).max  # FAISS's empty result
+        return sims.astype(np.float32), ids
 
     def shortlist(self, query, k: int, below: int | None = None, scale: float = 1.0):
         """The first stage: the top k keyframe ids (K,) and their first-stage scores (K,) for a query
@@ -420,17 +580,21 @@ class LandmarkIndex:
     # ------------------------------------------------------------------ persistence (IVF-PQ maps)
     def write(self, path: str, header: dict) -> None:
         """Serialise to path atomically (temporary file, fsync, rename): MAGIC, a JSON header
-        (`header` plus D, landmark count and the CRC-32 of the FAISS bytes), the FAISS index."""
+        (`header` plus D, kind, landmark count and the CRC-32 of what follows), the FAISS index, then
+        for 'ivfpq-fs-refine' its refine codes (RefineCodes.to_bytes, header 'refine_bytes' long)."""
         blob = faiss.serialize_index(self.index)
+        refine = self.refine.to_bytes() if self.refine is not None else b''
         head = json.dumps(
             {
                 **header,
                 'dim': self.dim,
+                'kind': self.kind,
                 'landmarks': self.ntotal,
                 'trained_on': self.trained_on,
                 'center': bool(self.conf['landmark_center']),
                 'whitening': whitening.fingerprint(self.whitening),
-                'crc32': zlib.crc32(blob),
+                **({'refine': self.refine.qtype, 'refine_bytes': len(refine)} if refine else {}),
+                'crc32': zlib.crc32(refine, zlib.crc32(blob)),
             }
         ).encode()
         tmp = f'{path}.tmp-{os.getpid()}'
@@ -438,6 +602,7 @@ class LandmarkIndex:
             with open(tmp, 'wb') as f:
                 f.write(MAGIC + struct.pack('<I', len(head)) + head)
                 f.write(memoryview(blob))
+                f.write(refine)
                 f.flush()
                 os.fsync(f.fileno())
             os.replace(tmp, path)
@@ -450,7 +615,9 @@ class LandmarkIndex:
     @classmethod
     def read(cls, path: str, dim: int, conf: dict | None = None, space: str = '') -> tuple['LandmarkIndex', dict]:
         """(index, header) from a file `write` made; MapError naming the problem when it is
-        truncated, corrupt (CRC), of another descriptor size or not a landmark index at all."""
+        truncated, corrupt (CRC), of another descriptor size, not a landmark index at all, or of
+        another kind or centring / whitening than `conf` asks for (its owner rebuilds it). Files
+        written before the header recorded the kind are of the kind their FAISS type says."""
         try:
             with open(path, 'rb') as f:
                 data = f.read()
@@ -464,8 +631,10 @@ class LandmarkIndex:
             blob = np.frombuffer(data, np.uint8, offset=len(MAGIC) + 4 + n)
             if zlib.crc32(blob) != header.get('crc32'):
                 raise ValueError(f'checksum mismatch ({len(blob)} bytes of index data: truncated or corrupt)')
-            index = faiss.deserialize_index(blob)
-        except (ValueError, struct.error, RuntimeError) as e:
+            size = int(header.get('refine_bytes', 0))
+            refine = RefineCodes.from_bytes(int(dim), header['refine'], blob[len(blob) - size :]) if size else None
+            index = faiss.deserialize_index(blob[: len(blob) - size])
+        except (ValueError, KeyError, struct.error, RuntimeError) as e:
             raise MapError(f'landmark index {path} is unusable: {str(e).splitlines()[0][:200]}') from None
         if (
             index.d != int(dim)
@@ -489,8 +658,20 @@ class LandmarkIndex:
                 f'landmark index {path} holds {"centred" if header.get("center") else "raw"} descriptors; '
                 f'landmark_center is {bool(out.conf["landmark_center"])}'
             )
+        out.index, out.refine = index, refine
+        if out.refine is not None and (out.refine.n != index.ntotal or out.kind != 'ivfpq-fs-refine'):
+            raise MapError(f'landmark index {path} holds {out.refine.n} refine codes for {index.ntotal} landmarks')
         if isinstance(index, faiss.IndexIVF):
-            index.nprobe = int(out.conf['landmark_nprobe'])
-        out.index = index
+            if out.kind != out.conf['landmark_compressed']:
+                # like centring and whitening: the owner rebuilds an index of another kind than asked
+                raise MapError(
+                    f'landmark index {path} is {out.kind}; landmark_compressed is {out.conf["landmark_compressed"]}'
+                )
+            if out.refine is not None and out.refine.qtype != out.conf['landmark_refine']:
+                raise MapError(
+                    f'landmark index {path} re-ranks on {out.refine.qtype}; '
+                    f'landmark_refine is {out.conf["landmark_refine"]}'
+                )
+            index.nprobe = out.nprobe()
         out.trained_on = int(header.get('trained_on', index.ntotal))
         return out, header
