@@ -68,6 +68,7 @@ import numpy as np
 
 from ..errors import MapError
 from . import whitening
+from .refine_codes import RefineCodes
 from .similarity import offset_mode, offset_weights
 from .threads import one_faiss_thread
 
@@ -123,7 +124,6 @@ COMPRESSED = ('ivfpq-fs-refine', 'ivfpq-fs', 'ivfpq')
 # 16 or 32 (27 ms per 50 landmarks, most of it the re-ranking; 128 took 36 ms for R@1 0.863 vs 0.829)
 NPROBE = {'ivfpq-fs-refine': 64, 'ivfpq-fs': 16, 'ivfpq': 16}
 PQ_M = {'ivfpq-fs-refine': 4, 'ivfpq-fs': 1, 'ivfpq': 4}  # landmark_pq_m 0: D / this
-_SQ_TYPES = {'SQ4': 'QT_4bit', 'SQ6': 'QT_6bit', 'SQ8': 'QT_8bit', 'fp16': 'QT_fp16'}
 
 _CELL_BITS = 12
 _KF_SHIFT = 2 * _CELL_BITS
@@ -247,101 +247,6 @@ def center(descriptors: np.ndarray, keyframe_ids: np.ndarray | None = None) -> n
     out = np.empty_like(x)
     out[order] = xs
     return out
-
-
-class RefineCodes:
-    """The second stage of 'ivfpq-fs-refine': a scalar-quantised copy (conf['landmark_refine']) of
-    every vector the fast-scan index holds, found by landmark id. ids are kept sorted (a map adds
-    keyframes in id order, so appending keeps them sorted; anything else is sorted once before the
-    next look-up) in buffers that grow by half, so adding one keyframe to a large map does not copy it."""
-
-    def __init__(self, dim: int, qtype: str):
-        if qtype not in _SQ_TYPES:
-            raise ValueError(f'landmark_refine must be one of {"|".join(_SQ_TYPES)}, got {qtype!r}')
-        self.qtype = qtype
-        self.sq = faiss.ScalarQuantizer(int(dim), getattr(faiss.ScalarQuantizer, _SQ_TYPES[qtype]))
-        self.n = 0
-        self._ids = np.zeros(0, np.int64)
-        self._codes = np.zeros((0, self.sq.code_size), np.uint8)
-        self._sorted = True
-
-    @property
-    def ids(self) -> np.ndarray:
-        return self._ids[: self.n]
-
-    @property
-    def codes(self) -> np.ndarray:
-        return self._codes[: self.n]
-
-    def train(self, x: np.ndarray) -> None:
-        self.sq.train(np.ascontiguousarray(x, np.float32))
-
-    def add(self, x: np.ndarray, ids: np.ndarray) -> None:
-        """Codes of vectors x (N, D) under landmark ids (N,)."""
-        ids = np.asarray(ids, np.int64)
-        if not len(ids):
-            return
-        codes = self.sq.compute_codes(np.ascontiguousarray(x, np.float32))
-        self._put(ids, codes)
-
-    def _put(self, ids: np.ndarray, codes: np.ndarray) -> None:
-        end = self.n + len(ids)
-        if end > len(self._ids):
-            size = max(end, int(len(self._ids) * 1.5), 1024)
-            grown_ids, grown = np.empty(size, np.int64), np.empty((size, self.sq.code_size), np.uint8)
-            grown_ids[: self.n], grown[: self.n] = self.ids, self.codes
-            self._ids, self._codes = grown_ids, grown
-        if self._sorted and (np.any(np.diff(ids) <= 0) or (self.n and ids[0] <= self._ids[self.n - 1])):
-            self._sorted = False
-        self._ids[self.n : end], self._codes[self.n : end] = ids, codes
-        self.n = end
-
-    def _sort(self) -> None:
-        if not self._sorted:
-            order = np.argsort(self.ids, kind='stable')
-            self._ids[: self.n], self._codes[: self.n] = self.ids[order], self.codes[order]
-            self._sorted = True
-
-    def remove(self, drop: np.ndarray) -> None:
-        """Forget the codes of landmark ids `drop`."""
-        keep = ~np.isin(self.ids, np.asarray(drop, np.int64))
-        m = int(keep.sum())
-        self._ids[:m], self._codes[:m] = self.ids[keep], self.codes[keep]
-        self.n = m
-
-    def reconstruct(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(decoded vectors (..., D), found (...) bool) of landmark ids (...); -1 or unknown ids: zeros."""
-        self._sort()
-        ids = np.asarray(ids, np.int64)
-        flat = ids.reshape(-1)
-        pos = np.minimum(np.searchsorted(self.ids, flat), max(self.n - 1, 0))
-        found = (flat >= 0) & (self.n > 0) & (self.ids[pos] == flat if self.n else False)
-        out = np.zeros((len(flat), self.sq.d), np.float32)
-        if found.any():
-            out[found] = self.sq.decode(np.ascontiguousarray(self.codes[pos[found]]))
-        return out.reshape(*ids.shape, self.sq.d), found.reshape(ids.shape)
-
-    def to_bytes(self) -> bytes:
-        self._sort()
-        trained = faiss.vector_to_array(self.sq.trained).astype(np.float32)
-        head = struct.pack('<QQ', len(trained), self.n)
-        return head + trained.tobytes() + self.ids.tobytes() + self.codes.tobytes()
-
-    @classmethod
-    def from_bytes(cls, dim: int, qtype: str, data) -> 'RefineCodes':
-        out = cls(dim, qtype)
-        n_trained, n = struct.unpack('<QQ', bytes(data[:16]))
-        at = 16
-        trained = np.frombuffer(data, np.float32, n_trained, at)
-        at += 4 * n_trained
-        ids = np.frombuffer(data, np.int64, n, at)
-        at += 8 * n
-        codes = np.frombuffer(data, np.uint8, n * out.sq.code_size, at).reshape(n, out.sq.code_size)
-        if at + codes.size != len(data):
-            raise ValueError(f'refine codes take {at + codes.size} bytes, the file holds {len(data)}')
-        faiss.copy_array_to_vector(trained, out.sq.trained)
-        out._ids, out._codes, out.n = ids.copy(), codes.copy(), int(n)
-        return out
 
 
 class LandmarkIndex:
