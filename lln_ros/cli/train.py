@@ -25,13 +25,15 @@ import json
 import shlex
 import sys
 
-from ..core.lln import PADDINGS
-from ..core.lln import default_conf as lln_defaults
-from ..core.training import default_conf as train_defaults
 from .common import run_cli
 
 
 def build_parser() -> argparse.ArgumentParser:
+    # the defaults live with the head and the trainer (core stays a lazy import of the cli)
+    from ..core.lln import PADDINGS
+    from ..core.lln import default_conf as lln_defaults
+    from ..core.training import default_conf as train_defaults
+
     p = argparse.ArgumentParser(prog='lln-train', description=__doc__.strip().splitlines()[0])
     p.add_argument('--data', action='append', required=True, metavar='SPEC', help='training data (repeatable)')
     p.add_argument('--range', help='START:END fractions of every aligned --data to train on')
