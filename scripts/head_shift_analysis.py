@@ -130,7 +130,7 @@ def analyse(feats: list, head, top_n: int) -> dict:
     return out
 
 
-def figure(results: dict, path: Path) -> None:
+def figure(results: dict, path: Path, head: str = 'the shipped head') -> None:
     import matplotlib
 
     matplotlib.use('Agg')
@@ -163,13 +163,13 @@ def figure(results: dict, path: Path) -> None:
             if i == len(names) - 1:
                 ax.set_xlabel('relative column', fontsize=8)
             fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04).ax.tick_params(labelsize=7)
-    fig.suptitle('Where the shipped head puts its landmarks, per image position (mean over all images)', fontsize=10)
+    fig.suptitle(f'Where {head} puts its landmarks, per image position (mean over all images)', fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
-def examples(shown: dict, ex, top_n: int, path: Path) -> None:
+def examples(shown: dict, ex, top_n: int, path: Path, head: str = 'the shipped head') -> None:
     """One row per dataset: a query and its reference, with LLN's top-n cells (filled red squares)
     and ACT's (cyan outlines)."""
     import matplotlib
@@ -205,9 +205,7 @@ def examples(shown: dict, ex, top_n: int, path: Path) -> None:
             ax.set_xticks([])
             ax.set_yticks([])
             ax.set_title(f'{name}: {what} ({w}x{h} px, {cols}x{rows} cells)', fontsize=8)
-    fig.suptitle(
-        f'top-{top_n} cells: red squares = the shipped head (LLN), cyan outlines = ACT (feature norm)', fontsize=9
-    )
+    fig.suptitle(f'top-{top_n} cells: red squares = {head} (LLN), cyan outlines = ACT (feature norm)', fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -218,6 +216,7 @@ def main() -> int:
     p.add_argument('--dataset', action='append', required=True)
     p.add_argument('--range', default=None, help='START:END of aligned datasets')
     p.add_argument('--weights', default='', help="head checkpoint ('' = the shipped head)")
+    p.add_argument('--label', default='', help="the head's name in the pictures' titles (default: the file name)")
     p.add_argument('--top-n', type=int, default=50)
     p.add_argument('--cache', default='cache/features')
     p.add_argument('--out', default='out/shift-analysis')
@@ -264,8 +263,9 @@ def main() -> int:
         lines.append(f'| {name} | ' + ' | '.join(f'{r[k]:.2f}' if k != 'cells' else f'{r[k]:.0f}' for k in keys) + ' |')
     (out / 'analysis.md').write_text('\n'.join(lines) + '\n')
     print('\n'.join(lines))
-    figure(results, out / 'selection.png')
-    examples(shown, ex, a.top_n, out / 'examples.png')
+    head = a.label or (f'the head {Path(a.weights).name}' if a.weights else 'the shipped head')
+    figure(results, out / 'selection.png', head)
+    examples(shown, ex, a.top_n, out / 'examples.png', head)
     print(f'wrote {out}/analysis.json, analysis.md, selection.png, examples.png')
     return 0
 

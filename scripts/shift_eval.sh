@@ -7,6 +7,7 @@
 #   bash scripts/shift_eval.sh                 # folds + every run below, into out/shift-eval/
 #   FUSIONS="0.25 0.5" TOPNS="25 100" bash scripts/shift_eval.sh
 #   HEADS=shipped=shipped,new=out/train/best.pt FUSIONS=" " TOPNS=" " bash scripts/shift_eval.sh
+#   RAND_SEEDS="1 2 3 4 5 6 7 8" FOLDS="lateral side" ...   # RAND at other seeds: out/shift-eval/rand-sN
 #   then: python scripts/shift_md.py out/shift-eval   (the tables)
 set -euo pipefail
 cd "${LLN_REPO:-$(dirname "$0")/..}"
@@ -31,3 +32,5 @@ run() {  # run DIR ARGS...: lln-eval on every fold, the shipped defaults but ARG
 }
 run topn50 --methods holistic,lln,act,rand,all --heads "$heads"
 for n in $TOPNS; do run "topn$n" --methods lln,act,rand --heads "$heads" --top-n "$n"; done
+# RAND is one fixed draw of cell locations per grid (the paper's): its spread over other draws
+for s in ${RAND_SEEDS:-}; do run "rand-s$s" --methods rand --rand-seed "$s"; done

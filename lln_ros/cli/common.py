@@ -110,6 +110,12 @@ def add_model_arguments(p: argparse.ArgumentParser, weights: bool = True) -> Non
         default=ext['input_height'],
         help=f'network input height (default {ext["input_height"]})',
     )
+    p.add_argument(
+        '--rand-seed',
+        type=int,
+        default=ext['rand_seed'],
+        help=f"seed of RAND's cell locations, one fixed draw per grid (default {ext['rand_seed']})",
+    )
     p.add_argument('--backbone', default=ext['backbone']['name'], help=f'default {ext["backbone"]["name"]}')
     p.add_argument('--layer', default=ext['backbone']['layer'], help="backbone feature layer (default: the backbone's)")
     p.add_argument(
@@ -177,6 +183,7 @@ def extractor_conf(args, **extra) -> dict:
         'backbone': {'name': args.backbone, 'layer': args.layer, 'weights_path': args.backbone_weights},
         'top_n': args.top_n,
         'input_height': args.input_height,
+        'rand_seed': args.rand_seed,
     }
     if getattr(args, 'weights', None) is not None and isinstance(args.weights, str):
         conf['weights'] = args.weights
