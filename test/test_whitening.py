@@ -3,6 +3,7 @@ pairs it learns from, an index file whitened otherwise is rebuilt, and on real N
 the validation part the shipped whitening finds more of the references than centring alone."""
 
 import logging
+import re
 
 import numpy as np
 import pytest
@@ -145,7 +146,12 @@ def test_make_whitening_learns_the_shipped_file(tmp_path, extractor):
         timeout=1800,
     )
     assert run.returncode == 0, run.stderr[-2000:]
-    assert '2146 image pairs, 53020 landmark pairs' in run.stdout, run.stdout
+    # the pairs are mutual nearest landmarks of float features: a runtime's float noise can flip a
+    # near-tie (53,019 on a fresh machine on 2026-12-06, 53,020 when W was learned), so the count is
+    # checked to 0.05% and W itself to 1e-3 below
+    found = re.search(r'(\d+) image pairs, (\d+) landmark pairs', run.stdout)
+    assert found and int(found[1]) == 2146, run.stdout
+    assert abs(int(found[2]) - 53020) <= 27, run.stdout
     w, meta = whitening.load(out)
     shipped = whitening.shipped(extractor.descriptor_space)
     assert meta['descriptor_space'] == extractor.descriptor_space and meta['range'] == '0:0.6'
