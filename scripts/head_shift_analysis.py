@@ -163,7 +163,7 @@ def figure(results: dict, path: Path, head: str = 'the shipped head') -> None:
             if i == len(names) - 1:
                 ax.set_xlabel('relative column', fontsize=8)
             fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04).ax.tick_params(labelsize=7)
-    fig.suptitle(f'Where {head} puts its landmarks, per image position (mean over all images)', fontsize=10)
+    fig.suptitle(f'Where {head} puts its landmarks,\nper image position (mean over all images)', fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
