@@ -393,3 +393,16 @@ def test_balance_sets_gives_every_training_set_the_same_share(tmp_path):
     assert len(set(big.tolist())) == len(big)  # the big set's without replacement
     ten = chosen(balance_sets=True, tuples_per_epoch=10)
     assert sorted(ten[ten >= 40].tolist()) == list(range(40, 45)) and len(set(ten[ten < 40].tolist())) == 5
+
+
+def test_lln_train_refuses_a_bound_without_the_norm_prior(tmp_path):
+    """--correction-bound bounds the correction to log|f|: without --norm-prior there is none, and
+    the flag would be dropped silently; the command says so before any data is read."""
+    from lln_ros.cli import train
+    from lln_ros.cli.common import UsageError
+
+    args = train.build_parser().parse_args(
+        ['--data', 'vprbench:/nonexistent', '--out', str(tmp_path), '--correction-bound', '1']
+    )
+    with pytest.raises(UsageError, match='needs --norm-prior'):
+        train.run(args)

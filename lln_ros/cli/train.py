@@ -25,7 +25,7 @@ import json
 import shlex
 import sys
 
-from .common import run_cli
+from .common import UsageError, run_cli
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -75,7 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         '--norm-prior',
         type=float,
-        default=0.0,
+        default=lln_defaults['norm_prior'],
         help="weight of log feature norm (ACT's score) in the head's logits; > 0 starts the head "
         "at ACT's selection (default 0: the plain LLN head)",
     )
@@ -176,6 +176,8 @@ def run(args) -> dict:
     except ValueError:
         raise DatasetError(f'--crop-range takes LO:HI fractions, got {args.crop_range!r}') from None
     conf['crop_views'] = args.crop_views
+    if args.correction_bound and not args.norm_prior:
+        raise UsageError('--correction-bound bounds the correction to the norm prior: it needs --norm-prior')
     conf['head'] = {'padding': args.padding}
     if args.norm_prior:
         conf['head'].update(norm_prior=args.norm_prior, correction_bound=args.correction_bound)

@@ -90,13 +90,11 @@ def pad_stack(feats: list, grid: tuple | None = None, mode: str = 'zeros') -> tu
     so the head's convs see at a real cell what they see on that image alone either way."""
     d = feats[0].shape[0]
     h, w = grid or (max(f.shape[1] for f in feats), max(f.shape[2] for f in feats))
-    out = np.zeros((len(feats), d, h, w), feats[0].dtype)
+    out = np.empty((len(feats), d, h, w), feats[0].dtype)
     valid = np.zeros((len(feats), h, w), bool)
     for i, f in enumerate(feats):
-        if mode == 'replicate':
-            out[i] = np.pad(f, ((0, 0), (0, h - f.shape[1]), (0, w - f.shape[2])), mode='edge')
-        else:
-            out[i, :, : f.shape[1], : f.shape[2]] = f
+        pad = ((0, 0), (0, h - f.shape[1]), (0, w - f.shape[2]))
+        out[i] = np.pad(f, pad, mode='edge' if mode == 'replicate' else 'constant')
         valid[i, : f.shape[1], : f.shape[2]] = True
     return torch.from_numpy(out), valid.reshape(len(feats), h * w)
 
