@@ -163,6 +163,45 @@ def join_executor(executor, timeout_s: float) -> bool:
     return not joiner.is_alive()
 
 
+def two_thread_executor():
+    """rclpy's MultiThreadedExecutor (2 threads) with rclpy #1452 fixed as rclpy #1547 does (in
+    Rolling 10.0.4; Jazzy's rclpy 7.1.6 has the bug): a callback already queued for the pool, not
+    started yet, is yielded again and again by the wait loop, which resubmits it and spins instead
+    of waiting. With use_sim_time, /clock at 40 Hz kept that loop busy and a matcher answered a bag
+    replayed with --clock only after the bag had ended, every query stale (seen in CI:
+    test_runtime.py::test_bag_replay_with_sim_time). Here a queued callback is submitted once."""
+    import time
+
+    from rclpy.executors import (
+        ConditionReachedException,
+        ExternalShutdownException,
+        MultiThreadedExecutor,
+        ShutdownException,
+        TimeoutException,
+    )
+
+    class SubmitOnceExecutor(MultiThreadedExecutor):
+        def __init__(self):
+            super().__init__(num_threads=2)
+            self.queued: list = []  # submitted callbacks not finished yet (rclpy's own list is private)
+
+        def _spin_once_impl(self, timeout_sec=None, wait_condition=lambda: False) -> None:
+            try:
+                handler, _entity, _node = self.wait_for_ready_callbacks(timeout_sec, None, wait_condition)
+            except (ExternalShutdownException, ShutdownException, TimeoutException, ConditionReachedException):
+                return
+            if any(handler is q for q in self.queued):
+                time.sleep(0.001)  # it waits for a pool thread: let one take the GIL and start it
+            else:
+                self._executor.submit(handler)
+                self.queued.append(handler)
+            for task in [q for q in self.queued if q.done()]:
+                self.queued.remove(task)
+                task.result()  # a callback's exception ends spin, as rclpy's executor does
+
+    return SubmitOnceExecutor()
+
+
 LOG_PERIOD_S = 60.0  # a diagnostics problem of one kind is logged at most once a minute (as Counters does)
 
 

@@ -13,7 +13,7 @@ from std_srvs.srv import Trigger
 from ..core.sequence import KeyframeSequence
 from ..errors import LLNError
 from ..ros import msgs, topics
-from .common import failed_response, guarded, subscription_qos
+from .common import failed_response, guarded, subscription_qos, two_thread_executor
 
 
 class MetricInputs:
@@ -40,9 +40,7 @@ class MetricInputs:
     def make_executor(self):
         """Two threads: the node's default group (every answer, serialised: the Localizer is used by
         one caller at a time) and the sensors group (odometry, camera_info)."""
-        from rclpy.executors import MultiThreadedExecutor
-
-        return MultiThreadedExecutor(num_threads=2)
+        return two_thread_executor()
 
     @guarded('camera_info callback')
     def on_camera_info(self, msg: CameraInfo) -> None:
