@@ -473,7 +473,8 @@ rclpy.shutdown()
 
 def test_play_clock_drives_sim_time_faster_than_real_time(tmp_path):
     """--clock publishes the bag time on /clock; a node with use_sim_time=true then reads every
-    message's stamp as (about) the present, though the 4.5 s bag plays at 5x, faster than real time."""
+    message's stamp as (about) the present, though the 4.5 s bag plays at 5x, faster than real time.
+    While playback waits, /clock already holds the bag's start time."""
     make_images(tmp_path / 'imgs', 10, size=(160, 120))
     out = tmp_path / 'bag'
     stamps = bag.folder_to_bag(tmp_path / 'imgs', out, rate=2.0)
@@ -498,6 +499,8 @@ def test_play_clock_drives_sim_time_faster_than_real_time(tmp_path):
                 '5',
                 '--clock',
                 '50',
+                '--start-delay',
+                '1',
             ],
             env=env,
             capture_output=True,
@@ -516,6 +519,9 @@ def test_play_clock_drives_sim_time_faster_than_real_time(tmp_path):
     got, clocks = result['got'], result['clocks']
     assert [g['stamp'] for g in got] == stamps  # reliable: every frame, in order, stamps unchanged
     assert clocks == sorted(clocks), 'the clock ran backwards'
+    # while playback waits (--start-delay 1 s at 50 Hz), /clock holds the bag's start: a node has the
+    # bag's time before the first message, never judges it by time 0
+    assert clocks.count(stamps[0]) >= 10, clocks[:60]
     # the bag's span, never beyond it; the subscriber stops at the last image, and /clock (best effort, another
     # topic) may still be on its way, so the last clock seen is within a few ticks of the last stamp
     assert stamps[0] <= clocks[0] and clocks[-1] <= stamps[-1] and stamps[-1] - clocks[-1] < 0.5e9, (clocks, stamps)

@@ -144,7 +144,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=0.0,
         metavar='HZ',
         help='publish the bag time on /clock (rosgraph_msgs/Clock) at HZ (default 40 when '
-        'given), for nodes started with -p use_sim_time:=true (as ros2 bag play --clock)',
+        'given), for nodes started with -p use_sim_time:=true (as ros2 bag play --clock); while '
+        "playback waits (--wait-subscribers, --start-delay) it holds the bag's start time",
     )
     pl.add_argument(
         '--pace',

@@ -82,6 +82,16 @@ class BagClock:
         self._msg.clock.sec, self._msg.clock.nanosec = divmod(int(bag_ns), 1_000_000_000)
         self.pub.publish(self._msg)
 
+    def hold(self, bag_ns: int, seconds: float) -> None:
+        """Publish `bag_ns` every period for `seconds` (the bag's start time while playback waits)."""
+        end = time.monotonic() + seconds
+        while True:
+            self.publish(bag_ns)
+            left = end - time.monotonic()
+            if left <= 0:
+                return
+            time.sleep(min(self.period, left))
+
     def sleep_until(self, wall: float) -> None:
         """Sleep until `wall` (time.monotonic), publishing the bag time every period meanwhile."""
         while True:
@@ -176,7 +186,8 @@ def play_bag(
     Uses its own rclpy Context unless one is given, so it can run beside other nodes.
     clock_hz > 0: also publish the bag time on /clock (rosgraph_msgs/Clock) at clock_hz and with
     every message, as `ros2 bag play --clock` does; nodes run with use_sim_time:=true then see the
-    bag's stamps as "now" (so max_query_age works on a replay, at any --rate).
+    bag's stamps as "now" (so max_query_age works on a replay, at any --rate). While playback
+    waits (wait_subscribers, start_delay), /clock holds the bag's start time.
     pace_topic: lossless replay into a node slower than the bag (an extractor keeps only the newest
     waiting frame, by design): after each message, wait until pace_topic (e.g. the extractor's
     `landmarks`) has carried as many messages as were published, up to pace_timeout seconds (then
@@ -218,6 +229,9 @@ def play_bag(
         publishers = {t: node.create_publisher(cls, remaps.get(t, t), profile) for t, cls in classes.items()}
         clock = BagClock(node, rate, clock_hz) if clock_hz > 0 else None
         pace = _Pace(node, pace_topic, pace_timeout, log) if pace_topic else None
+        # while playback waits, /clock already stands at the bag's start: a sim-time node has the
+        # bag's clock before the first message (else it would judge that message by time 0)
+        wait = clock.hold if clock is not None else (lambda _ns, seconds: time.sleep(seconds))
         if wait_subscribers > 0:
             deadline = time.monotonic() + wait_timeout
             while True:
@@ -229,12 +243,12 @@ def play_bag(
                         f'timed out after {wait_timeout:g} s waiting for {wait_subscribers} '
                         f'subscriber(s) per topic; have {counts}'
                     )
-                time.sleep(0.02)
+                wait(info['start_ns'], 0.02)
             log(f'subscribers ready: {counts}')
         if pace is not None:
             pace.start()
         if start_delay > 0:
-            time.sleep(start_delay)
+            wait(info['start_ns'], start_delay)
         log(
             f'playing {info["message_count"]} messages on {len(publishers)} topic(s) at rate {rate:g}'
             + (f', bag time on {CLOCK_TOPIC} at {clock_hz:g} Hz' if clock is not None else '')
