@@ -59,7 +59,6 @@ class Matcher:
         )
         self.probe = Probe(self.env)
         self.status = None
-        self._info = None  # the ~/info client, made once
         self.probe.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 50)
         self.probe.spin_until(lambda: self.status is not None or not self.proc.alive(), 120, 'matcher diagnostics')
         assert self.proc.alive(), self.proc.log()
@@ -81,12 +80,7 @@ class Matcher:
 
     def info(self) -> dict:
         """The matcher's ~/info service answer (map, counters, matched readers and writers)."""
-        if self._info is None:
-            self._info = self.probe.node.create_client(Trigger, f'{MATCHER}/info')
-        self.probe.spin_until(self._info.service_is_ready, 30, 'info')
-        future = self._info.call_async(Trigger.Request())
-        self.probe.spin_until(future.done, 30, 'answer of info')
-        return json.loads(future.result().message)
+        return json.loads(self.probe.call(Trigger, f'{MATCHER}/info').message)  # the probe keeps the client
 
     def set(self, **values) -> list:
         """SetParameters with these values, one request; the list of SetParametersResult."""
