@@ -6,7 +6,15 @@ import pytest
 
 from lln_ros.core.landmark_index import center
 from lln_ros.core.landmarks import LandmarkSet, l2_normalize, stack_landmarks
-from lln_ros.core.similarity import center_sets, match_batch, match_pair, match_sets, offset_mode, offset_weights
+from lln_ros.core.similarity import (
+    center_sets,
+    match_batch,
+    match_pair,
+    match_sets,
+    offset_mode,
+    offset_weights,
+    pair_offset_mode,
+)
 from lln_ros.errors import DescriptorError
 
 
@@ -182,6 +190,21 @@ def test_offset_mode_ties_and_empty():
     np.testing.assert_allclose(w[0], [1, np.exp(-0.5), np.exp(-1)], rtol=1e-6)
     with pytest.raises(ValueError):
         offset_weights(offsets, np.zeros((1, 2), int), 0.0)
+
+
+def test_pair_offset_mode_is_offset_mode_on_a_pair_list():
+    """The first stage's pair-list mode (pair_offset_mode, a sort of the pairs) picks the bin the
+    dense table picks, ties included, on random small grids where ties are common."""
+    rng = np.random.default_rng(7)
+    for _ in range(300):
+        k, n_a = int(rng.integers(1, 6)), int(rng.integers(1, 12))
+        offsets = rng.integers(-2, 3, (k, n_a, 2))
+        matched = rng.random((k, n_a)) < 0.6
+        sims = rng.choice(np.array([0.25, 0.5, 0.75], np.float32), (k, n_a))  # equal sums happen
+        rows = np.broadcast_to(np.arange(k)[:, None], (k, n_a))[matched]
+        np.testing.assert_array_equal(
+            pair_offset_mode(rows, offsets[matched], sims[matched], k, n_a), offset_mode(offsets, matched, sims)
+        )
 
 
 def test_bad_descriptors():

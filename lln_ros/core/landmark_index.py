@@ -23,7 +23,8 @@ Scoring (score_hits) -- an approximation of the paper's S computed from the kNN 
      threshold tau): CNN features are non-negative, so every pair has a positive cosine and plain
      sums reward keyframes that are merely generic;
   4. spatial consistency, as S does: the mode of the query-minus-map cell offsets of a keyframe's
-     hits (similarity.offset_mode) and Gaussian weights around it (similarity.offset_weights);
+     hits (similarity.pair_offset_mode, offset_mode on a pair list) and Gaussian weights around it
+     (similarity.offset_weights);
   5. the keyframe's score is sum_i w_i * sigma(s_i); the top K go to the exact reranker.
 
 Landmark ids: FAISS holds one int64 per landmark, (keyframe_id << 24) | (row << 12) | col. The cell
@@ -64,7 +65,7 @@ import numpy as np
 
 from . import landmark_index_file, whitening
 from .refine_codes import RefineCodes
-from .similarity import offset_mode, offset_weights
+from .similarity import offset_weights, pair_offset_mode
 from .threads import one_faiss_thread
 
 log = logging.getLogger(__name__)
@@ -189,19 +190,14 @@ def score_hits(
     first = np.ones(len(kf), bool)
     first[1:] = (kf[1:] != kf[:-1]) | (cell_code[1:] != cell_code[:-1])
     qi, kf, s, mc = qi[first], kf[first], s[first], mc[first]
-    # one row per keyframe, one column per query landmark: the layout similarity's offset code uses
+    # per keyframe hit: the mode of its pairs' offsets, as S takes it, from the pair list (a sort of
+    # the <= n*k pairs; dense keyframe x query-landmark tables cost 10x more at knn 200)
     uniq, row = np.unique(kf, return_inverse=True)
-    m = len(uniq)
-    matched = np.zeros((m, n), bool)
-    pair_sims = np.zeros((m, n), np.float32)
-    offsets = np.zeros((m, n, 2), np.int64)
-    matched[row, qi] = True
-    pair_sims[row, qi] = s
-    offsets[row, qi] = np.asarray(query_cells, np.int64)[qi] - mc
-    mode = offset_mode(offsets, matched, pair_sims)
-    weight = np.where(matched, offset_weights(offsets, mode, scale), 0.0)
-    vote = np.where(matched, np.clip((pair_sims - tau) / (1.0 - tau), 0.0, None) ** float(conf['landmark_alpha']), 0.0)
-    scores = (weight * vote).sum(axis=1).astype(np.float32)
+    offsets = np.asarray(query_cells, np.int64)[qi] - mc  # (P, 2)
+    mode = pair_offset_mode(row, offsets, s, len(uniq), n)
+    weight = offset_weights(offsets[:, None, :], mode[row], scale)[:, 0]  # (P,)
+    vote = np.clip((s - tau) / (1.0 - tau), 0.0, None) ** float(conf['landmark_alpha'])
+    scores = np.bincount(row, weights=weight * vote, minlength=len(uniq)).astype(np.float32)
     best = np.lexsort((-uniq, -scores))
     return uniq[best], scores[best]
 

@@ -142,9 +142,24 @@ def offset_mode(offsets: np.ndarray, matched: np.ndarray, sims: np.ndarray) -> n
         mode = np.stack([best % side - span, best // side - span], axis=1)
         mode[~matched.any(axis=1)] = 0
         return mode
+    rows = np.broadcast_to(np.arange(k)[:, None], (k, n_a))[matched]
+    return pair_offset_mode(rows, offsets[matched], sims[matched], k, n_a)
+
+
+def pair_offset_mode(rows: np.ndarray, offsets: np.ndarray, sims: np.ndarray, k: int, n_a: int) -> np.ndarray:
+    """offset_mode for P pairs given as a list: rows (P,) the candidate of each pair (0..k-1),
+    offsets (P, 2) int, sims (P,); n_a: the query's landmark count (scales the tie-break as
+    offset_mode does). Returns (k, 2) int, (0, 0) for a candidate with no pairs. Costs a sort of
+    the P pairs, whatever k and the grid: what the first stage uses on thousands of keyframes hit."""
     mode = np.zeros((k, 2), np.int64)
-    if not len(flat):
+    if not len(rows):
         return mode
+    offsets = np.asarray(offsets, np.int64)
+    span = int(np.abs(offsets).max(initial=0))
+    side = 2 * span + 1
+    # bin order = (dy, dx) order, as offset_mode's dense code, so ties go to the same bin
+    flat = np.asarray(rows, np.int64) * side * side + (offsets[:, 1] + span) * side + (offsets[:, 0] + span)
+    weights = np.maximum(np.asarray(sims, np.float64), 0.0)
     bins, inverse = np.unique(flat, return_inverse=True)  # occupied bins, sorted
     value = np.bincount(inverse).astype(np.float64) + np.bincount(inverse, weights=weights) / (n_a + 1)
     cand = bins // (side * side)
