@@ -2,6 +2,7 @@
 
     python bench/bench_accuracy_at_scale.py [--sizes 0,10000,100000] [--data /work/shared/data]
                                             [--cache cache/features] [--sequence 10] [--dir /tmp/lln_scale]
+                                            [--landmark-knn K] [--landmark-alpha A] [--similarity raw|whiten|fuse]
 
 The map: the summer references of the Nordland test split (lln-eval's docs/results.md split:
 aligned summer/winter, range 0.7:1, tolerance 1 frame), keyframe ids in route order, then
@@ -21,6 +22,11 @@ the fraction of queries whose best answer is a reference within tolerance (every
 one). 'first stage' is the recall of a correct reference in the landmark index's shortlist of
 prefilter_k keyframes (the map's index, as MapStore.query calls it).
 
+--landmark-knn / --landmark-alpha: the map's first stage (landmark_index.default_conf, as the map
+store's conf). --similarity: the reranker S on raw sets (the default), on centred and whitened sets
+('whiten'), or raw + fusion_weight x whitened ('fuse'): similarity's opt-in center (docs/method.md),
+set as similarity's default for this process, the only way the map store's rerank takes it.
+
 Skips (exit 0, message) when --data is absent.
 """
 
@@ -37,6 +43,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from lln_ros.core import similarity  # noqa: E402
 from lln_ros.core.extractor import Extractor  # noqa: E402
 from lln_ros.core.localizer import Localizer  # noqa: E402
 from lln_ros.core.retrieval import default_conf as retrieval_conf  # noqa: E402
@@ -47,6 +54,7 @@ from lln_ros.mapstore import MapStore  # noqa: E402
 
 T0 = 1_700_000_000 * 10**9
 OTHER_SETS = ('rtabmap_loop', 'essex3in1', 'tum_fr1rpy')
+SIMILARITY = {'raw': False, 'whiten': 'whiten', 'fuse': 'fuse'}  # --similarity -> similarity's center
 
 
 def distractor_paths(data: Path) -> list[Path]:
@@ -103,7 +111,19 @@ def main(argv=None) -> int:
     ap.add_argument('--sequence', type=int, default=10, help="lln+seq's sequence_length")
     ap.add_argument('--dir', default='/tmp/lln_scale')
     ap.add_argument('--max-seconds', type=float, default=0, help='stop growing the map after this long (0 = never)')
+    ap.add_argument(
+        '--landmark-knn', type=int, default=retrieval_conf['landmark_knn'], help='first stage: hits per query landmark'
+    )
+    ap.add_argument(
+        '--landmark-alpha',
+        type=float,
+        default=retrieval_conf['landmark_alpha'],
+        help="first stage: a hit's vote exponent",
+    )
+    ap.add_argument('--similarity', choices=SIMILARITY, default='raw', help="the reranker S's sets (similarity center)")
     args = ap.parse_args(argv)
+    similarity.default_conf['center'] = SIMILARITY[args.similarity]
+    map_conf = {'landmark_knn': args.landmark_knn, 'landmark_alpha': args.landmark_alpha}
     data = Path(args.data)
     if not (data / 'nordland_trimmed' / 'summer').is_dir():
         print(f'skipped: no Nordland data under {data} (nordland_trimmed/summer, winter)')
@@ -123,7 +143,7 @@ def main(argv=None) -> int:
     print(f'{len(refs)} references, {len(queries)} queries, {len(pool)} real distractor images', flush=True)
     rows, used, rng = [], {'real': 0, 'flip': 0, 'crop': 0}, np.random.default_rng(0)
     rate = []
-    with MapStore.open(folder / 'map.db', model=extractor.model_info) as store:
+    with MapStore.open(folder / 'map.db', model=extractor.model_info, conf=map_conf) as store:
         ref_ids = store.add_many(refs, [divmod(T0 + i * 10**8, 10**9) for i in range(len(refs))])
         cursor = 0
         for size in sizes:
@@ -167,6 +187,7 @@ def table(rows, args, used, rate) -> str:
     k = retrieval_conf['prefilter_k']
     lines = [
         f'Nordland test split (summer refs 0.7:1, winter queries, tol 1), lln / lln+seq (L={args.sequence}) P@100%R',
+        f'first stage: landmark_knn {args.landmark_knn}, landmark_alpha {args.landmark_alpha:g}; S: {args.similarity}',
         f'distractors used: {used}',
         f'{"keyframes":>9} {"lln":>7} {"lln+seq":>8} {"1st@" + str(k):>11} {"ms/q":>7} {"load":>5}',
     ]

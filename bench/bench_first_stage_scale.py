@@ -2,6 +2,7 @@
 
     python bench/bench_first_stage_scale.py [--map /tmp/lln_scale/map.db] [--range 0.7:1]
                                             [--kinds ivfpq-fs,exact] [--cache cache/features]
+                                            [--settings NAME,...] [--votes KNN:ALPHA,...]
 
 Reads the map bench_accuracy_at_scale.py leaves in its --dir (the Nordland test references first,
 then its real distractors, all as the shipped Extractor made them) and asks of the first stage
@@ -12,7 +13,10 @@ alone (landmark_index.LandmarkIndex.shortlist, k = prefilter_k, no holistic top-
 - what centring each image's landmarks on their mean does (landmark_center, with its tau: raw
   descriptors at tau 0.35, the setting before, against centred at tau 0.0), and the learned
   whitening after it (landmark_whitening, core.whitening; the default);
-- whose keyframes win: the kinds of the top-1 keyframe (a reference, or a distractor by source).
+- whose keyframes win: the kinds of the top-1 keyframe (a reference, or a distractor by source);
+- how many hits a query landmark takes and how they vote (--votes: landmark_knn, landmark_alpha,
+  on the default descriptors), and what the search and the scoring of its hits cost (median ms per
+  query, one thread; only ratios within one run mean anything on a shared machine).
 
 --range 0.6:0.7 swaps the test references for the validation part of the route (summer 0.6:0.7,
 winter queries), with the same distractors: the split the shipped landmark_center and tau were
@@ -24,6 +28,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 from collections import Counter
 from pathlib import Path
 
@@ -34,7 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_accuracy_at_scale import distractor_paths  # noqa: E402
 
 from lln_ros.core.extractor import Extractor  # noqa: E402
-from lln_ros.core.landmark_index import LandmarkIndex, encode_ids  # noqa: E402
+from lln_ros.core.landmark_index import LandmarkIndex, encode_ids, score_hits  # noqa: E402
 from lln_ros.core.retrieval import default_conf as retrieval_conf  # noqa: E402
 from lln_ros.io.datasets import aligned  # noqa: E402
 from lln_ros.io.features import FeatureCache  # noqa: E402
@@ -62,7 +67,8 @@ def source_kinds(data: Path, n_refs: int, n_map: int) -> list[str]:
 
 
 def first_stage(sets, queries, gt, n_refs, kind, conf, k) -> tuple[dict, Counter]:
-    """R@1 and R@k of the shortlist over `sets` (references first), and the top-1 positions."""
+    """R@1 and R@k of the shortlist over `sets` (references first), the median ms per query of the
+    FAISS search and of the scoring of its hits (score_hits), and the top-1 positions."""
     conf = {**conf, 'landmark_index_threshold': 1 << 40 if kind == 'exact' else 0}
     if kind != 'exact':
         conf['landmark_compressed'] = kind
@@ -77,14 +83,22 @@ def first_stage(sets, queries, gt, n_refs, kind, conf, k) -> tuple[dict, Counter
     )
     hit1 = hitk = 0
     top1 = Counter()
+    t_search, t_score = [], []
     for qi, q in enumerate(queries):
-        ids, _ = index.shortlist(q, k)
+        t0 = time.perf_counter()
+        sims, kf, cells = index.search(q.descriptors, min(int(index.conf['landmark_knn']), index.ntotal))
+        t1 = time.perf_counter()
+        ids, _ = score_hits(q.cells, sims, kf, cells, index.conf)
+        t_search.append(t1 - t0)
+        t_score.append(time.perf_counter() - t1)
+        ids = ids[:k]
         good = [int(i) < n_refs and bool(gt[qi, int(i)]) for i in ids]
         hit1 += bool(good[:1] and good[0])
         hitk += any(good)
         if len(ids):
             top1[int(ids[0])] += 1
-    return {'R@1': hit1 / len(queries), f'R@{k}': hitk / len(queries)}, top1
+    ms = {'search ms': 1e3 * float(np.median(t_search)), 'score ms': 1e3 * float(np.median(t_score))}
+    return {'R@1': hit1 / len(queries), f'R@{k}': hitk / len(queries), **ms}, top1
 
 
 def main(argv=None) -> int:
@@ -94,6 +108,13 @@ def main(argv=None) -> int:
     ap.add_argument('--cache', default=os.environ.get('LLN_FEATURES', 'cache/features'))
     ap.add_argument('--range', default='0.7:1', help='Nordland part the references and queries come from')
     ap.add_argument('--kinds', default='ivfpq-fs', help='index types: exact, ivfpq-fs, ivfpq')
+    ap.add_argument('--settings', default=','.join(SETTINGS), help=f'descriptor settings, of: {", ".join(SETTINGS)}')
+    ap.add_argument(
+        '--votes',
+        default='',
+        help='extra rows on the default descriptors, KNN:ALPHA,... (landmark_knn: hits per query landmark; '
+        'landmark_alpha: vote exponent), e.g. 20:3,200:1',
+    )
     args = ap.parse_args(argv)
     data = Path(args.data)
     if not Path(args.map).exists():
@@ -115,16 +136,27 @@ def main(argv=None) -> int:
         f'Nordland {args.range}: {len(refs)} references, {len(queries)} winter queries, '
         f'{len(distractors)} distractors; first stage alone, top {k}'
     )
-    print(f'{"index":>9} {"descriptors":>15} {"map":>14} {"R@1":>6} {"R@" + str(k):>6}  top-1 keyframes by kind')
+    settings = {name: SETTINGS[name] for name in args.settings.split(',') if name}
+    for vote in filter(None, args.votes.split(',')):
+        knn, alpha = vote.split(':')
+        settings[f'knn {knn}, alpha {alpha}'] = {'landmark_knn': int(knn), 'landmark_alpha': float(alpha)}
+    print(
+        f'{"index":>9} {"descriptors":>20} {"map":>14} {"R@1":>6} {"R@" + str(k):>6} {"search":>7} {"score":>6}'
+        '  top-1 keyframes by kind'
+    )
     for kind in args.kinds.split(','):
-        for name, conf in SETTINGS.items():
+        for name, conf in settings.items():
             for label, sets in (('references', refs), (f'+{len(distractors)}', refs + distractors)):
                 r, top1 = first_stage(sets, queries, ds.gt, len(refs), kind, conf, k)
                 by_kind = Counter()
                 for pos, count in top1.items():
                     by_kind[kinds[pos]] += count
                 who = ', '.join(f'{n} {c}' for n, c in by_kind.most_common(4)) if label != 'references' else ''
-                print(f'{kind:>9} {name:>15} {label:>14} {r["R@1"]:>6.3f} {r[f"R@{k}"]:>6.3f}  {who}', flush=True)
+                print(
+                    f'{kind:>9} {name:>20} {label:>14} {r["R@1"]:>6.3f} {r[f"R@{k}"]:>6.3f} '
+                    f'{r["search ms"]:>7.1f} {r["score ms"]:>6.1f}  {who}',
+                    flush=True,
+                )
     return 0
 
 

@@ -192,6 +192,29 @@ def test_offset_mode_ties_and_empty():
         offset_weights(offsets, np.zeros((1, 2), int), 0.0)
 
 
+def test_similarity_fuse_is_raw_plus_weighted_whitened_with_raw_pairs(monkeypatch):
+    """center='fuse': S = S(raw) + fusion_weight * S(whitened); the pairs, offsets and weights are raw S's."""
+    from lln_ros.core import similarity, whitening
+
+    rng = np.random.default_rng(9)
+    d, n = 64, 12
+    cells = np.stack([np.arange(n) % 4, np.arange(n) // 4], axis=1)
+    query = make_set(l2_normalize(rng.standard_normal((n, d))), cells, space='test/f/64')
+    cands = [
+        make_set(l2_normalize(rng.standard_normal((n, d))), np.roll(cells, k, 0), space='test/f/64') for k in range(3)
+    ]
+    w = np.eye(d, dtype=np.float32)
+    w[:8] *= 0.1
+    monkeypatch.setitem(whitening._SHIPPED, 'test/f/64', w)
+    raw, white = match_sets(query, cands, center=False), match_sets(query, cands, center='whiten')
+    for weight in (2.0, 0.5):
+        monkeypatch.setitem(similarity.default_conf, 'fusion_weight', weight)
+        fused = match_sets(query, cands, center='fuse')
+        np.testing.assert_allclose(fused.scores, raw.scores + weight * white.scores, rtol=1e-5)
+        for field in ('offsets', 'match', 'similarity', 'weight'):
+            np.testing.assert_array_equal(getattr(fused, field), getattr(raw, field))
+
+
 def test_pair_offset_mode_is_offset_mode_on_a_pair_list():
     """The first stage's pair-list mode (pair_offset_mode, a sort of the pairs) picks the bin the
     dense table picks, ties included, on random small grids where ties are common."""

@@ -82,10 +82,30 @@ def build_parser() -> argparse.ArgumentParser:
         help="S on each landmark set centred, then whitened with the model's shipped whitening (docs/method.md)",
     )
     p.add_argument(
+        '--similarity-fusion',
+        action=argparse.BooleanOptionalAction,
+        default=conf['similarity_fusion'],
+        help="S = raw S + fusion_weight x whitened S, the pairs of raw S (similarity, center='fuse'; docs/method.md)",
+    )
+    p.add_argument(
         '--landmark-whitening',
         action=argparse.BooleanOptionalAction,
         default=conf['landmark_whitening'],
         help="the landmark first stage whitens with the model's shipped whitening (core.whitening; docs/method.md)",
+    )
+    p.add_argument(
+        '--landmark-knn',
+        type=int,
+        default=conf['landmark_knn'],
+        metavar='K',
+        help='the landmark first stage: map landmarks each query landmark retrieves (landmark_knn)',
+    )
+    p.add_argument(
+        '--landmark-alpha',
+        type=float,
+        default=conf['landmark_alpha'],
+        metavar='A',
+        help="the landmark first stage: a hit's vote exponent (landmark_alpha)",
     )
     p.add_argument(
         '--sequence',
@@ -297,7 +317,10 @@ def run(args, argv) -> dict:
         'scale': args.scale,
         'similarity_center': args.similarity_center,
         'landmark_whitening': args.landmark_whitening,
+        'landmark_knn': args.landmark_knn,
+        'landmark_alpha': args.landmark_alpha,
         'similarity_whitening': args.similarity_whitening,
+        'similarity_fusion': args.similarity_fusion,
         'sequence': args.sequence,
         'sequence_prefilter_k': args.sequence_prefilter_k,
         'timing_images': args.timing_images,

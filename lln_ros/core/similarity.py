@@ -10,6 +10,9 @@ candidate's, are first taken minus their own set's mean and renormalised (center
 landmarks of one image share (its season, light, weather) stops counting as similarity, and the pairs
 and S are decided by what makes the places differ. With center = 'whiten' the centred sets are then
 whitened as the landmark first stage's index is (core.whitening, the descriptor space's shipped W).
+With center = 'fuse' S is S(raw) + conf['fusion_weight'] * S(centred, whitened), and the pairs,
+offsets and weights reported are raw S's: what changes with the season counts less, what changes
+with the viewpoint is still compared raw.
 All K candidates are done with array operations (no Python loop per candidate), in chunks whose
 similarity tensor is bounded (MATCH_CHUNK_ELEMENTS): memory per query does not grow with K x n_max.
 """
@@ -31,8 +34,12 @@ default_conf = {
     # head, top-n 50, landmark first stage, P@100%R: Nordland validation 0.6:0.7 44.0 -> 51.8;
     # essex3in1 64.3 -> 60.5, rtabmap_loop R@100%P 70.5 -> 50.0, the side-view fold 45.2 -> 34.0;
     # docs/method.md). S is smaller on centred sets: min_score is chosen for one setting. 'whiten':
-    # centred, then whitened (lln-eval --similarity-whitening; docs/method.md)
+    # centred, then whitened (lln-eval --similarity-whitening; docs/method.md); 'fuse': raw S +
+    # fusion_weight x whitened S (lln-eval --similarity-fusion; docs/method.md)
     'center': False,
+    # the whitened S's weight in 'fuse'. 2: chosen on Nordland 0.6:0.7 (validation) against the
+    # 10k-keyframe map of bench_accuracy_at_scale, from 0.5, 1, 2, 4 (docs/method.md)
+    'fusion_weight': 2.0,
 }
 
 
@@ -256,7 +263,11 @@ def _concat(parts: list[MatchResult]) -> MatchResult:
     return MatchResult(*(np.concatenate([getattr(p, f) for p in parts]) for f in fields))
 
 
-def _match_chunk(query: LandmarkSet, batch: LandmarkBatch, scale: float, center: bool) -> MatchResult:
+def _match_chunk(query: LandmarkSet, batch: LandmarkBatch, scale: float, center: bool | str) -> MatchResult:
+    if center == 'fuse':
+        raw, whitened = _match_chunk(query, batch, scale, False), _match_chunk(query, batch, scale, 'whiten')
+        raw.scores = (raw.scores + float(default_conf['fusion_weight']) * whitened.scores).astype(np.float32)
+        return raw
     q = np.asarray(query.descriptors, np.float32)
     valid_q = np.ones(len(q), bool)
     cands = np.asarray(batch.descriptors, np.float32)

@@ -100,7 +100,10 @@ default_conf = {
     'scale': retrieval_defaults['scale'],  # offset-weight width in grid cells (similarity)
     'similarity_center': similarity_defaults['center'],  # S on each set minus its mean (similarity)
     'similarity_whitening': False,  # S on each set centred, then whitened (similarity, center='whiten')
+    'similarity_fusion': False,  # raw S + fusion_weight x whitened S (similarity, center='fuse')
     'landmark_whitening': landmark_index_defaults['landmark_whitening'],  # the first stage's (core.whitening)
+    'landmark_knn': landmark_index_defaults['landmark_knn'],  # the first stage's hits per query landmark
+    'landmark_alpha': landmark_index_defaults['landmark_alpha'],  # the first stage's vote exponent
     'sequence': 0,  # L > 0: an `X+seq` row per holistic/local row (sequence length L)
     'seqslam_length': sequence_defaults['length'],  # seqslam's L when 'sequence' is 0
     'timing_images': 5,  # images per dataset the extraction is timed on
@@ -201,7 +204,13 @@ def evaluate_dataset(
         methods = [m for m in methods if m != 'seqslam']
         conf = {**conf, 'sequence': 0}
     top_n, scale = int(conf['top_n']), float(conf['scale'])
-    center = 'whiten' if conf['similarity_whitening'] else bool(conf['similarity_center'])
+    center = (
+        'fuse'
+        if conf['similarity_fusion']
+        else 'whiten'
+        if conf['similarity_whitening']
+        else bool(conf['similarity_center'])
+    )
     k = int(conf['prefilter_k']) or len(ds.ref_paths)  # 0: every reference
     prefilter, _ = check_prefilter(conf['prefilter'], conf['prefilter_k'])
     height = int(extractor.conf['input_height'])
@@ -277,7 +286,11 @@ def evaluate_dataset(
             report_stages = method == 'lln' and stages is None  # the first lln row reports the first stages
             # one landmark index per row, shared by its rerank and its first-stage report; built only
             # where one of them searches it (training it is the expensive part on a large map)
-            lm_conf = {'landmark_whitening': bool(conf['landmark_whitening'])}
+            lm_conf = {
+                'landmark_whitening': bool(conf['landmark_whitening']),
+                'landmark_knn': int(conf['landmark_knn']),
+                'landmark_alpha': float(conf['landmark_alpha']),
+            }
             index = batch_index(batch, lm_conf) if prefilter == 'landmarks' or report_stages else None
             if seq_len and k_seq != int(conf['prefilter_k']):
                 # one first stage of k_seq candidates, one rerank: the single-frame row is its first K
@@ -456,7 +469,10 @@ def evaluate(
             'scale': float(conf['scale']),
             'similarity_center': bool(conf['similarity_center']),
             'similarity_whitening': bool(conf['similarity_whitening']),
+            'similarity_fusion': bool(conf['similarity_fusion']),
             'landmark_whitening': bool(conf['landmark_whitening']),
+            'landmark_knn': int(conf['landmark_knn']),
+            'landmark_alpha': float(conf['landmark_alpha']),
             'prefilter': check_prefilter(conf['prefilter'], conf['prefilter_k'])[0],
             'input_height': int(extractor.conf['input_height']),
             'backbone': extractor.conf['backbone']['name'],
