@@ -139,10 +139,10 @@ def offset_mode(offsets: np.ndarray, matched: np.ndarray, sims: np.ndarray) -> n
     k, n_a, _ = offsets.shape
     span = int(np.abs(offsets).max(initial=0))
     side = 2 * span + 1
-    code = (offsets[..., 1] + span) * side + (offsets[..., 0] + span)  # (K, n_a)
-    flat = (np.arange(k, dtype=np.int64)[:, None] * side * side + code)[matched]  # (P,)
-    weights = np.maximum(sims[matched], 0.0)
     if k * side * side <= DENSE_BINS:
+        code = (offsets[..., 1] + span) * side + (offsets[..., 0] + span)  # (K, n_a)
+        flat = (np.arange(k, dtype=np.int64)[:, None] * side * side + code)[matched]  # (P,)
+        weights = np.maximum(sims[matched], 0.0)
         counts = np.bincount(flat, minlength=k * side * side).astype(np.float64)
         # the cosine sum is < n_a + 1, so scaled by 1/(n_a+1) it only breaks ties between equal counts
         tie = np.bincount(flat, weights=weights, minlength=k * side * side)
