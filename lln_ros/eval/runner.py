@@ -89,6 +89,8 @@ from .reloc import evaluate_reloc
 from .report import finite, write_json, write_markdown
 from .timing import extraction_job, interleaved_times
 
+# the first stage's settings lln-eval sets (landmark_index conf keys), typed
+LANDMARK_CONF = {'landmark_whitening': bool, 'landmark_knn': int, 'landmark_alpha': float}
 default_conf = {
     'methods': METHODS,
     'top_n': extractor_defaults['top_n'],
@@ -101,9 +103,7 @@ default_conf = {
     'similarity_center': similarity_defaults['center'],  # S on each set minus its mean (similarity)
     'similarity_whitening': False,  # S on each set centred, then whitened (similarity, center='whiten')
     'similarity_fusion': False,  # raw S + fusion_weight x whitened S (similarity, center='fuse')
-    'landmark_whitening': landmark_index_defaults['landmark_whitening'],  # the first stage's (core.whitening)
-    'landmark_knn': landmark_index_defaults['landmark_knn'],  # the first stage's hits per query landmark
-    'landmark_alpha': landmark_index_defaults['landmark_alpha'],  # the first stage's vote exponent
+    **{key: landmark_index_defaults[key] for key in LANDMARK_CONF},  # the first stage's, as its index's
     'sequence': 0,  # L > 0: an `X+seq` row per holistic/local row (sequence length L)
     'seqslam_length': sequence_defaults['length'],  # seqslam's L when 'sequence' is 0
     'timing_images': 5,  # images per dataset the extraction is timed on
@@ -117,6 +117,8 @@ default_conf = {
     'reloc': False,  # also keypoint relocalization on the first lln row's ranking (reloc.py)
     **reloc_eval_conf,
 }
+ECHOED = {'top_n': int, 'prefilter_k': int, 'scale': float, **LANDMARK_CONF}  # results.json echoes these
+ECHOED |= dict.fromkeys(('similarity_center', 'similarity_whitening', 'similarity_fusion'), bool)
 
 
 @dataclass
@@ -204,13 +206,8 @@ def evaluate_dataset(
         methods = [m for m in methods if m != 'seqslam']
         conf = {**conf, 'sequence': 0}
     top_n, scale = int(conf['top_n']), float(conf['scale'])
-    center = (
-        'fuse'
-        if conf['similarity_fusion']
-        else 'whiten'
-        if conf['similarity_whitening']
-        else bool(conf['similarity_center'])
-    )
+    fuse, whiten = conf['similarity_fusion'], conf['similarity_whitening']  # precedence: fusion, whitening, centring
+    center = 'fuse' if fuse else 'whiten' if whiten else bool(conf['similarity_center'])
     k = int(conf['prefilter_k']) or len(ds.ref_paths)  # 0: every reference
     prefilter, _ = check_prefilter(conf['prefilter'], conf['prefilter_k'])
     height = int(extractor.conf['input_height'])
@@ -286,11 +283,7 @@ def evaluate_dataset(
             report_stages = method == 'lln' and stages is None  # the first lln row reports the first stages
             # one landmark index per row, shared by its rerank and its first-stage report; built only
             # where one of them searches it (training it is the expensive part on a large map)
-            lm_conf = {
-                'landmark_whitening': bool(conf['landmark_whitening']),
-                'landmark_knn': int(conf['landmark_knn']),
-                'landmark_alpha': float(conf['landmark_alpha']),
-            }
+            lm_conf = {key: cast(conf[key]) for key, cast in LANDMARK_CONF.items()}
             index = batch_index(batch, lm_conf) if prefilter == 'landmarks' or report_stages else None
             if seq_len and k_seq != int(conf['prefilter_k']):
                 # one first stage of k_seq candidates, one rerank: the single-frame row is its first K
@@ -463,16 +456,8 @@ def evaluate(
             'sequence': int(conf['sequence']),
             'sequence_search': {key: sequence_defaults[key] for key in ('v_min', 'v_max', 'v_steps')},
             'seqslam': {'length': int(conf['sequence']) or int(conf['seqslam_length']), **sad_conf},
-            'top_n': int(conf['top_n']),
-            'prefilter_k': int(conf['prefilter_k']),
+            **{key: cast(conf[key]) for key, cast in ECHOED.items()},
             'sequence_prefilter_k': candidates_k(conf['prefilter_k'], conf['sequence_prefilter_k'], True),
-            'scale': float(conf['scale']),
-            'similarity_center': bool(conf['similarity_center']),
-            'similarity_whitening': bool(conf['similarity_whitening']),
-            'similarity_fusion': bool(conf['similarity_fusion']),
-            'landmark_whitening': bool(conf['landmark_whitening']),
-            'landmark_knn': int(conf['landmark_knn']),
-            'landmark_alpha': float(conf['landmark_alpha']),
             'prefilter': check_prefilter(conf['prefilter'], conf['prefilter_k'])[0],
             'input_height': int(extractor.conf['input_height']),
             'backbone': extractor.conf['backbone']['name'],
