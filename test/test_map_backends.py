@@ -87,6 +87,32 @@ def test_exclude_ids_are_never_answers(uri, rng):
             assert len(found) == 4 and not set(found) & set(ids[:2]), (prefilter, found)
 
 
+def test_include_ids_are_reranked_beside_the_first_stage(uri, rng):
+    """include_ids (the sequence search's next places) joins the first stage's candidates: scored by S
+    like them, once; an excluded or unknown id is left out, whatever the first stage."""
+    sets = [make_set(rng) for _ in range(8)]
+    with MapStore.open(uri, model=MODEL) as store:
+        ids = store.add_many(sets, [(i, 0) for i in range(8)])
+        view = make_set(rng, base=sets[1], noise=0.1)
+        for prefilter in ('landmarks', 'holistic'):
+            alone = [c.keyframe_id for c in store.query(view, k=8, prefilter=prefilter, prefilter_k=1)]
+            assert alone == [ids[1]], prefilter
+            both = store.query(view, k=8, prefilter=prefilter, prefilter_k=1, include_ids=[ids[5], ids[1], ids[5]])
+            assert sorted(c.keyframe_id for c in both) == sorted([ids[1], ids[5]]), prefilter
+            scored = {c.keyframe_id: c.score for c in store.query(view, k=8, prefilter=prefilter, prefilter_k=8)}
+            assert all(np.isclose(c.score, scored[c.keyframe_id]) for c in both)  # the same S as a candidate
+            kept = store.query(
+                view,
+                k=8,
+                prefilter=prefilter,
+                prefilter_k=1,
+                exclude_recent=2,
+                exclude_ids=[ids[3]],
+                include_ids=[ids[3], ids[4], ids[7], max(ids) + 100],
+            )
+            assert sorted(c.keyframe_id for c in kept) == sorted([ids[1], ids[4]]), prefilter
+
+
 def test_insert_query_get(uri, rng):
     with MapStore.open(uri, model=MODEL) as store:
         sets = [make_set(rng) for _ in range(25)]

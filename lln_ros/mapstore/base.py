@@ -4,6 +4,7 @@ template, first stage -> fetch -> rerank -> answer) and MapCandidate, what a que
 from __future__ import annotations
 
 import abc
+import bisect
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -85,6 +86,12 @@ def _without(drop: set, keep: int, ids, *arrays) -> tuple:
         return (*arrays, ids)
     mask = np.array([int(i) not in drop for i in ids], bool)
     return (*(np.asarray(a)[mask][:keep] for a in arrays), np.asarray(ids, np.int64)[mask][:keep])
+
+
+def _sorted_has(ids: list, i: int) -> bool:
+    """Whether ascending ids hold i (quarantined keyframes are not among a store's _ids)."""
+    at = bisect.bisect_left(ids, i)
+    return at < len(ids) and ids[at] == i
 
 
 class MapStore(abc.ABC):
@@ -182,6 +189,7 @@ class MapStore(abc.ABC):
         scale: float = 1.0,
         prefilter: str | None = None,
         exclude_ids=None,
+        include_ids=None,
     ) -> list[MapCandidate]:
         """The best k keyframes for a query landmark set, best first: first stage -> fetch -> rerank.
 
@@ -190,7 +198,9 @@ class MapStore(abc.ABC):
         prefilter_k by global-descriptor cosine, 'exhaustive' (or prefilter_k 0) = every allowed
         keyframe. The exclude_recent most recently added keyframes are never answers. The
         candidates are reranked by the landmark similarity S (method_rerank=False: the first-stage
-        ranking alone, its score as `score`), those below min_score dropped.
+        ranking alone, its score as `score`), those below min_score dropped. include_ids: keyframes
+        reranked besides the first stage's (the sequence search's next places, Localizer
+        sequence_carry); excluded ones and ids not in the map are left out.
         """
         prefilter, prefilter_k = check_prefilter(prefilter or retrieval_conf['prefilter'], prefilter_k)
         k, exclude_recent = self._query_args(lset, k, exclude_recent, method_rerank)
@@ -232,8 +242,26 @@ class MapStore(abc.ABC):
                 kept = np.array([int(i) in sets for i in ids], bool)  # a damaged fill was just quarantined
                 ids, first = ids[kept], first[kept]
                 hol = self._cosines(lset, ids, sets)
+            if include_ids is not None and len(include_ids) and prefilter != 'exhaustive':
+                ids, hol, sets, first = self._include(lset, include_ids, ids, hol, sets, first, drop, cutoff)
         # the numeric work runs outside the lock
         return self._answer(lset, ids, hol, sets, k, min_score, method_rerank, scale, first)
+
+    def _include(self, lset: LandmarkSet, include_ids, ids, hol, sets: dict, first, drop: set, cutoff):
+        """The first stage's ids (K,), cosines (K,), sets and first-stage scores (K,) or None, with
+        the include_ids that are new, allowed (not in drop, id below cutoff) and stored appended; their
+        first-stage score is the lowest (they were not among the first stage's)."""
+        have = {int(i) for i in ids}
+        new = [i for i in dict.fromkeys(int(i) for i in include_ids) if i not in have and i not in drop]
+        new = [i for i in new if (cutoff is None or i < cutoff) and _sorted_has(self._ids, i)]
+        more = self._fetch(new) if new else {}
+        new = np.array([i for i in new if i in more], np.int64)
+        if not len(new):
+            return ids, hol, sets, first
+        if first is not None:
+            first = np.concatenate([first, np.full(len(new), first.min() if len(first) else 0.0, np.float32)])
+        hol = np.concatenate([hol, self._cosines(lset, new, more)])
+        return np.concatenate([ids, new]), hol, {**sets, **more}, first
 
     @staticmethod
     def _cosines(lset: LandmarkSet, ids, sets: dict) -> np.ndarray:
