@@ -105,6 +105,20 @@ def test_excluded_ids_are_never_answers():
     assert {kf for kf, _ in out} <= {1, 2, 3} and out
 
 
+def test_ahead_is_where_the_best_lines_go_next():
+    """carry: the best ends are kept; ahead() gives each end's route position + 0 .. ceil(v_max) as
+    ids, within the map; nothing before a search or with carry 0."""
+    route = [10, 20, 30, 40, 50, 60]  # no origins: route order is id order
+    ks = KeyframeSequence({'length': 3})  # v_max 1.2: steps 0, 1, 2
+    ks.set_map(route[::-1])
+    assert len(ks.ahead()) == 0
+    ks.update(0, {30: 0.2, 20: 0.9}, k=1)
+    assert len(ks.ahead()) == 0  # carry 0: nothing kept
+    _, out = ks.update(S // 10, {20: 0.1, 40: 0.9}, k=1, carry=2)
+    assert len(out) == 1 and ks.carried.tolist() == [40, 30]  # the two best ends, best first
+    assert ks.ahead().tolist() == [30, 40, 50, 60]  # 30, 40, 50 and 40, 50, 60
+
+
 def test_stream_faults_reset_the_window():
     seq = SequenceMatcher({'length': 4, 'max_gap_s': 0.5})
     assert seq.push(1 * S, [1], [0.5]) is None

@@ -271,6 +271,14 @@ class KeyframeSequence:
         self.ids = np.zeros(0, np.int64)  # (R,) keyframe ids in route order
         self._route_key: dict[int, tuple[int, int]] = {}  # id -> (session_id, seq); (0, id) without origin
         self._sorted, self._where = np.zeros(0, np.int64), np.zeros(0, np.int64)  # ids ascending, their positions
+        self.carried = np.zeros(0, np.int64)  # ids of the last search's best ends (update's carry), for ahead()
+
+    @classmethod
+    def of(cls, conf: dict) -> KeyframeSequence | None:
+        """The search a matcher (Localizer) conf asks for: sequence_length, sequence_max_gap; None when
+        sequence_length is 0 (single-frame ranking)."""
+        n = int(conf['sequence_length'])
+        return cls({'length': n, 'max_gap_s': conf['sequence_max_gap']}) if n > 0 else None
 
     @property
     def resets(self) -> dict:
@@ -314,11 +322,22 @@ class KeyframeSequence:
         known = self._sorted[i] == ids
         return self._where[i], known
 
+    def ahead(self) -> np.ndarray:
+        """Keyframe ids (M,) where the last search's carried ends lead next: route positions p + 0 ..
+        ceil(v_max) of each end p (the end and its lines' next step at any velocity of the range).
+        The Localizer has them scored beside the first stage's candidates (sequence_carry), so a line
+        that holds stays scored where the first stage misses its next place. Empty before a search."""
+        pos, known = self.positions(self.carried)
+        steps = np.arange(int(np.ceil(float(self.matcher.conf['v_max']))) + 1)
+        nxt = (pos[known][:, None] + steps[None]).ravel()
+        return np.unique(self.ids[nxt[nxt < len(self.ids)]])
+
     def update(
-        self, stamp_ns: int, scores: dict, excluded=None, k: int = 5
+        self, stamp_ns: int, scores: dict, excluded=None, k: int = 5, carry: int = 0
     ) -> tuple[str | None, list[tuple[int, float]]]:
         """Push one query's single-frame scores {keyframe_id: S} and search. excluded: ids that may
-        not be answers (mapping mode: this session's newest, exclude_recent); None = none."""
+        not be answers (mapping mode: this session's newest, exclude_recent); None = none. carry: the
+        best ends kept for ahead() (0 = none)."""
         ids = np.fromiter(scores.keys(), np.int64, len(scores))
         values = np.fromiter(scores.values(), np.float64, len(scores))
         pos, known = self.positions(ids)
@@ -326,5 +345,6 @@ class KeyframeSequence:
         mask = None
         if excluded is not None and len(excluded):
             mask = ~np.isin(self.ids, np.asarray(excluded, np.int64))
-        ends, seq_scores = self.matcher.search(len(self.ids), mask, k)
-        return reason, [(int(self.ids[e]), float(s)) for e, s in zip(ends, seq_scores)]
+        ends, seq_scores = self.matcher.search(len(self.ids), mask, max(int(k), int(carry)))
+        self.carried = self.ids[ends[: int(carry)]]
+        return reason, [(int(self.ids[e]), float(s)) for e, s in zip(ends[: int(k)], seq_scores[: int(k)])]
