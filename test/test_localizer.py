@@ -184,6 +184,28 @@ def test_sequence_search_follows_each_session_in_an_interleaved_map(map_path, rn
         invariants(third.counters.snapshot())
 
 
+def test_sequence_carry_scores_where_the_route_goes_next(map_path, rng):
+    """sequence_carry: the previous query's best sequence ends and the keyframes after them are reranked
+    beside a first stage that keeps one candidate, so the answer rows carry their own S (a keyframe that
+    is neither is 0); carry 0 scores the first stage's candidate alone."""
+    route = [make_set(rng) for _ in range(12)]
+    with MapStore(map_path, model=MODEL) as store:
+        ids = store.add_many(route, [(i, 0) for i in range(12)])
+        one = {'sequence_length': 4, 'k': 5, 'prefilter_k': 1, 'sequence_prefilter_k': 1}
+        plain, carried = Localizer(store, {**one, 'sequence_carry': 0}), Localizer(store, {**one, 'sequence_carry': 2})
+        for i in range(2, 8):
+            view = make_set(rng, base=route[i], noise=0.3)
+            p, c = ask(plain, view, i), ask(carried, view, i)
+            assert c.rows[0]['keyframe_id'] == ids[i], c.rows
+            assert sum(r['score'] != 0 for r in p.rows) == 1, p.rows  # the first stage's one candidate
+            if i > 2:  # from the second query on: the last ends and their next steps are scored too
+                scored = {r['keyframe_id'] for r in c.rows if r['score'] != 0}
+                assert len(scored) > 1 and ids[i + 1] in scored, c.rows
+        invariants(carried.counters.snapshot())
+        with pytest.raises(ValueError, match='sequence_carry must be 0'):
+            Localizer(store, {'sequence_carry': -1})
+
+
 @pytest.mark.parametrize(
     'text, problem',
     [

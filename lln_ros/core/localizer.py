@@ -56,6 +56,9 @@ default_conf = {
     'verify_margin': 1.0,
     'sequence_length': 0,  # 0 = single-frame ranking
     'sequence_max_gap': 1.0,
+    # with sequence_length: the best N sequence ends' next places (KeyframeSequence.ahead) are scored
+    # beside the first stage's candidates, so a line the first stage loses among distractors stays scored
+    'sequence_carry': 10,
     # verify: bytes of keypoints messages waiting for their landmark set (the oldest are evicted, as
     # keypoints_evicted): 100 of 500 keypoints are 2.8 MB; 100 declaring 1 row, 8 MB each were 816 MB
     'pending_keypoints_bytes': 16 * 2**20,
@@ -93,11 +96,7 @@ class Localizer:
         self.counters = counters if counters is not None else Counters(log=self.log.warning)
         self.mapping = conf['mode'] == 'mapping'
         self.reg = registration_mod.Registration(conf['registration'], self.counters)
-        self.sequence = (
-            KeyframeSequence({'length': conf['sequence_length'], 'max_gap_s': conf['sequence_max_gap']})
-            if conf['sequence_length'] > 0
-            else None
-        )
+        self.sequence = KeyframeSequence.of(conf)
         self.refusing = ''  # set when the extractor's model differs from the map's
         self.extractor_model = None  # the last valid model_info: its input_height fixes the grid rows
         self.reloc, self.unmatched_keyframes = None, {}
@@ -129,8 +128,9 @@ class Localizer:
             raise ValueError(f'prefilter_k must be 0 (every keyframe) or positive, got {conf["prefilter_k"]}')
         check_prefilter(conf['prefilter'], conf['prefilter_k'])
         candidates_k(conf['prefilter_k'], conf['sequence_prefilter_k'], True)  # ValueError when negative
-        if conf['sequence_length'] < 0:
-            raise ValueError(f'sequence_length must be 0 (off) or positive, got {conf["sequence_length"]}')
+        for key in ('sequence_length', 'sequence_carry'):
+            if conf[key] < 0:
+                raise ValueError(f'{key} must be 0 (off) or positive, got {conf[key]}')
         return conf
 
     def count(self, key: str, n: int = 1) -> None:
@@ -168,12 +168,9 @@ class Localizer:
         if self.refusing:
             self.counters.problem(counter, self.refusing)
             return None
-        model = self.store.model
-        return {
-            'expected_dim': model['descriptor_dim'] if model else None,
-            'descriptor_space': model['descriptor_space'] if model else '',
-            'limits': self.limits,
-        }
+        model = self.store.model or {}
+        space, dim = model.get('descriptor_space', ''), model.get('descriptor_dim')
+        return {'expected_dim': dim, 'descriptor_space': space, 'limits': self.limits}
 
     def refuse(self, counter: str, error: Exception) -> None:
         """Count and log (by kind) a message the node could not decode."""
@@ -346,11 +343,13 @@ class Localizer:
         sequence = self.sequence is not None  # the sequence search needs every reranked candidate
         prefilter_k = candidates_k(c['prefilter_k'], c['sequence_prefilter_k'], sequence)
         recent = self._own(max(c['exclude_recent'], self.reg.recent(stamp_ns, odom))) if self.mapping else 0
+        carried = self.sequence.ahead() if sequence and c['sequence_carry'] else ()
         found = self.store.query(
             lset,
             prefilter=c['prefilter'],
             prefilter_k=prefilter_k,
-            k=(prefilter_k or max(len(self.store), 1)) if sequence else c['k'],
+            include_ids=carried,
+            k=(prefilter_k or max(len(self.store), 1)) + len(carried) if sequence else c['k'],
             min_score=None if sequence else c['min_score'],
             method_rerank=c['method'] == 'lln',
             scale=c['offset_scale'],
@@ -459,7 +458,8 @@ class Localizer:
         stored: the query's own keyframe was just stored. inliers: verify mode's {keyframe_id: inliers}."""
         self.sequence.follow(self.store)
         found_scores = {m.keyframe_id: m.score for m in found}
-        reason, ranked = self.sequence.update(stamp_ns, found_scores, self._sequence_excluded(stored), self.conf['k'])
+        excluded, c = self._sequence_excluded(stored), self.conf
+        reason, ranked = self.sequence.update(stamp_ns, found_scores, excluded, c['k'], c['sequence_carry'])
         if reason:
             self.count(f'sequence_reset_{reason}')
         by_id = {m.keyframe_id: m for m in found}

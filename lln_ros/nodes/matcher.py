@@ -167,6 +167,13 @@ PARAMETERS = {
         dynamic=True,
         range=(1e-3, 1e6),
     ),
+    'sequence_carry': Param(
+        LOC['sequence_carry'],
+        "with sequence_length > 0: the best N sequence ends' next places are scored beside the first "
+        "stage's candidates, so a route the first stage loses stays scored; 0 = off",
+        dynamic=True,
+        range=(0, 10_000),
+    ),
     # input limits (lln_ros.core.limits): a message declaring more is refused and counted, never sized from
     'max_image_pixels': Param(
         LIMITS['max_image_pixels'], 'limit: image width x height a landmark cloud may declare', range=(1, 2**40)
@@ -201,6 +208,7 @@ LOCALIZER_KEYS = (
     'verify_margin',
     'sequence_length',
     'sequence_max_gap',
+    'sequence_carry',
 )
 
 
@@ -268,11 +276,7 @@ class MatcherNode(MetricInputs, FleetIdentity, Node):
         if self.loc.reloc is not None:
             self.loc.reloc.conf.update({'min_inliers': conf['verify_min_inliers'], 'margin': conf['verify_margin']})
         if {'sequence_length', 'sequence_max_gap'} & set(changes):  # a new search: a new sequence
-            self.loc.sequence = (
-                KeyframeSequence({'length': conf['sequence_length'], 'max_gap_s': conf['sequence_max_gap']})
-                if conf['sequence_length'] > 0
-                else None
-            )
+            self.loc.sequence = KeyframeSequence.of(conf)
         reg = {k: v for k, v in changes.items() if k in REG_KEYS}
         if reg:
             self.loc.reg.update(reg)

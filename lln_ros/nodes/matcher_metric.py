@@ -70,11 +70,8 @@ class MetricInputs:
     def on_relocalize(self, request, response):
         def relocalize():
             self.loc.reg.reset()
-            c = self.loc.conf
             if self.loc.sequence is not None:  # the sequence search starts afresh too
-                self.loc.sequence = KeyframeSequence(
-                    {'length': c['sequence_length'], 'max_gap_s': c['sequence_max_gap']}
-                )
+                self.loc.sequence = KeyframeSequence.of(self.loc.conf)
             return 'pose consistency state cleared: the next accepted pose starts from scratch'
 
         return self._service(response, relocalize)
