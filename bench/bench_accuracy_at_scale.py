@@ -3,6 +3,7 @@
     python bench/bench_accuracy_at_scale.py [--sizes 0,10000,100000] [--data /work/shared/data]
                                             [--cache cache/features] [--sequence 10] [--dir /tmp/lln_scale]
                                             [--landmark-knn K] [--landmark-alpha A] [--similarity raw|whiten|fuse]
+                                            [--sequence-carry 0,10]
 
 The map: the summer references of the Nordland test split (lln-eval's docs/results.md split:
 aligned summer/winter, range 0.7:1, tolerance 1 frame), keyframe ids in route order, then
@@ -19,7 +20,9 @@ Queries: the winter test frames (lln-eval's drop rule), in route order, through 
 decision code (core.localizer.Localizer.query on MapStore.open: shipped defaults, landmark first
 stage, rerank by S), single frame (lln) and with sequence_length --sequence (lln+seq). P@100%R is
 the fraction of queries whose best answer is a reference within tolerance (every test query has
-one). 'first stage' is the recall of a correct reference in the landmark index's shortlist of
+one); with --sequence-carry N,M one lln+seq column per value of the Localizer's sequence_carry
+(the best N sequence ends' next places scored beside the first stage's candidates; 0 = off).
+'first stage' is the recall of a correct reference in the landmark index's shortlist of
 prefilter_k keyframes (the map's index, as MapStore.query calls it).
 
 --landmark-knn / --landmark-alpha: the map's first stage (landmark_index.default_conf, as the map
@@ -81,8 +84,8 @@ def augmented(path: Path, k: int, rng) -> np.ndarray:
     return np.ascontiguousarray(img[y : y + ch, x : x + cw])
 
 
-def score(store, sets, gt, ref_ids, seq_len) -> dict:
-    """P@100%R of lln and lln+seq and the first stage's recall, over the queries in order."""
+def score(store, sets, gt, ref_ids, seq_len, carries) -> dict:
+    """P@100%R of lln and lln+seq (per sequence_carry) and the first stage's recall, over the queries in order."""
     id_to_ref = {int(k): i for i, k in enumerate(ref_ids)}
     out = {}
     k = int(retrieval_conf['prefilter_k'])
@@ -91,8 +94,8 @@ def score(store, sets, gt, ref_ids, seq_len) -> dict:
         ids, _ = store._landmarks.shortlist(lset, k, below=None, scale=1.0)
         hits += any(int(i) in id_to_ref and gt[qi, id_to_ref[int(i)]] for i in ids)
     out['first_stage'] = hits / len(sets)
-    for name, length in (('lln', 0), ('lln+seq', seq_len)):
-        loc = Localizer(store, {'sequence_length': length})
+    for name, length, carry in [('lln', 0, 0)] + [(seq_name(c, carries), seq_len, c) for c in carries]:
+        loc = Localizer(store, {'sequence_length': length, 'sequence_carry': carry})
         good, t = 0, time.perf_counter()
         for qi, lset in enumerate(sets):
             answer = loc.query(lset, T0 + 10**13 + qi * 10**9)
@@ -101,6 +104,10 @@ def score(store, sets, gt, ref_ids, seq_len) -> dict:
         out[name] = good / len(sets)
         out[name + '_ms'] = (time.perf_counter() - t) * 1e3 / len(sets)
     return out
+
+
+def seq_name(carry: int, carries) -> str:
+    return 'lln+seq' if len(carries) == 1 else f'seq c{carry}'
 
 
 def main(argv=None) -> int:
@@ -120,8 +127,14 @@ def main(argv=None) -> int:
         default=retrieval_conf['landmark_alpha'],
         help="first stage: a hit's vote exponent",
     )
+    ap.add_argument(
+        '--sequence-carry',
+        default=str(Localizer.check_conf({})['sequence_carry']),
+        help="lln+seq: the Localizer's sequence_carry, or several (comma-separated), a column each",
+    )
     ap.add_argument('--similarity', choices=SIMILARITY, default='raw', help="the reranker S's sets (similarity center)")
     args = ap.parse_args(argv)
+    args.carries = [int(c) for c in args.sequence_carry.split(',')]
     similarity.default_conf['center'] = SIMILARITY[args.similarity]
     map_conf = {'landmark_knn': args.landmark_knn, 'landmark_alpha': args.landmark_alpha}
     data = Path(args.data)
@@ -167,18 +180,19 @@ def main(argv=None) -> int:
                 store.add_many(sets, [divmod(T0 + (10**6 + start + i) * 10**8, 10**9) for i in range(len(sets))])
                 cursor += len(chunk)
                 print(f'  map {len(store)} keyframes ({used}), {rate[-1][0]:.1f} ms/image', flush=True)
-            r = score(store, queries, ds.gt, ref_ids, args.sequence)
+            r = score(store, queries, ds.gt, ref_ids, args.sequence, args.carries)
             rows.append({'keyframes': len(store), 'target': size, 'stopped': stopped, 'load': os.getloadavg()[0], **r})
-            print(row_line(rows[-1]), flush=True)
+            print(row_line(rows[-1], args.carries), flush=True)
             if stopped:
                 break
     print(table(rows, args, used, rate))
     return 0
 
 
-def row_line(r: dict) -> str:
+def row_line(r: dict, carries) -> str:
+    seq = ''.join(f' {r[seq_name(c, carries)]:>8.3f}' for c in carries)
     return (
-        f'{r["keyframes"]:>9} {r["lln"]:>7.3f} {r["lln+seq"]:>8.3f} {r["first_stage"]:>11.3f} '
+        f'{r["keyframes"]:>9} {r["lln"]:>7.3f}{seq} {r["first_stage"]:>11.3f} '
         f'{r["lln_ms"]:>7.1f} {r["load"]:>5.1f}' + ('  (stopped at --max-seconds)' if r['stopped'] else '')
     )
 
@@ -187,11 +201,14 @@ def table(rows, args, used, rate) -> str:
     k = retrieval_conf['prefilter_k']
     lines = [
         f'Nordland test split (summer refs 0.7:1, winter queries, tol 1), lln / lln+seq (L={args.sequence}) P@100%R',
-        f'first stage: landmark_knn {args.landmark_knn}, landmark_alpha {args.landmark_alpha:g}; S: {args.similarity}',
+        f'first stage: landmark_knn {args.landmark_knn}, landmark_alpha {args.landmark_alpha:g}; S: {args.similarity}; '
+        f'sequence_carry {args.sequence_carry}',
         f'distractors used: {used}',
-        f'{"keyframes":>9} {"lln":>7} {"lln+seq":>8} {"1st@" + str(k):>11} {"ms/q":>7} {"load":>5}',
+        f'{"keyframes":>9} {"lln":>7}'
+        + ''.join(f' {seq_name(c, args.carries):>8}' for c in args.carries)
+        + f' {"1st@" + str(k):>11} {"ms/q":>7} {"load":>5}',
     ]
-    lines += [row_line(r) for r in rows]
+    lines += [row_line(r, args.carries) for r in rows]
     for kind, name in ((0, 'cached real'), (1, 'flip'), (2, 'crop')):
         ms = [m for m, rnd in rate if min(rnd, 2) == kind]
         if ms:
