@@ -27,8 +27,7 @@ prefilter_k keyframes (the map's index, as MapStore.query calls it).
 
 --landmark-knn / --landmark-alpha: the map's first stage (landmark_index.default_conf, as the map
 store's conf). --similarity: the reranker S on raw sets (the default), on centred and whitened sets
-('whiten'), or raw + fusion_weight x whitened ('fuse'): similarity's opt-in center (docs/method.md),
-set as similarity's default for this process, the only way the map store's rerank takes it.
+('whiten'), or raw + fusion_weight x whitened ('fuse'): the matcher's `similarity` (docs/method.md).
 
 Skips (exit 0, message) when --data is absent.
 """
@@ -46,9 +45,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from lln_ros.core import similarity  # noqa: E402
 from lln_ros.core.extractor import Extractor  # noqa: E402
-from lln_ros.core.localizer import Localizer  # noqa: E402
+from lln_ros.core.localizer import CHOICES, Localizer  # noqa: E402
 from lln_ros.core.retrieval import default_conf as retrieval_conf  # noqa: E402
 from lln_ros.io.datasets import _select, aligned, list_images  # noqa: E402
 from lln_ros.io.features import FeatureCache  # noqa: E402
@@ -57,7 +55,6 @@ from lln_ros.mapstore import MapStore  # noqa: E402
 
 T0 = 1_700_000_000 * 10**9
 OTHER_SETS = ('rtabmap_loop', 'essex3in1', 'tum_fr1rpy')
-SIMILARITY = {'raw': False, 'whiten': 'whiten', 'fuse': 'fuse'}  # --similarity -> similarity's center
 
 
 def distractor_paths(data: Path) -> list[Path]:
@@ -84,7 +81,7 @@ def augmented(path: Path, k: int, rng) -> np.ndarray:
     return np.ascontiguousarray(img[y : y + ch, x : x + cw])
 
 
-def score(store, sets, gt, ref_ids, seq_len, carries) -> dict:
+def score(store, sets, gt, ref_ids, seq_len, carries, similarity='raw') -> dict:
     """P@100%R of lln and lln+seq (per sequence_carry) and the first stage's recall, over the queries in order."""
     id_to_ref = {int(k): i for i, k in enumerate(ref_ids)}
     out = {}
@@ -95,7 +92,7 @@ def score(store, sets, gt, ref_ids, seq_len, carries) -> dict:
         hits += any(int(i) in id_to_ref and gt[qi, id_to_ref[int(i)]] for i in ids)
     out['first_stage'] = hits / len(sets)
     for name, length, carry in [('lln', 0, 0)] + [(seq_name(c, carries), seq_len, c) for c in carries]:
-        loc = Localizer(store, {'sequence_length': length, 'sequence_carry': carry})
+        loc = Localizer(store, {'sequence_length': length, 'sequence_carry': carry, 'similarity': similarity})
         good, t = 0, time.perf_counter()
         for qi, lset in enumerate(sets):
             answer = loc.query(lset, T0 + 10**13 + qi * 10**9)
@@ -132,10 +129,11 @@ def main(argv=None) -> int:
         default=str(Localizer.check_conf({})['sequence_carry']),
         help="lln+seq: the Localizer's sequence_carry, or several (comma-separated), a column each",
     )
-    ap.add_argument('--similarity', choices=SIMILARITY, default='raw', help="the reranker S's sets (similarity center)")
+    ap.add_argument(
+        '--similarity', choices=CHOICES['similarity'], default='raw', help="the reranker S's sets (similarity center)"
+    )
     args = ap.parse_args(argv)
     args.carries = [int(c) for c in args.sequence_carry.split(',')]
-    similarity.default_conf['center'] = SIMILARITY[args.similarity]
     map_conf = {'landmark_knn': args.landmark_knn, 'landmark_alpha': args.landmark_alpha}
     data = Path(args.data)
     if not (data / 'nordland_trimmed' / 'summer').is_dir():
@@ -180,7 +178,7 @@ def main(argv=None) -> int:
                 store.add_many(sets, [divmod(T0 + (10**6 + start + i) * 10**8, 10**9) for i in range(len(sets))])
                 cursor += len(chunk)
                 print(f'  map {len(store)} keyframes ({used}), {rate[-1][0]:.1f} ms/image', flush=True)
-            r = score(store, queries, ds.gt, ref_ids, args.sequence, args.carries)
+            r = score(store, queries, ds.gt, ref_ids, args.sequence, args.carries, args.similarity)
             rows.append({'keyframes': len(store), 'target': size, 'stopped': stopped, 'load': os.getloadavg()[0], **r})
             print(row_line(rows[-1], args.carries), flush=True)
             if stopped:

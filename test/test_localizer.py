@@ -184,6 +184,27 @@ def test_sequence_search_follows_each_session_in_an_interleaved_map(map_path, rn
         invariants(third.counters.snapshot())
 
 
+def test_similarity_chooses_the_reranker_s(map_path, rng):
+    """similarity: the rerank's S is similarity.match_pair's on the sets it names (raw, fused, ...), the
+    same ranking path otherwise; an unknown name is refused."""
+    from lln_ros.core.similarity import CENTERS, match_pair
+
+    sets = [make_set(rng) for _ in range(4)]
+    view = make_set(rng, base=sets[2], noise=0.5)
+    with MapStore(map_path, model=MODEL) as store:
+        ids = store.add_many(sets, [(i, 0) for i in range(4)])
+        got = {}
+        for name in ('raw', 'fuse'):
+            answer = ask(Localizer(store, {'similarity': name, 'k': 4}), view, 0)
+            got[name] = {r['keyframe_id']: r['score'] for r in answer.rows}
+            for kid in ids:
+                expect = float(match_pair(view, store.get(kid), center=CENTERS[name]).scores[0])  # as stored
+                assert np.isclose(got[name][kid], expect, rtol=1e-5), (name, kid)
+        assert got['raw'] != got['fuse']
+        with pytest.raises(ValueError, match='similarity must be one of'):
+            Localizer(store, {'similarity': 'cosine'})
+
+
 def test_sequence_carry_scores_where_the_route_goes_next(map_path, rng):
     """sequence_carry: the previous query's best sequence ends and the keyframes after them are reranked
     beside a first stage that keeps one candidate, so the answer rows carry their own S (a keyframe that

@@ -37,6 +37,7 @@ from .pending import Pending, keep_newest
 from .retrieval import candidates_k
 from .retrieval import default_conf as retrieval_conf
 from .sequence import KeyframeSequence
+from .similarity import CENTERS
 from .threads import one_thread
 
 default_conf = {
@@ -49,6 +50,7 @@ default_conf = {
     'min_score': 0.0,  # candidates below this are not answered
     'exclude_recent': 10,  # mapping mode: the newest N keyframes are never answers
     'method': 'lln',  # lln: rerank by landmark similarity S | holistic: global descriptor only
+    'similarity': 'raw',  # S's sets: raw | center | whiten | fuse (similarity.CENTERS; docs/method.md)
     'offset_scale': 1.0,  # Gaussian width of the offset weights, grid cells
     'max_query_age': 0.0,  # seconds; older queries are dropped (queries_stale); 0 = off
     'verify': False,  # re-rank candidates by keypoint inliers
@@ -56,8 +58,7 @@ default_conf = {
     'verify_margin': 1.0,
     'sequence_length': 0,  # 0 = single-frame ranking
     'sequence_max_gap': 1.0,
-    # with sequence_length: the best N sequence ends' next places (KeyframeSequence.ahead) are scored
-    # beside the first stage's candidates, so a line the first stage loses among distractors stays scored
+    # with sequence_length: the best N sequence ends' next places (KeyframeSequence.ahead) are reranked too
     'sequence_carry': 10,
     # verify: bytes of keypoints messages waiting for their landmark set (the oldest are evicted, as
     # keypoints_evicted): 100 of 500 keypoints are 2.8 MB; 100 declaring 1 row, 8 MB each were 816 MB
@@ -66,6 +67,7 @@ default_conf = {
     # the metric side (camera, depth, odometry, poses, gating): lln_ros.core.registration.default_conf
     'registration': registration_mod.default_conf,
 }
+CHOICES = {'mode': ('localization', 'mapping'), 'method': ('lln', 'holistic'), 'similarity': tuple(CENTERS)}
 PENDING = 100  # keypoints messages / keyframes waiting for their partner (by stamp), newest kept
 KEYPOINT_ROW_BYTES = 56  # one keypoints cloud row (msgs.KEYPOINT_FIELDS: 5 float32, int32, 32 uint8)
 
@@ -121,7 +123,7 @@ class Localizer:
         conf = {**default_conf, **conf, 'limits': limits_mod.limits(conf.get('limits'))}
         conf['registration'] = {**registration_mod.default_conf, **(conf.get('registration') or {})}
         registration_mod.check_conf(conf['registration'])
-        for key, choices in (('mode', ('localization', 'mapping')), ('method', ('lln', 'holistic'))):
+        for key, choices in CHOICES.items():
             if conf[key] not in choices:
                 raise ValueError(f'{key} must be one of {choices}, got {conf[key]!r}')
         if conf['prefilter_k'] < 0:
@@ -353,6 +355,7 @@ class Localizer:
             min_score=None if sequence else c['min_score'],
             method_rerank=c['method'] == 'lln',
             scale=c['offset_scale'],
+            center=CENTERS[c['similarity']],
             **self._recent(recent),
         )
         inliers, results, stored = {}, {}, False
@@ -440,11 +443,8 @@ class Localizer:
             self.reloc, kps, lset.cell_size, found, lambda m: self._stored_keypoints(m.keyframe_id, m.image_size)
         )
         self.count('queries_verified')
-        return (
-            [m for m, _ in ranked],
-            {m.keyframe_id: float(r.inliers) for m, r in ranked if r is not None},
-            {m.keyframe_id: r for m, r in ranked if r is not None},
-        )
+        results = {m.keyframe_id: r for m, r in ranked if r is not None}
+        return [m for m, _ in ranked], {kid: float(r.inliers) for kid, r in results.items()}, results
 
     def _sequence_excluded(self, stored: bool):
         """Ids the sequence search may not answer (mapping mode): the query's own keyframe, when stored,

@@ -42,6 +42,8 @@ default_conf = {
     # whitened S alone 0.605, raw 0.443. 2 keeps raw S's share larger at nearly 4's figure
     'fusion_weight': 2.0,
 }
+# S by name (the matcher's `similarity`, bench_accuracy_at_scale --similarity) -> its center value
+CENTERS = {'raw': False, 'center': True, 'whiten': 'whiten', 'fuse': 'fuse'}
 
 
 def center_sets(descriptors: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -190,6 +190,7 @@ class MapStore(abc.ABC):
         prefilter: str | None = None,
         exclude_ids=None,
         include_ids=None,
+        center: bool | str | None = None,
     ) -> list[MapCandidate]:
         """The best k keyframes for a query landmark set, best first: first stage -> fetch -> rerank.
 
@@ -200,7 +201,8 @@ class MapStore(abc.ABC):
         candidates are reranked by the landmark similarity S (method_rerank=False: the first-stage
         ranking alone, its score as `score`), those below min_score dropped. include_ids: keyframes
         reranked besides the first stage's (the sequence search's next places, Localizer
-        sequence_carry); excluded ones and ids not in the map are left out.
+        sequence_carry); excluded ones and ids not in the map are left out. center: S's sets (similarity
+        center: False raw, True centred, 'whiten', 'fuse'; None = similarity.default_conf's).
         """
         prefilter, prefilter_k = check_prefilter(prefilter or retrieval_conf['prefilter'], prefilter_k)
         k, exclude_recent = self._query_args(lset, k, exclude_recent, method_rerank)
@@ -245,7 +247,7 @@ class MapStore(abc.ABC):
             if include_ids is not None and len(include_ids) and prefilter != 'exhaustive':
                 ids, hol, sets, first = self._include(lset, include_ids, ids, hol, sets, first, drop, cutoff)
         # the numeric work runs outside the lock
-        return self._answer(lset, ids, hol, sets, k, min_score, method_rerank, scale, first)
+        return self._answer(lset, ids, hol, sets, k, min_score, method_rerank, scale, first, center)
 
     def _include(self, lset: LandmarkSet, include_ids, ids, hol, sets: dict, first, drop: set, cutoff):
         """The first stage's ids (K,), cosines (K,), sets and first-stage scores (K,) or None, with
@@ -386,16 +388,17 @@ class MapStore(abc.ABC):
         method_rerank: bool,
         scale: float,
         first: np.ndarray | None = None,
+        center: bool | str | None = None,
     ) -> list[MapCandidate]:
         """Rerank the first stage's keyframes (ids (K,), holistic cosines (K,), their sets by id;
-        first (K,): the landmark first-stage scores, None = holistic order)."""
+        first (K,): the landmark first-stage scores, None = holistic order; center: S's, as query's)."""
         self._check_fetched(ids, sets)
         if not len(ids):
             return []
         if method_rerank:
             # a list: matched in chunks grouped by landmark count (similarity.match_sets), so one
             # long keyframe neither pads the others nor sizes the batch; sorted: min_score drops a tail
-            ranked = rerank(lset, [sets[int(i)] for i in ids], ids, hol, scale, limit=k)
+            ranked = rerank(lset, [sets[int(i)] for i in ids], ids, hol, scale, limit=k, center=center)
         else:
             first = hol if first is None else first
             ranked = [Candidate(int(i), float(f), float(h)) for i, f, h in zip(ids, first, hol)]

@@ -52,7 +52,7 @@ from std_srvs.srv import Trigger
 
 from ..core.landmark_index import PREFILTERS
 from ..core.limits import default_conf as LIMITS
-from ..core.localizer import Localizer
+from ..core.localizer import CHOICES, Localizer
 from ..core.localizer import default_conf as LOC
 from ..core.sequence import KeyframeSequence
 from ..errors import LLNError
@@ -87,7 +87,7 @@ PARAMETERS = {
     'mode': Param(
         LOC['mode'],
         'localization: answer queries only | mapping: answer, then store each query',
-        choices=('localization', 'mapping'),
+        choices=CHOICES['mode'],
     ),
     'prefilter': Param(
         LOC['prefilter'],
@@ -123,7 +123,14 @@ PARAMETERS = {
         LOC['method'],
         'lln: rerank by landmark similarity S | holistic: global descriptor only',
         dynamic=True,
-        choices=('lln', 'holistic'),
+        choices=CHOICES['method'],
+    ),
+    'similarity': Param(
+        LOC['similarity'],
+        "the landmark similarity S's sets: raw (the paper's) | center | whiten | fuse (raw S + 2 x whitened S); "
+        'min_score is in units of the S chosen',
+        dynamic=True,
+        choices=CHOICES['similarity'],
     ),
     'offset_scale': Param(
         LOC['offset_scale'], 'Gaussian width of the offset weights, in grid cells', dynamic=True, range=(1e-3, 1e3)
@@ -201,6 +208,7 @@ LOCALIZER_KEYS = (
     'min_score',
     'exclude_recent',
     'method',
+    'similarity',
     'offset_scale',
     'max_query_age',
     'verify',
