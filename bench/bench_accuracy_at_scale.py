@@ -3,7 +3,7 @@
     python bench/bench_accuracy_at_scale.py [--sizes 0,10000,100000] [--data /work/shared/data]
                                             [--cache cache/features] [--sequence 10] [--dir /tmp/lln_scale]
                                             [--landmark-knn K] [--landmark-alpha A] [--similarity raw|whiten|fuse]
-                                            [--sequence-carry 0,10]
+                                            [--sequence-carry 0,10] [--sequence-prefilter-k K]
 
 The map: the summer references of the Nordland test split (lln-eval's docs/results.md split:
 aligned summer/winter, range 0.7:1, tolerance 1 frame), keyframe ids in route order, then
@@ -21,7 +21,8 @@ decision code (core.localizer.Localizer.query on MapStore.open: shipped defaults
 stage, rerank by S), single frame (lln) and with sequence_length --sequence (lln+seq). P@100%R is
 the fraction of queries whose best answer is a reference within tolerance (every test query has
 one); with --sequence-carry N,M one lln+seq column per value of the Localizer's sequence_carry
-(the best N sequence ends' next places scored beside the first stage's candidates; 0 = off).
+(the best N sequence ends' next places scored beside the first stage's candidates; 0 = off), and
+--sequence-prefilter-k the first-stage candidates it reranks (the matcher's sequence_prefilter_k).
 'first stage' is the recall of a correct reference in the landmark index's shortlist of
 prefilter_k keyframes (the map's index, as MapStore.query calls it).
 
@@ -81,7 +82,7 @@ def augmented(path: Path, k: int, rng) -> np.ndarray:
     return np.ascontiguousarray(img[y : y + ch, x : x + cw])
 
 
-def score(store, sets, gt, ref_ids, seq_len, carries, similarity='raw') -> dict:
+def score(store, sets, gt, ref_ids, seq_len, carries, similarity='raw', seq_k=None) -> dict:
     """P@100%R of lln and lln+seq (per sequence_carry) and the first stage's recall, over the queries in order."""
     id_to_ref = {int(k): i for i, k in enumerate(ref_ids)}
     out = {}
@@ -92,7 +93,8 @@ def score(store, sets, gt, ref_ids, seq_len, carries, similarity='raw') -> dict:
         hits += any(int(i) in id_to_ref and gt[qi, id_to_ref[int(i)]] for i in ids)
     out['first_stage'] = hits / len(sets)
     for name, length, carry in [('lln', 0, 0)] + [(seq_name(c, carries), seq_len, c) for c in carries]:
-        loc = Localizer(store, {'sequence_length': length, 'sequence_carry': carry, 'similarity': similarity})
+        conf = {'sequence_length': length, 'sequence_carry': carry, 'similarity': similarity}
+        loc = Localizer(store, conf if seq_k is None else {**conf, 'sequence_prefilter_k': seq_k})
         good, t = 0, time.perf_counter()
         for qi, lset in enumerate(sets):
             answer = loc.query(lset, T0 + 10**13 + qi * 10**9)
@@ -128,6 +130,12 @@ def main(argv=None) -> int:
         '--sequence-carry',
         default=str(Localizer.check_conf({})['sequence_carry']),
         help="lln+seq: the Localizer's sequence_carry, or several (comma-separated), a column each",
+    )
+    ap.add_argument(
+        '--sequence-prefilter-k',
+        type=int,
+        default=Localizer.check_conf({})['sequence_prefilter_k'],
+        help="lln+seq: the Localizer's sequence_prefilter_k (first-stage candidates reranked)",
     )
     ap.add_argument(
         '--similarity', choices=CHOICES['similarity'], default='raw', help="the reranker S's sets (similarity center)"
@@ -178,7 +186,9 @@ def main(argv=None) -> int:
                 store.add_many(sets, [divmod(T0 + (10**6 + start + i) * 10**8, 10**9) for i in range(len(sets))])
                 cursor += len(chunk)
                 print(f'  map {len(store)} keyframes ({used}), {rate[-1][0]:.1f} ms/image', flush=True)
-            r = score(store, queries, ds.gt, ref_ids, args.sequence, args.carries, args.similarity)
+            r = score(
+                store, queries, ds.gt, ref_ids, args.sequence, args.carries, args.similarity, args.sequence_prefilter_k
+            )
             rows.append({'keyframes': len(store), 'target': size, 'stopped': stopped, 'load': os.getloadavg()[0], **r})
             print(row_line(rows[-1], args.carries), flush=True)
             if stopped:
@@ -200,7 +210,7 @@ def table(rows, args, used, rate) -> str:
     lines = [
         f'Nordland test split (summer refs 0.7:1, winter queries, tol 1), lln / lln+seq (L={args.sequence}) P@100%R',
         f'first stage: landmark_knn {args.landmark_knn}, landmark_alpha {args.landmark_alpha:g}; S: {args.similarity}; '
-        f'sequence_carry {args.sequence_carry}',
+        f'sequence_carry {args.sequence_carry}, sequence_prefilter_k {args.sequence_prefilter_k}',
         f'distractors used: {used}',
         f'{"keyframes":>9} {"lln":>7}'
         + ''.join(f' {seq_name(c, args.carries):>8}' for c in args.carries)
