@@ -64,6 +64,34 @@ def test_online_keyframe_ids_give_the_offline_figures():
     assert len(online.matcher) == 10  # the ring never grows past L
 
 
+def test_carry_offline_equals_online_and_keeps_a_lost_route():
+    """rank_sequences with carry and score_of (lln-eval) = KeyframeSequence.ahead + update (the matcher),
+    and carrying finds the route where the single-frame top-k often misses it."""
+    rng = np.random.default_rng(5)
+    n_q, n_r, k = 60, 80, 6
+    dense = rng.uniform(0, 0.6, (n_q, n_r))  # S of every query and map frame; query q is at frame q + 5
+    dense[np.arange(n_q), np.arange(n_q) + 5] = 0.5
+    ranked = np.argsort(-dense, axis=1, kind='stable')[:, :k]  # the true frame is often not in the top k
+    scores = np.take_along_axis(dense, ranked, 1).astype(np.float32)
+    score_of = lambda q, refs: dense[q, refs]  # noqa: E731
+    conf = {'length': 10}
+    off, off_scores = rank_sequences(ranked, scores, n_r, conf, k=5, carry=10, score_of=score_of)
+    plain, _ = rank_sequences(ranked, scores, n_r, conf, k=5)
+    ids = np.arange(n_r) * 2 + 3
+    online = KeyframeSequence(conf)
+    online.set_map(ids)
+    for q in range(n_q):
+        extra = (online.ahead() - 3) // 2
+        extra = extra[~np.isin(extra, ranked[q])]
+        given = dict(zip(ids[ranked[q]].tolist(), scores[q].tolist())) | dict(zip(ids[extra].tolist(), dense[q, extra]))
+        _, out = online.update(q * S // 20, given, k=5, carry=10)
+        assert [kf for kf, _ in out] == ids[off[q]].tolist(), q
+        np.testing.assert_allclose([s for _, s in out], off_scores[q], rtol=1e-6)
+    truth = np.arange(n_q) + 5
+    in_top = np.mean([truth[q] in ranked[q] for q in range(n_q)])
+    assert in_top < 0.6 and (off[20:, 0] == truth[20:]).mean() > (plain[20:, 0] == truth[20:]).mean(), in_top
+
+
 def test_interleaved_sessions_give_each_session_its_own_route():
     """Two robots writing one map interleave their ids (issue 29): with their origins, each session's
     keyframes are one route, and the figures are those of that session's map alone, whatever the
@@ -260,6 +288,33 @@ def test_eval_peers_and_sequence_rows_on_rtabmap_loop(tmp_path, capsys):
 
 
 TIMED = ('extract_ms', 'match_ms_per_pair')
+
+
+def test_eval_sequence_carry_scores_more_than_the_first_stage(tmp_path, capsys):
+    """lln-eval --sequence-carry: with 3 first-stage candidates the carried ends' next frames are
+    scored too (the matcher's sequence_carry), so the lln+seq row changes and the single-frame row does not."""
+    root = shared_data('rtabmap_loop')
+    rows = {}
+    for carry in (0, 5):
+        out = tmp_path / f'c{carry}'
+        rc = run_cli(
+            *('--dataset', f'loop:{root},{root / "samples_GT.bmp"}', '--out', out, '--methods', 'lln'),
+            *('--sequence', 5, '--prefilter-k', 3, '--sequence-prefilter-k', 3, '--sequence-carry', carry),
+            *('--cache', tmp_path / 'cache', '--timing-images', 1, '--timing-queries', 1, '--timing-repeats', 1),
+            *('--no-plots', '--quiet'),
+        )
+        assert rc == 0, capsys.readouterr().err
+        results = json.loads((out / 'results.json').read_text())
+        assert results['parameters']['sequence_carry'] == carry
+        rows[carry] = {
+            r: {k: v for k, v in m.items() if 'ms' not in k}
+            for r, m in results['datasets']['rtabmap_loop']['methods'].items()
+        }
+    assert rows[0]['lln'] == rows[5]['lln']
+    assert rows[0]['lln+seq'] != rows[5]['lln+seq'], rows
+    capsys.readouterr()
+    assert run_cli('--dataset', 'x', '--out', tmp_path / 'bad', '--sequence-carry', -1) == 2
+    assert '--sequence-carry must be at least 0' in capsys.readouterr().err
 
 
 def test_sequence_candidates_are_the_single_frame_first_stage_extended(extractor):

@@ -123,6 +123,14 @@ def build_parser() -> argparse.ArgumentParser:
         help='first-stage candidates the X+seq rows of local methods rerank, at least --prefilter-k '
         f'(default {conf["sequence_prefilter_k"]}, as the matcher with sequence_length; 0 = every reference)',
     )
+    p.add_argument(
+        '--sequence-carry',
+        type=int,
+        default=conf['sequence_carry'],
+        metavar='N',
+        help="X+seq of local methods: also score the previous query's N best sequence ends' next references, "
+        "as the matcher's sequence_carry does (its default 10; 0 = off, what docs/results.md used)",
+    )
     p.add_argument('--out', required=True, metavar='DIR', help='output folder (results.json, results.md, PNGs)')
     p.add_argument('--range', help='START:END fractions of every aligned dataset (e.g. 0.7:1)')
     p.add_argument(
@@ -277,6 +285,8 @@ def run(args, argv) -> dict:
         raise UsageError('--reloc ranks candidates with lln: add lln to --methods')
     if args.reloc and (args.reloc_top < 1 or args.reloc_min_inliers < 1):
         raise UsageError('--reloc-top and --reloc-min-inliers must be at least 1')
+    if args.sequence_carry < 0:
+        raise UsageError(f'--sequence-carry must be at least 0 (0 = off), got {args.sequence_carry}')
     if args.sequence_prefilter_k < 0:
         raise UsageError(f'--sequence-prefilter-k must be at least 0 (0 = every ref), got {args.sequence_prefilter_k}')
     if args.sequence < 0:
@@ -323,6 +333,7 @@ def run(args, argv) -> dict:
         'similarity_fusion': args.similarity_fusion,
         'sequence': args.sequence,
         'sequence_prefilter_k': args.sequence_prefilter_k,
+        'sequence_carry': args.sequence_carry,
         'timing_images': args.timing_images,
         'timing_queries': args.timing_queries,
         'timing_repeats': args.timing_repeats,

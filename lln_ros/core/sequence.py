@@ -117,6 +117,13 @@ class SequenceMatcher:
         self.ring.append((int(stamp_ns), positions, scores))
         return reason
 
+    def ahead(self, ends, map_size: int) -> np.ndarray:
+        """Map positions (M,) where lines ending at positions `ends` go next: each end + 0 ..
+        ceil(v_max) (the end and its next step at any velocity of the range), within the map."""
+        steps = np.arange(int(np.ceil(float(self.conf['v_max']))) + 1)
+        nxt = (np.asarray(ends, np.int64).reshape(-1, 1) + steps[None]).ravel()
+        return np.unique(nxt[(nxt >= 0) & (nxt < map_size)])
+
     def search(self, map_size: int, allowed_ends=None, k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Sequence scores of the line ends reachable from the window's scored entries.
 
@@ -164,19 +171,30 @@ def rank_sequences(
     conf: dict | None = None,
     allowed: np.ndarray | None = None,
     k: int = 30,
+    carry: int = 0,
+    score_of=None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Offline: single-frame rankings of a query sequence (in stream order) -> sequence rankings.
 
     ranked (Q, K) ref indices (-1 = none) and scores (Q, K) of any method; allowed (Q, R) bool or
     None. Queries are fed to one SequenceMatcher in order with stamps 0, 1, 2 ... (no gaps), the
-    way the node sees a stream. Returns ranked (Q, k) and sequence scores (Q, k), -1 / -inf padded."""
+    way the node sees a stream. Returns ranked (Q, k) and sequence scores (Q, k), -1 / -inf padded.
+    carry N with score_of(q, refs (M,)) -> scores (M,): the matcher's sequence_carry, the previous
+    query's N best ends' next refs (SequenceMatcher.ahead) scored beside query q's own ranking."""
     seq = SequenceMatcher({**(conf or {}), 'max_gap_s': float('inf')})
     out = np.full((len(ranked), k), -1, np.int64)
     out_scores = np.full((len(ranked), k), -np.inf, np.float32)
+    carried = np.zeros(0, np.int64)
     for q in range(len(ranked)):
         ok = ranked[q] >= 0
-        seq.push(q, ranked[q][ok], scores[q][ok])
-        ends, s = seq.search(n_refs, None if allowed is None else allowed[q], k)
+        pos, sc = ranked[q][ok], scores[q][ok]
+        new = np.setdiff1d(seq.ahead(carried, n_refs), pos) if score_of is not None else carried[:0]
+        new = new[allowed[q][new]] if allowed is not None else new
+        if len(new):
+            pos, sc = np.r_[pos, new], np.r_[sc, score_of(q, new)]
+        seq.push(q, pos, sc)
+        ends, s = seq.search(n_refs, None if allowed is None else allowed[q], max(k, int(carry)))
+        carried, ends, s = ends[: int(carry)], ends[:k], s[:k]
         out[q, : len(ends)], out_scores[q, : len(ends)] = ends, s
     return out, out_scores
 
@@ -328,9 +346,7 @@ class KeyframeSequence:
         The Localizer has them scored beside the first stage's candidates (sequence_carry), so a line
         that holds stays scored where the first stage misses its next place. Empty before a search."""
         pos, known = self.positions(self.carried)
-        steps = np.arange(int(np.ceil(float(self.matcher.conf['v_max']))) + 1)
-        nxt = (pos[known][:, None] + steps[None]).ravel()
-        return np.unique(self.ids[nxt[nxt < len(self.ids)]])
+        return self.ids[self.matcher.ahead(pos[known], len(self.ids))]
 
     def update(
         self, stamp_ns: int, scores: dict, excluded=None, k: int = 5, carry: int = 0

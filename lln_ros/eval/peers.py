@@ -69,8 +69,11 @@ def peer_row(method: str, front: SadFrontEnd, allowed, k: int, seq_conf: dict):
     return rank_sequences(full, full_scores, front.refs.shape[0], seq_conf, allowed, k)
 
 
-def sequence_row(ranked: np.ndarray, scores: np.ndarray, n_refs: int, seq_conf: dict, allowed, k: int):
-    """(ranked (Q, k), scores (Q, k), ms per query of the sequence search) from a single-frame ranking."""
+def sequence_row(
+    ranked: np.ndarray, scores: np.ndarray, n_refs: int, seq_conf: dict, allowed, k: int, carry=0, score_of=None
+):
+    """(ranked (Q, k), scores (Q, k), ms per query of the sequence search) from a single-frame ranking;
+    carry, score_of: rank_sequences' (the matcher's sequence_carry)."""
     t = time.perf_counter()
-    out = rank_sequences(ranked, scores, n_refs, seq_conf, allowed, k)
+    out = rank_sequences(ranked, scores, n_refs, seq_conf, allowed, k, carry, score_of)
     return out + ((time.perf_counter() - t) * 1e3 / max(len(ranked), 1),)

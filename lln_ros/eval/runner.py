@@ -105,6 +105,7 @@ default_conf = {
     'similarity_fusion': False,  # raw S + fusion_weight x whitened S (similarity, center='fuse')
     **{key: landmark_index_defaults[key] for key in LANDMARK_CONF},  # the first stage's, as its index's
     'sequence': 0,  # L > 0: an `X+seq` row per holistic/local row (sequence length L)
+    'sequence_carry': 0,  # X+seq of local rows: the matcher's sequence_carry (its default is 10; results.md: 0)
     'seqslam_length': sequence_defaults['length'],  # seqslam's L when 'sequence' is 0
     'timing_images': 5,  # images per dataset the extraction is timed on
     'timing_queries': 10,  # queries per dataset the rerank is timed on
@@ -117,7 +118,7 @@ default_conf = {
     'reloc': False,  # also keypoint relocalization on the first lln row's ranking (reloc.py)
     **reloc_eval_conf,
 }
-ECHOED = {'top_n': int, 'prefilter_k': int, 'scale': float, **LANDMARK_CONF}  # results.json echoes these
+ECHOED = {'top_n': int, 'prefilter_k': int, 'scale': float, 'sequence_carry': int, **LANDMARK_CONF}  # in results.json
 ECHOED |= dict.fromkeys(('similarity_center', 'similarity_whitening', 'similarity_fusion'), bool)
 
 
@@ -145,11 +146,8 @@ def _sizes(ds, which: str, paths: list) -> list[tuple]:
         return [tuple(int(v) for v in s) for s in sizes]
     import cv2
 
-    out = []
-    for p in paths:
-        im = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-        out.append((im.shape[1], im.shape[0]))
-    return out
+    shapes = [cv2.imread(str(p), cv2.IMREAD_UNCHANGED).shape for p in paths]
+    return [(shape[1], shape[0]) for shape in shapes]
 
 
 def _holistic_sets(feats: list[np.ndarray], sizes: list[tuple], space: str) -> list[LandmarkSet]:
@@ -257,7 +255,7 @@ def evaluate_dataset(
     reps = int(conf['timing_repeats'])
     front = SadFrontEnd(ds) if any(m in PEER_METHODS for m in methods) else None
 
-    rankings, rows_out, reloc, stages = {}, {}, None, None
+    rankings, rows_out, reloc, stages, score_of = {}, {}, None, None, {}
     seq_bases = {}  # row -> the single-frame ranking of its k_seq candidates, what X+seq searches
     extract_jobs, match_jobs = {}, {}
     for row, method, head in row_names(methods, heads):
@@ -319,6 +317,7 @@ def evaluate_dataset(
                 for q, c in timed
             ]
             n = int(np.median([len(s) for s in qs]))
+            score_of[row] = lambda q, refs, qs=qs, b=batch: match_batch(qs[q], b.take(refs), scale, center).scores
             if conf['reloc'] and method == 'lln' and reloc is None:
                 t1 = time.perf_counter()
                 reloc = evaluate_reloc(ds, qs, rs, ranked, conf, f'reloc {ds.name}' if conf['progress'] else None)
@@ -353,7 +352,8 @@ def evaluate_dataset(
             continue
         base = (full, full_scores) if method == 'holistic' else seq_bases.pop(row, rankings[row])
         cands = len(ds.ref_paths) if method == 'holistic' else min(k_seq or len(ds.ref_paths), len(ds.ref_paths))
-        ranked, scores, seq_ms = sequence_row(*base, len(ds.ref_paths), seq_conf, ds.candidates, k)
+        carry = (int(conf['sequence_carry']), score_of.get(row))  # holistic rows rank every reference
+        ranked, scores, seq_ms = sequence_row(*base, len(ds.ref_paths), seq_conf, ds.candidates, k, *carry)
         summary = metrics.summary(ranked, scores[:, 0], ds.gt)
         rows_out[f'{row}+seq'] = {
             **{key: finite(float(summary[key])) for key in METRIC_KEYS},
