@@ -48,6 +48,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from lln_ros.core.extractor import Extractor  # noqa: E402
 from lln_ros.core.localizer import CHOICES, Localizer  # noqa: E402
+from lln_ros.core.localizer import default_conf as LOC  # noqa: E402
 from lln_ros.core.retrieval import default_conf as retrieval_conf  # noqa: E402
 from lln_ros.io.datasets import _select, aligned, list_images  # noqa: E402
 from lln_ros.io.features import FeatureCache  # noqa: E402
@@ -82,8 +83,9 @@ def augmented(path: Path, k: int, rng) -> np.ndarray:
     return np.ascontiguousarray(img[y : y + ch, x : x + cw])
 
 
-def score(store, sets, gt, ref_ids, seq_len, carries, similarity='raw', seq_k=None) -> dict:
-    """P@100%R of lln and lln+seq (per sequence_carry) and the first stage's recall, over the queries in order."""
+def score(store, sets, gt, ref_ids, seq_len, carries, loc_conf: dict) -> dict:
+    """P@100%R of lln and lln+seq (per sequence_carry) and the first stage's recall, over the queries in order.
+    loc_conf: the Localizer settings every row shares (similarity, sequence_prefilter_k)."""
     id_to_ref = {int(k): i for i, k in enumerate(ref_ids)}
     out = {}
     k = int(retrieval_conf['prefilter_k'])
@@ -93,8 +95,7 @@ def score(store, sets, gt, ref_ids, seq_len, carries, similarity='raw', seq_k=No
         hits += any(int(i) in id_to_ref and gt[qi, id_to_ref[int(i)]] for i in ids)
     out['first_stage'] = hits / len(sets)
     for name, length, carry in [('lln', 0, 0)] + [(seq_name(c, carries), seq_len, c) for c in carries]:
-        conf = {'sequence_length': length, 'sequence_carry': carry, 'similarity': similarity}
-        loc = Localizer(store, conf if seq_k is None else {**conf, 'sequence_prefilter_k': seq_k})
+        loc = Localizer(store, {**loc_conf, 'sequence_length': length, 'sequence_carry': carry})
         good, t = 0, time.perf_counter()
         for qi, lset in enumerate(sets):
             answer = loc.query(lset, T0 + 10**13 + qi * 10**9)
@@ -128,13 +129,13 @@ def main(argv=None) -> int:
     )
     ap.add_argument(
         '--sequence-carry',
-        default=str(Localizer.check_conf({})['sequence_carry']),
+        default=str(LOC['sequence_carry']),
         help="lln+seq: the Localizer's sequence_carry, or several (comma-separated), a column each",
     )
     ap.add_argument(
         '--sequence-prefilter-k',
         type=int,
-        default=Localizer.check_conf({})['sequence_prefilter_k'],
+        default=LOC['sequence_prefilter_k'],
         help="lln+seq: the Localizer's sequence_prefilter_k (first-stage candidates reranked)",
     )
     ap.add_argument(
@@ -142,6 +143,7 @@ def main(argv=None) -> int:
     )
     args = ap.parse_args(argv)
     args.carries = [int(c) for c in args.sequence_carry.split(',')]
+    loc_conf = {'similarity': args.similarity, 'sequence_prefilter_k': args.sequence_prefilter_k}
     map_conf = {'landmark_knn': args.landmark_knn, 'landmark_alpha': args.landmark_alpha}
     data = Path(args.data)
     if not (data / 'nordland_trimmed' / 'summer').is_dir():
@@ -186,9 +188,7 @@ def main(argv=None) -> int:
                 store.add_many(sets, [divmod(T0 + (10**6 + start + i) * 10**8, 10**9) for i in range(len(sets))])
                 cursor += len(chunk)
                 print(f'  map {len(store)} keyframes ({used}), {rate[-1][0]:.1f} ms/image', flush=True)
-            r = score(
-                store, queries, ds.gt, ref_ids, args.sequence, args.carries, args.similarity, args.sequence_prefilter_k
-            )
+            r = score(store, queries, ds.gt, ref_ids, args.sequence, args.carries, loc_conf)
             rows.append({'keyframes': len(store), 'target': size, 'stopped': stopped, 'load': os.getloadavg()[0], **r})
             print(row_line(rows[-1], args.carries), flush=True)
             if stopped:
