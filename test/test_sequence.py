@@ -9,6 +9,7 @@ import pytest
 
 from conftest import shared_data
 from lln_ros.cli.eval import main
+from lln_ros.core import retrieval
 from lln_ros.core.sequence import (
     KeyframeSequence,
     SequenceError,
@@ -270,8 +271,9 @@ def test_eval_peers_and_sequence_rows_on_rtabmap_loop(tmp_path, capsys):
         assert 0.0 <= m['p_at_100r'] <= 1.0 and m['extract_ms'] > 0, (row, m)
     assert rows['lln+seq']['sequence_ms_per_query'] > 0
     assert rows['lln+seq']['match_ms_per_pair'] == rows['lln']['match_ms_per_pair']
-    # the sequence search reranks sequence_prefilter_k (500 > the map) candidates: every allowed frame
-    assert results['parameters']['sequence_prefilter_k'] == 500 and rows['lln+seq']['sequence_candidates'] == 84
+    # the sequence search reranks sequence_prefilter_k (the default, 100 > the map) candidates: every allowed frame
+    assert results['parameters']['sequence_prefilter_k'] == retrieval.default_conf['sequence_prefilter_k'] > 84
+    assert rows['lln+seq']['sequence_candidates'] == 84
     md = (out / 'results.md').read_text()
     assert '| lln+seq |' in md and '| seqslam |' in md
     # the same frames declared not a sequence: no X+seq rows, no seqslam, and a note saying why

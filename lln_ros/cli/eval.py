@@ -129,7 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=conf['sequence_carry'],
         metavar='N',
         help="X+seq of local methods: also score the previous query's N best sequence ends' next references, "
-        "as the matcher's sequence_carry does (its default 10; 0 = off, what docs/results.md used)",
+        "as the matcher's sequence_carry does (0 = off)",
     )
     p.add_argument('--out', required=True, metavar='DIR', help='output folder (results.json, results.md, PNGs)')
     p.add_argument('--range', help='START:END fractions of every aligned dataset (e.g. 0.7:1)')

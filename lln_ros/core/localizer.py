@@ -59,7 +59,7 @@ default_conf = {
     'sequence_length': 0,  # 0 = single-frame ranking
     'sequence_max_gap': 1.0,
     # with sequence_length: the best N sequence ends' next places (KeyframeSequence.ahead) are reranked too
-    'sequence_carry': 10,
+    'sequence_carry': retrieval_conf['sequence_carry'],
     # verify: bytes of keypoints messages waiting for their landmark set (the oldest are evicted, as
     # keypoints_evicted): 100 of 500 keypoints are 2.8 MB; 100 declaring 1 row, 8 MB each were 816 MB
     'pending_keypoints_bytes': 16 * 2**20,

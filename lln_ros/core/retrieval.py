@@ -28,10 +28,14 @@ default_conf = {
     'prefilter': 'landmarks',  # first stage: landmarks | holistic | exhaustive (the one default of all paths)
     'prefilter_k': 100,  # first-stage candidates reranked by S (the paper's holistic: 30); 0 = every map entry
     # first-stage candidates reranked when a sequence search follows (lln-eval --sequence, the
-    # matcher's sequence_length): it needs a score wherever the route may be, and scoring a candidate
-    # costs ~0.03 ms. Nordland test, landmarks: lln+seq 76.3% at 100, 78.5% at 300, 80.5% at 500,
-    # 82.4% with every reference (docs/results.md). Never fewer than prefilter_k; 0 = every map entry
-    'sequence_prefilter_k': 500,
+    # matcher's sequence_length): never fewer than prefilter_k; 0 = every map entry. With carried
+    # places (below) 100 do as well as 500: Nordland validation 0.6:0.7 in a 10k-keyframe map,
+    # lln+seq 0.908 at 100 and 0.905 at 500 (docs/benchmarks.md, Carried places)
+    'sequence_prefilter_k': 100,
+    # the sequence search also scores where the previous query's N best sequence ends go next (route
+    # position + 0..2), beside the first stage's candidates; 0 = off. Same validation map: 0.821 (0),
+    # 0.908 (10), 0.899 (30) with 100 candidates
+    'sequence_carry': 10,
     'scale': 1.0,  # offset-weight Gaussian width, in grid cells
     **landmark_index.default_conf,
 }

@@ -105,7 +105,7 @@ default_conf = {
     'similarity_fusion': False,  # raw S + fusion_weight x whitened S (similarity, center='fuse')
     **{key: landmark_index_defaults[key] for key in LANDMARK_CONF},  # the first stage's, as its index's
     'sequence': 0,  # L > 0: an `X+seq` row per holistic/local row (sequence length L)
-    'sequence_carry': 0,  # X+seq of local rows: the matcher's sequence_carry (its default is 10; results.md: 0)
+    'sequence_carry': retrieval_defaults['sequence_carry'],  # X+seq of local rows: the matcher's sequence_carry
     'seqslam_length': sequence_defaults['length'],  # seqslam's L when 'sequence' is 0
     'timing_images': 5,  # images per dataset the extraction is timed on
     'timing_queries': 10,  # queries per dataset the rerank is timed on
