@@ -3,15 +3,16 @@
     python bench/bench_accuracy_at_scale.py [--sizes 0,10000,100000] [--data /work/shared/data]
                                             [--cache cache/features] [--sequence 10] [--dir /tmp/lln_scale]
                                             [--landmark-knn K] [--landmark-alpha A] [--similarity raw|whiten|fuse]
-                                            [--sequence-carry 0,10] [--sequence-prefilter-k K]
+                                            [--sequence-carry 0,10] [--sequence-prefilter-k K] [--range 0.7:1]
 
 The map: the summer references of the Nordland test split (lln-eval's docs/results.md split:
-aligned summer/winter, range 0.7:1, tolerance 1 frame), keyframe ids in route order, then
-distractor keyframes appended until each --sizes (0 = the plain test map). Distractors are
-landmarks of other real images through the shipped Extractor (backbone features from the on-disk
-FeatureCache, --cache, shared with lln-eval), in this order: Nordland summer and winter 0:0.6
-(the training part; it ends 358 frames before the test range starts and Nordland never revisits a
-place, so with a 1-frame tolerance no distractor can be a true match), then every image of
+aligned summer/winter, range 0.7:1, tolerance 1 frame; --range 0.6:0.7 is the validation part,
+for choosing settings), keyframe ids in route order, then distractor keyframes appended until each
+--sizes (0 = the plain map). Distractors are landmarks of other real images through the shipped
+Extractor (backbone features from the on-disk FeatureCache, --cache, shared with lln-eval), in this
+order: Nordland summer and winter from 0 to 0.1 of the route before --range starts (0:0.6, the
+training part, for the test split; it ends 358 frames before the test range starts and Nordland
+never revisits a place, so with a 1-frame tolerance no distractor can be a true match), then every image of
 rtabmap_loop, essex3in1 and tum_fr1rpy. When more are needed, horizontal flips of those images
 (through the same extractor, not cached), then seeded random crops (70-90% of the image, resized
 back by the extractor). A distractor is never counted correct: ground truth covers references only.
@@ -50,7 +51,7 @@ from lln_ros.core.extractor import Extractor  # noqa: E402
 from lln_ros.core.localizer import CHOICES, Localizer  # noqa: E402
 from lln_ros.core.localizer import default_conf as LOC  # noqa: E402
 from lln_ros.core.retrieval import default_conf as retrieval_conf  # noqa: E402
-from lln_ros.io.datasets import _select, aligned, list_images  # noqa: E402
+from lln_ros.io.datasets import _select, aligned, list_images, parse_range  # noqa: E402
 from lln_ros.io.features import FeatureCache  # noqa: E402
 from lln_ros.io.image import load_image  # noqa: E402
 from lln_ros.mapstore import MapStore  # noqa: E402
@@ -59,12 +60,12 @@ T0 = 1_700_000_000 * 10**9
 OTHER_SETS = ('rtabmap_loop', 'essex3in1', 'tum_fr1rpy')
 
 
-def distractor_paths(data: Path) -> list[Path]:
-    """Real images that are never a test place: Nordland 0:0.6 of both seasons, the other sets."""
+def distractor_paths(data: Path, route_end: float = 0.6) -> list[Path]:
+    """Real images that are never a queried place: Nordland 0:route_end of both seasons, the other sets."""
     out = []
-    for season in ('summer', 'winter'):
+    for season in ('summer', 'winter') if route_end > 0 else ():
         imgs = list_images(data / 'nordland_trimmed' / season)
-        out += imgs[_select(len(imgs), (0.0, 0.6))]
+        out += imgs[_select(len(imgs), (0.0, route_end))]
     for name in OTHER_SETS:
         if (data / name).is_dir():
             out += sorted(p for p in (data / name).rglob('*') if p.suffix.lower() in ('.png', '.jpg', '.jpeg', '.bmp'))
@@ -117,6 +118,7 @@ def main(argv=None) -> int:
     ap.add_argument('--cache', default=os.environ.get('LLN_FEATURES', 'cache/features'))
     ap.add_argument('--sequence', type=int, default=10, help="lln+seq's sequence_length")
     ap.add_argument('--dir', default='/tmp/lln_scale')
+    ap.add_argument('--range', default='0.7:1', help='the Nordland part queried (0.6:0.7: the validation part)')
     ap.add_argument('--max-seconds', type=float, default=0, help='stop growing the map after this long (0 = never)')
     ap.add_argument(
         '--landmark-knn', type=int, default=retrieval_conf['landmark_knn'], help='first stage: hits per query landmark'
@@ -154,13 +156,14 @@ def main(argv=None) -> int:
     folder = Path(args.dir)
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
-    ds = aligned(data / 'nordland_trimmed' / 'summer', data / 'nordland_trimmed' / 'winter', 1, (0.7, 1.0))
+    part = parse_range(args.range)
+    ds = aligned(data / 'nordland_trimmed' / 'summer', data / 'nordland_trimmed' / 'winter', 1, part)
     extractor = Extractor()
     height = int(extractor.conf['input_height'])
     cache = FeatureCache(args.cache, extractor)
     refs = cache.landmark_sets(ds.ref_paths, height)
     queries = cache.landmark_sets(ds.query_paths, height)
-    pool = distractor_paths(data)
+    pool = distractor_paths(data, max(0.0, round(part[0] - 0.1, 6)))  # a tenth of the route apart: no true match
     print(f'{len(refs)} references, {len(queries)} queries, {len(pool)} real distractor images', flush=True)
     rows, used, rng = [], {'real': 0, 'flip': 0, 'crop': 0}, np.random.default_rng(0)
     rate = []
@@ -208,7 +211,7 @@ def row_line(r: dict, carries) -> str:
 def table(rows, args, used, rate) -> str:
     k = retrieval_conf['prefilter_k']
     lines = [
-        f'Nordland test split (summer refs 0.7:1, winter queries, tol 1), lln / lln+seq (L={args.sequence}) P@100%R',
+        f'Nordland summer refs {args.range}, winter queries, tol 1: lln / lln+seq (L={args.sequence}) P@100%R',
         f'first stage: landmark_knn {args.landmark_knn}, landmark_alpha {args.landmark_alpha:g}; S: {args.similarity}; '
         f'sequence_carry {args.sequence_carry}, sequence_prefilter_k {args.sequence_prefilter_k}',
         f'distractors used: {used}',
