@@ -2,7 +2,8 @@
 
     python bench/bench_frame_to_answer.py [--sizes 1000,10000,100000] [--frames 60] [--threads 2]
                                           [--runtimes onnxruntime,onnxruntime-int8]
-                                          [--sequence 0] [--dir /tmp/lln_bench_f2a] [--json]
+                                          [--sequence 0 [--sequence-prefilter-k K]] [--dir /tmp/lln_bench_f2a]
+                                          [--json]
 
 Per frame, in this process and in the nodes' order: Extractor.__call__ (the extractor node's
 runtime and threads: ONNX Runtime by default) on a 384x288 RGB frame, then Localizer.query (the
@@ -42,6 +43,7 @@ from bench_map import synthetic_set  # noqa: E402
 
 from lln_ros.core.extractor import Extractor  # noqa: E402
 from lln_ros.core.localizer import Localizer  # noqa: E402
+from lln_ros.core.localizer import default_conf as LOC  # noqa: E402
 from lln_ros.mapstore import MapStore  # noqa: E402
 
 REAL_KEYFRAMES = 200
@@ -104,6 +106,12 @@ def main(argv=None) -> int:
         '--runtimes', default='onnxruntime,onnxruntime-int8', help="the extractor's runtimes, one row set each"
     )
     ap.add_argument('--sequence', type=int, default=0, help="the matcher's sequence_length (0 = single frame)")
+    ap.add_argument(
+        '--sequence-prefilter-k',
+        type=int,
+        default=LOC['sequence_prefilter_k'],
+        help="the matcher's sequence_prefilter_k (first-stage candidates reranked with --sequence)",
+    )
     ap.add_argument('--dir', default='/tmp/lln_bench_f2a')
     ap.add_argument('--json', action='store_true')
     args = ap.parse_args(argv)
@@ -125,7 +133,9 @@ def main(argv=None) -> int:
         truth = [real_ids[i % len(views)] for i in range(args.frames)]
         for size in sizes:
             grow(store, size, rng)
-            loc = Localizer(store, {'sequence_length': args.sequence})
+            loc = Localizer(
+                store, {'sequence_length': args.sequence, 'sequence_prefilter_k': args.sequence_prefilter_k}
+            )
             loc.query(extractor(queries[0]), T0)  # first query builds what the open left lazy
             for runtime, ex in extractors.items():
                 ex(queries[0])  # warm
@@ -143,7 +153,9 @@ def main(argv=None) -> int:
 
 def table(rows: list[dict], args) -> str:
     lines = [
-        f'frame to answer, 384x288, {args.threads} runtime threads, sequence_length {args.sequence}, '
+        f'frame to answer, 384x288, {args.threads} runtime threads, sequence_length {args.sequence}'
+        + (f' (sequence_prefilter_k {args.sequence_prefilter_k})' if args.sequence else '')
+        + ', '
         f'{args.frames} frames per row ({os.cpu_count()} cores)',
         f'{"keyframes":>9} {"runtime":>16} {"beside":>10} {"load":>5} {"p50 ms":>7} {"p90 ms":>7} {"p99 ms":>7} '
         f'{"cpu ms":>7} {"extract":>8} {"query":>7} {"top-1":>6} {"p50/quiet":>9}',
