@@ -19,7 +19,7 @@ from lln_ros.cli.eval import main
 from lln_ros.core.landmarks import stack_landmarks
 from lln_ros.core.lln import LLNHead, head_fingerprint, save_checkpoint
 from lln_ros.core.retrieval import rank_all
-from lln_ros.eval import METHODS, REPORT_KEYS, Head, evaluate, parse_head
+from lln_ros.eval import METHODS, REPORT_KEYS, Head, evaluate, figures, parse_head
 from lln_ros.eval.methods import variant
 from lln_ros.eval.report import markdown
 from lln_ros.io import datasets
@@ -249,6 +249,17 @@ def test_pictures_and_markdown(tiny_run):
     assert '## Parameters' in md and 'prefilter_k: `5`' in md and '(ref-vs-query_pr.png)' in md
     # the held-out column: other.pt lists no training images, the Xavier head trained on nothing
     assert '| lln[other] | unknown |' in md and '| lln[untrained] | untrained |' in md and '| act | - |' in md
+
+
+def test_every_method_has_its_own_colour_and_its_sequence_row_shares_it():
+    """results.md's plot of 15 rows: no two methods alike; X+seq in X's colour, dash-dotted."""
+    rows = ['holistic', 'lln[trained]', 'lln[untrained]', 'act', 'rand', 'all', 'sad', 'seqslam']
+    rows += [r + '+seq' for r in rows if r not in ('sad', 'seqslam')]
+    colours = figures._colours(rows)
+    methods = [r for r in rows if not r.endswith('+seq')]
+    assert len({str(colours[r]) for r in methods}) == len(methods)
+    assert all(colours[r + '+seq'] == colours[r] for r in methods if r + '+seq' in rows)
+    assert figures._line('act+seq', '-') == '-.' and figures._line('act', '-') == '-'
 
 
 def test_held_out_status_compares_the_images_a_checkpoint_lists(tiny, tmp_path):

@@ -32,7 +32,16 @@ def _pyplot():
     return plt
 
 
+SEQ = '+seq'  # the suffix of lln-eval's sequence-search rows
+
+
+def _line(row: str, single: str) -> str:
+    """The line style of a row: `single` for a single-frame row, dash-dot for its X+seq row."""
+    return '-.' if row.endswith(SEQ) else single
+
+
 def _colours(rows: list[str]) -> dict:
+    """A colour per row, distinct per method; X+seq shares X's."""
     plt = _pyplot()
     fixed = {
         'holistic': 'tab:gray',
@@ -45,7 +54,10 @@ def _colours(rows: list[str]) -> dict:
     lln_cols = iter(['tab:blue', 'tab:red', 'tab:cyan', 'tab:brown', 'tab:pink'])
     out = {}
     for r in rows:
-        out[r] = fixed.get(r) or next(lln_cols, None) or plt.get_cmap('tab20')(len(out) % 20)
+        base = r.removesuffix(SEQ)  # X+seq is drawn in X's colour (and dash-dotted, _line)
+        if base not in out:
+            out[base] = fixed.get(base) or next(lln_cols, None) or plt.get_cmap('tab20')(len(out) % 20)
+        out[r] = out[base]
     return out
 
 
@@ -112,7 +124,7 @@ def curve_label(name: str, summary: dict) -> str:
 
 def plot_pr(curves: list[tuple], gt: np.ndarray, path, title: str) -> None:
     """PR curves on one plot (threshold on the top-1 score). curves: (label, ranked (Q, K),
-    scores (Q, K), summary (metrics.summary keys), line style, colour)."""
+    scores (Q, K), summary (metrics.summary keys), line style, colour); X+seq rows dash-dotted in X's colour."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 5.2 + 0.22 * len(curves)), dpi=110)
     for label, ranked, scores, summary, style, colour in curves:
@@ -143,7 +155,7 @@ def rows_curves(run) -> list[tuple]:
     """plot_pr curves of every row of an lln-eval DatasetRun (holistic dashed)."""
     colours = _colours(list(run.rankings))
     return [
-        (row, ranked, scores, run.entry['methods'][row], '--' if row == 'holistic' else '-', colours[row])
+        (row, ranked, scores, run.entry['methods'][row], _line(row, '--' if row == 'holistic' else '-'), colours[row])
         for row, (ranked, scores) in run.rankings.items()
     ]
 
@@ -159,7 +171,8 @@ def online_curves(online: dict, offline: dict | None) -> list[tuple]:
 
 
 def plot_recall_at_k(run, gt: np.ndarray, prefilter_k: int, path) -> None:
-    """Holistic recall@K against K (the paper's Fig. 4), reranked methods within the top-K dashed."""
+    """Holistic recall@K against K (the paper's Fig. 4), reranked methods within the top-K dashed
+    (X+seq dash-dotted, in X's colour)."""
     plt = _pyplot()
     colours = _colours(list(run.rankings))
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=110)
@@ -179,7 +192,7 @@ def plot_recall_at_k(run, gt: np.ndarray, prefilter_k: int, path) -> None:
         ax.plot(
             kk,
             [metrics.recall_at_k(ranked, gt, int(k)) for k in kk],
-            '--',
+            _line(row, '--'),
             lw=1,
             color=colours[row],
             label=f'{row} (its first-stage top-{ranked.shape[1]}, reranked)',
