@@ -61,7 +61,8 @@ OTHER_SETS = ('rtabmap_loop', 'essex3in1', 'tum_fr1rpy')
 
 
 def distractor_paths(data: Path, route_end: float = 0.6) -> list[Path]:
-    """Real images that are never a queried place: Nordland 0:route_end of both seasons, the other sets."""
+    """Real images that are never a queried place: Nordland 0:route_end of both seasons (none when
+    route_end <= 0), the other sets."""
     out = []
     for season in ('summer', 'winter') if route_end > 0 else ():
         imgs = list_images(data / 'nordland_trimmed' / season)
@@ -163,7 +164,7 @@ def main(argv=None) -> int:
     cache = FeatureCache(args.cache, extractor)
     refs = cache.landmark_sets(ds.ref_paths, height)
     queries = cache.landmark_sets(ds.query_paths, height)
-    pool = distractor_paths(data, max(0.0, round(part[0] - 0.1, 6)))  # a tenth of the route apart: no true match
+    pool = distractor_paths(data, round(part[0] - 0.1, 6))  # a tenth of the route apart: no true match
     print(f'{len(refs)} references, {len(queries)} queries, {len(pool)} real distractor images', flush=True)
     rows, used, rng = [], {'real': 0, 'flip': 0, 'crop': 0}, np.random.default_rng(0)
     rate = []

@@ -272,7 +272,7 @@ def test_eval_peers_and_sequence_rows_on_rtabmap_loop(tmp_path, capsys):
     assert rows['lln+seq']['sequence_ms_per_query'] > 0
     assert rows['lln+seq']['match_ms_per_pair'] == rows['lln']['match_ms_per_pair']
     # the sequence search reranks sequence_prefilter_k (the default, 100 > the map) candidates: every allowed frame
-    assert results['parameters']['sequence_prefilter_k'] == retrieval.default_conf['sequence_prefilter_k'] > 84
+    assert results['parameters']['sequence_prefilter_k'] == retrieval.default_conf['sequence_prefilter_k'] == 100
     assert rows['lln+seq']['sequence_candidates'] == 84
     md = (out / 'results.md').read_text()
     assert '| lln+seq |' in md and '| seqslam |' in md
