@@ -142,6 +142,7 @@ def test_runtime_parameters_and_diagnostic_levels(colcon_install, tmp_path, plac
             ({'sequence_max_gap': 0.0}, 'out of range'),
             ({'sequence_carry': -1}, 'out of range'),
             ({'similarity': 'cosine'}, 'must be one of raw | center | whiten | fuse'),
+            ({'sequence_score_norm': 'mean'}, 'must be one of zscore | none'),
         ):
             result = m.set(**values)[0]
             assert not result.successful and reason in result.reason, (values, result.reason)

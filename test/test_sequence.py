@@ -19,6 +19,7 @@ from lln_ros.core.sequence import (
     sad_descriptors,
     sad_difference,
     sad_size,
+    standardise,
 )
 from lln_ros.errors import LLNError
 
@@ -138,7 +139,7 @@ def test_ahead_is_where_the_best_lines_go_next():
     """carry: the best ends are kept; ahead() gives each end's route position + 0 .. ceil(v_max) as
     ids, within the map; nothing before a search or with carry 0."""
     route = [10, 20, 30, 40, 50, 60]  # no origins: route order is id order
-    ks = KeyframeSequence({'length': 3})  # v_max 1.2: steps 0, 1, 2
+    ks = KeyframeSequence({'length': 3, 'score_norm': 'none'})  # v_max 1.2: steps 0, 1, 2
     ks.set_map(route[::-1])
     assert len(ks.ahead()) == 0
     ks.update(0, {30: 0.2, 20: 0.9}, k=1)
@@ -165,7 +166,7 @@ def test_stream_faults_reset_the_window():
 
 def test_length_longer_than_the_map_is_defined():
     """L = 10 on a 3-frame map: positions off the map count as the row's lowest score."""
-    seq = SequenceMatcher({'length': 10, 'v_min': 1, 'v_max': 1, 'v_steps': 1})
+    seq = SequenceMatcher({'length': 10, 'v_min': 1, 'v_max': 1, 'v_steps': 1, 'score_norm': 'none'})
     for q in range(10):
         seq.push(q, [0, 1, 2], [0.1, 0.2, 0.9 if q == 9 else 0.3])
     ends, values = seq.search(3)
@@ -174,9 +175,11 @@ def test_length_longer_than_the_map_is_defined():
     assert values[0] == pytest.approx((0.9 + 0.2 + 0.1 + 7 * 0.1) / 10)
 
 
-def test_jump_to_an_unmapped_area_lowers_the_sequence_score():
+@pytest.mark.parametrize('norm, on_route_min, lost_max', [('none', 0.5, 0.3), ('zscore', 3.0, 1.0)])
+def test_jump_to_an_unmapped_area_lowers_the_sequence_score(norm, on_route_min, lost_max):
+    """In raw S (none) and in standard deviations above each query's lowest candidate (zscore)."""
     ranked, scores, truth = route_scores(n_q=30, noise=0.3)
-    seq = SequenceMatcher({'length': 10})
+    seq = SequenceMatcher({'length': 10, 'score_norm': norm})
     for q in range(30):
         seq.push(q, ranked[q], scores[q])
     _, on_route = seq.search(80, k=1)
@@ -184,7 +187,40 @@ def test_jump_to_an_unmapped_area_lowers_the_sequence_score():
         rng = np.random.default_rng(q)
         seq.push(q, rng.choice(80, 8, replace=False), rng.uniform(0, 0.3, 8))
     _, lost = seq.search(80, k=1)
-    assert on_route[0] >= 0.5 > 0.3 >= lost[0]  # a min_score between the two says "new place"
+    assert on_route[0] >= on_route_min > lost_max >= lost[0]  # a min_score between the two says "new place"
+
+
+def test_standardise_puts_each_query_in_its_own_units():
+    """zscore: standard deviations above the row's lowest score, so the floor (unscored) is 0, a
+    sequence score is never negative, and a row that does not spread counts for nothing."""
+    z = standardise(np.array([2.0, 4.0, 6.0]))
+    assert z.min() == 0 and z.std() == pytest.approx(1.0) and z.tolist() == pytest.approx([0, 1.2247, 2.4495], 1e-4)
+    assert standardise(np.array([0.7, 0.7])).tolist() == [0, 0]
+    assert standardise(np.zeros(0)).shape == (0,)
+    seq = SequenceMatcher({'length': 2})
+    seq.push(0, [1, 2], [100.0, 300.0])  # the same ranking at 100x the scale: the same row
+    seq.push(1, [2, 3], [1.0, 3.0])
+    assert seq.ring[0][2].tolist() == seq.ring[1][2].tolist() == [0, 2]
+    assert (seq.search(5)[1] >= 0).all()
+
+
+def test_zscore_keeps_one_widely_spread_query_from_outvoting_the_route():
+    """Five queries on a route (map positions 10..14) whose true frame is their best candidate by a
+    small margin, and one query whose S happens to spread widely, with a wrong frame (40) far above its
+    others: averaged raw, that one query's outlier outvotes four agreeing ones; in each query's own
+    units (zscore) the route wins."""
+    rows = []
+    for q in range(5):
+        others = [30 + q, 20 + q, 45 - q]
+        rows.append(([10 + q, *others], [0.6, 0.5, 0.52, 0.55]))
+    rows[2] = ([40, 12, 31, 21], [5.0, 0.6, 0.5, 0.45])
+    best = {}
+    for norm in ('none', 'zscore'):
+        seq = SequenceMatcher({'length': 5, 'v_min': 1, 'v_max': 1, 'v_steps': 1, 'score_norm': norm})
+        for q, (pos, sc) in enumerate(rows):
+            seq.push(q, pos, sc)
+        best[norm] = int(seq.search(50, k=1)[0][0])
+    assert best == {'none': 42, 'zscore': 14}
 
 
 def test_allowed_ends_and_bad_conf():
@@ -196,7 +232,7 @@ def test_allowed_ends_and_bad_conf():
     ends, _ = seq.search(10, allowed_ends=np.arange(10) < 5)
     assert len(ends) == 0  # no line through a scored entry ends at an allowed position: no answer
     assert len(SequenceMatcher().search(10)[0]) == 0  # nothing pushed: nothing to rank
-    for bad in ({'length': 0}, {'v_min': 2, 'v_max': 1}, {'max_gap_s': 0}):
+    for bad in ({'length': 0}, {'v_min': 2, 'v_max': 1}, {'max_gap_s': 0}, {'score_norm': 'mean'}):
         with pytest.raises(SequenceError):
             SequenceMatcher(bad)
     with pytest.raises(LLNError, match='2 positions but 1 scores'):

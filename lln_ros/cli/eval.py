@@ -2,7 +2,8 @@
 
     lln-eval --dataset SPEC [--dataset SPEC ...] --out DIR [--methods holistic,lln,act,rand,all]
              [--top-n 50] [--prefilter landmarks|holistic|exhaustive] [--prefilter-k 30|0]
-             [--range START:END] [--sequence L [--sequence-prefilter-k 500]]
+             [--range START:END] [--sequence L [--sequence-prefilter-k 100] [--sequence-carry 10]
+             [--sequence-score-norm zscore|none]]
              [--weights [LABEL=]CKPT ...] [--label NAME ...] [--heads LABEL=CKPT,LABEL=,...]
              [--backbone NAME] [--layer LAYER] [--cache DIR] [--download [--download-url URL]]
 
@@ -57,6 +58,7 @@ PROG = 'lln-eval'
 
 def build_parser() -> argparse.ArgumentParser:
     from ..core.reloc import DETECTORS
+    from ..core.sequence import SCORE_NORMS
     from ..eval.methods import ALL_METHODS, METHODS
     from ..eval.runner import default_conf as conf
 
@@ -130,6 +132,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar='N',
         help="X+seq of local methods: also score the previous query's N best sequence ends' next references, "
         "as the matcher's sequence_carry does (0 = off)",
+    )
+    p.add_argument(
+        '--sequence-score-norm',
+        choices=SCORE_NORMS,
+        default=conf['sequence_score_norm'],
+        help="X+seq rows: each query's scores in standard deviations above its lowest candidate before the "
+        "line search (zscore, the matcher's default) or raw (none); seqslam keeps its own contrast enhancement",
     )
     p.add_argument('--out', required=True, metavar='DIR', help='output folder (results.json, results.md, PNGs)')
     p.add_argument('--range', help='START:END fractions of every aligned dataset (e.g. 0.7:1)')
@@ -334,6 +343,7 @@ def run(args, argv) -> dict:
         'sequence': args.sequence,
         'sequence_prefilter_k': args.sequence_prefilter_k,
         'sequence_carry': args.sequence_carry,
+        'sequence_score_norm': args.sequence_score_norm,
         'timing_images': args.timing_images,
         'timing_queries': args.timing_queries,
         'timing_repeats': args.timing_repeats,

@@ -31,12 +31,12 @@ from dataclasses import dataclass, field
 from ..errors import DescriptorError, LLNError, MapError
 from . import limits as limits_mod
 from . import registration as registration_mod
+from . import sequence as sequence_mod
 from .landmark_index import check_prefilter
 from .limits import LimitError, check_landmark_set, height_change, parse_model_json, stamp_problem, validate_model
 from .pending import Pending, keep_newest
 from .retrieval import candidates_k
 from .retrieval import default_conf as retrieval_conf
-from .sequence import KeyframeSequence
 from .similarity import CENTERS
 from .threads import one_thread
 
@@ -60,6 +60,7 @@ default_conf = {
     'sequence_max_gap': 1.0,
     # with sequence_length: the best N sequence ends' next places (KeyframeSequence.ahead) are reranked too
     'sequence_carry': retrieval_conf['sequence_carry'],
+    'sequence_score_norm': sequence_mod.default_conf['score_norm'],  # each query's S before the line search
     # verify: bytes of keypoints messages waiting for their landmark set (the oldest are evicted, as
     # keypoints_evicted): 100 of 500 keypoints are 2.8 MB; 100 declaring 1 row, 8 MB each were 816 MB
     'pending_keypoints_bytes': 16 * 2**20,
@@ -68,6 +69,7 @@ default_conf = {
     'registration': registration_mod.default_conf,
 }
 CHOICES = {'mode': ('localization', 'mapping'), 'method': ('lln', 'holistic'), 'similarity': tuple(CENTERS)}
+CHOICES['sequence_score_norm'] = sequence_mod.SCORE_NORMS
 PENDING = 100  # keypoints messages / keyframes waiting for their partner (by stamp), newest kept
 KEYPOINT_ROW_BYTES = 56  # one keypoints cloud row (msgs.KEYPOINT_FIELDS: 5 float32, int32, 32 uint8)
 
@@ -98,7 +100,7 @@ class Localizer:
         self.counters = counters if counters is not None else Counters(log=self.log.warning)
         self.mapping = conf['mode'] == 'mapping'
         self.reg = registration_mod.Registration(conf['registration'], self.counters)
-        self.sequence = KeyframeSequence.of(conf)
+        self.sequence = sequence_mod.KeyframeSequence.of(conf)
         self.refusing = ''  # set when the extractor's model differs from the map's
         self.extractor_model = None  # the last valid model_info: its input_height fixes the grid rows
         self.reloc, self.unmatched_keyframes = None, {}
@@ -394,13 +396,8 @@ class Localizer:
             for row in rows:
                 mine = pose is not None and row['keyframe_id'] == pose.keyframe_id
                 row.update(pose.fields() if mine else registration_mod.nan_fields())
-        # a zero-row answer carries the same optional fields as the others
-        extra = (
-            ('session_id',)
-            + ('inliers',) * (self.reloc is not None)
-            + ('sequence_score',) * sequence
-            + registration_mod.POSE_FIELDS * self.geometry
-        )
+        extra = ('session_id',) + ('inliers',) * (self.reloc is not None) + ('sequence_score',) * sequence
+        extra += registration_mod.POSE_FIELDS * self.geometry  # a zero-row answer carries them too
         return Answer(rows, extra, found[0] if found else None, inliers, pose)
 
     def _own(self, n: int, stored_now: int = 0) -> int:

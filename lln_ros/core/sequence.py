@@ -18,6 +18,10 @@ Definitions (causal, so the offline figures are what the node publishes):
   [v_min, v_max]. Forward motion only (a route driven backwards is not followed).
 - A row's unscored positions (not among its top-K, excluded, or off the map) count as that row's
   lowest score: a map frame outside a query's top-K is at most as similar as its worst candidate.
+- score_norm 'zscore' (the default): each row is first put in standard deviations above its lowest
+  score (`standardise`), so every query weighs the same in a line and a sequence score compares
+  across queries; 'none' averages the raw scores (OpenSeqSLAM's search after its own contrast
+  enhancement, which `seqslam` keeps).
 - The sequence score of j is max over v of the mean row value along the line; lines through
   no scored entry cannot beat one through a scored entry, so only ends reachable from a scored
   entry are searched (cost O(L * K * V), independent of the map size).
@@ -48,7 +52,11 @@ default_conf = {
     'v_max': 1.2,
     'v_steps': 5,
     'max_gap_s': 1.0,  # online: a stamp gap longer than this starts a new sequence
+    # each query's scores in standard deviations above its lowest candidate before the line search
+    # (SCORE_NORMS): a query whose S happens to spread widely no longer outvotes the others
+    'score_norm': 'zscore',
 }
+SCORE_NORMS = ('zscore', 'none')
 
 sad_conf = {
     'width': 32,  # downsampled image width; height keeps the first map image's aspect
@@ -71,7 +79,18 @@ def check_conf(conf: dict) -> dict:
         )
     if not float(conf['max_gap_s']) > 0:
         raise SequenceError(f'max_gap_s must be positive, got {conf["max_gap_s"]}')
+    if conf['score_norm'] not in SCORE_NORMS:
+        raise SequenceError(f'score_norm must be one of {SCORE_NORMS}, got {conf["score_norm"]!r}')
     return conf
+
+
+def standardise(scores: np.ndarray) -> np.ndarray:
+    """(K,) one query's scores -> (K,) in standard deviations above their minimum (>= 0; all 0 when
+    they do not spread). The minimum, not the mean, is the origin so that unscored positions (the
+    row's lowest score) are 0 and a sequence score is never negative; an origin per row moves every
+    line's mean by the same amount, so the ranking is that of z-scores."""
+    spread = scores.std() if len(scores) else 0.0
+    return (scores - scores.min()) / spread if spread > 0 else np.zeros_like(scores)
 
 
 class SequenceMatcher:
@@ -104,6 +123,8 @@ class SequenceMatcher:
             raise SequenceError(f'{len(positions)} positions but {len(scores)} scores')
         keep = np.isfinite(scores) & (positions >= 0)
         positions, scores = positions[keep], scores[keep]
+        if self.conf['score_norm'] == 'zscore':
+            scores = standardise(scores)
         reason = None
         if self.ring:
             last = self.ring[-1][0]
@@ -293,10 +314,10 @@ class KeyframeSequence:
 
     @classmethod
     def of(cls, conf: dict) -> KeyframeSequence | None:
-        """The search a matcher (Localizer) conf asks for: sequence_length, sequence_max_gap; None when
-        sequence_length is 0 (single-frame ranking)."""
-        n = int(conf['sequence_length'])
-        return cls({'length': n, 'max_gap_s': conf['sequence_max_gap']}) if n > 0 else None
+        """The search a matcher (Localizer) conf asks for: sequence_length, sequence_max_gap,
+        sequence_score_norm; None when sequence_length is 0 (single-frame ranking)."""
+        n, norm = int(conf['sequence_length']), conf['sequence_score_norm']
+        return cls({'length': n, 'max_gap_s': conf['sequence_max_gap'], 'score_norm': norm}) if n > 0 else None
 
     @property
     def resets(self) -> dict:

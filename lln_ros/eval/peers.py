@@ -66,7 +66,8 @@ def peer_row(method: str, front: SadFrontEnd, allowed, k: int, seq_conf: dict):
         return dense_to_ranked(-front.difference, allowed, k)
     enhanced = -contrast_enhance(front.difference, int(front.conf['enhance_window']))
     full, full_scores = dense_to_ranked(enhanced, allowed)
-    return rank_sequences(full, full_scores, front.refs.shape[0], seq_conf, allowed, k)
+    # SeqSLAM as published: its contrast enhancement is its normalisation, the line search averages that
+    return rank_sequences(full, full_scores, front.refs.shape[0], {**seq_conf, 'score_norm': 'none'}, allowed, k)
 
 
 def sequence_row(

@@ -106,6 +106,7 @@ default_conf = {
     **{key: landmark_index_defaults[key] for key in LANDMARK_CONF},  # the first stage's, as its index's
     'sequence': 0,  # L > 0: an `X+seq` row per holistic/local row (sequence length L)
     'sequence_carry': retrieval_defaults['sequence_carry'],  # X+seq of local rows: the matcher's sequence_carry
+    'sequence_score_norm': sequence_defaults['score_norm'],  # X+seq rows (seqslam keeps its own, sequence.py)
     'seqslam_length': sequence_defaults['length'],  # seqslam's L when 'sequence' is 0
     'timing_images': 5,  # images per dataset the extraction is timed on
     'timing_queries': 10,  # queries per dataset the rerank is timed on
@@ -118,8 +119,8 @@ default_conf = {
     'reloc': False,  # also keypoint relocalization on the first lln row's ranking (reloc.py)
     **reloc_eval_conf,
 }
-ECHOED = {'top_n': int, 'prefilter_k': int, 'scale': float, 'sequence_carry': int, **LANDMARK_CONF}  # in results.json
-ECHOED |= dict.fromkeys(('similarity_center', 'similarity_whitening', 'similarity_fusion'), bool)
+ECHOED = {'top_n': int, 'prefilter_k': int, 'scale': float, 'sequence_carry': int, 'sequence_score_norm': str}
+ECHOED |= LANDMARK_CONF | dict.fromkeys(('similarity_center', 'similarity_whitening', 'similarity_fusion'), bool)
 
 
 @dataclass
@@ -210,8 +211,8 @@ def evaluate_dataset(
     prefilter, _ = check_prefilter(conf['prefilter'], conf['prefilter_k'])
     height = int(extractor.conf['input_height'])
     space = extractor.descriptor_space
-    seq_len = int(conf['sequence'])
-    seq_conf = sequence_conf({**sequence_defaults, 'length': seq_len or int(conf['seqslam_length'])})
+    seq_len, norm = int(conf['sequence']), conf['sequence_score_norm']
+    seq_conf = sequence_conf({'length': seq_len or int(conf['seqslam_length']), 'score_norm': norm})
     k_seq = candidates_k(conf['prefilter_k'], conf['sequence_prefilter_k'], bool(seq_len))
     if (seq_len or 'seqslam' in methods) and seq_conf['length'] > len(ds.ref_paths):
         raise DatasetError(
@@ -476,9 +477,7 @@ def evaluate(
                 }
                 for h in heads
             },
-            'timing_images': int(conf['timing_images']),
-            'timing_queries': int(conf['timing_queries']),
-            'timing_repeats': int(conf['timing_repeats']),
+            **{key: int(conf[key]) for key in ('timing_images', 'timing_queries', 'timing_repeats')},
             'torch_threads': torch.get_num_threads(),
             'blas_threads': os.environ.get('OPENBLAS_NUM_THREADS') or os.environ.get('OMP_NUM_THREADS') or 'default',
             'feature_cache': str(conf['cache_dir']),

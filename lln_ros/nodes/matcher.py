@@ -181,6 +181,13 @@ PARAMETERS = {
         dynamic=True,
         range=(0, 10_000),
     ),
+    'sequence_score_norm': Param(
+        LOC['sequence_score_norm'],
+        "each query's S before the line search: zscore (standard deviations above its lowest candidate, "
+        'so sequence_score compares across queries) or none (raw S); a change starts a new sequence',
+        dynamic=True,
+        choices=CHOICES['sequence_score_norm'],
+    ),
     # input limits (lln_ros.core.limits): a message declaring more is refused and counted, never sized from
     'max_image_pixels': Param(
         LIMITS['max_image_pixels'], 'limit: image width x height a landmark cloud may declare', range=(1, 2**40)
@@ -217,6 +224,7 @@ LOCALIZER_KEYS = (
     'sequence_length',
     'sequence_max_gap',
     'sequence_carry',
+    'sequence_score_norm',
 )
 
 
@@ -283,7 +291,7 @@ class MatcherNode(MetricInputs, FleetIdentity, Node):
         self.loc.conf.update({k: v for k, v in changes.items() if k in LOCALIZER_KEYS})
         if self.loc.reloc is not None:
             self.loc.reloc.conf.update({'min_inliers': conf['verify_min_inliers'], 'margin': conf['verify_margin']})
-        if {'sequence_length', 'sequence_max_gap'} & set(changes):  # a new search: a new sequence
+        if {'sequence_length', 'sequence_max_gap', 'sequence_score_norm'} & set(changes):  # a new sequence
             self.loc.sequence = KeyframeSequence.of(conf)
         reg = {k: v for k, v in changes.items() if k in REG_KEYS}
         if reg:
