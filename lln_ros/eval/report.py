@@ -235,6 +235,8 @@ def markdown(results: dict) -> str:
             'blas_threads',
             'feature_cache',
             'sequence',
+            'sequence_carry',
+            'sequence_score_norm',
             'sequence_search',
             'seqslam',
         ):
