@@ -197,6 +197,7 @@ def test_standardise_puts_each_query_in_its_own_units():
     assert z.min() == 0 and z.std() == pytest.approx(1.0) and z.tolist() == pytest.approx([0, 1.2247, 2.4495], 1e-4)
     assert standardise(np.array([0.7, 0.7])).tolist() == [0, 0]
     assert standardise(np.zeros(0)).shape == (0,)
+    assert standardise(np.array([1e308, -1e308])).tolist() == [0, 0]  # no spread in float range: no NaN
     seq = SequenceMatcher({'length': 2})
     seq.push(0, [1, 2], [100.0, 300.0])  # the same ranking at 100x the scale: the same row
     seq.push(1, [2, 3], [1.0, 3.0])

@@ -86,11 +86,12 @@ def check_conf(conf: dict) -> dict:
 
 def standardise(scores: np.ndarray) -> np.ndarray:
     """(K,) one query's scores -> (K,) in standard deviations above their minimum (>= 0; all 0 when
-    they do not spread). The minimum, not the mean, is the origin so that unscored positions (the
-    row's lowest score) are 0 and a sequence score is never negative; an origin per row moves every
-    line's mean by the same amount, so the ranking is that of z-scores."""
-    spread = scores.std() if len(scores) else 0.0
-    return (scores - scores.min()) / spread if spread > 0 else np.zeros_like(scores)
+    they do not spread, or spread beyond float range). The minimum, not the mean, is the origin so
+    that unscored positions (the row's lowest score) are 0 and a sequence score is never negative; an
+    origin per row moves every line's mean by the same amount, so the ranking is that of z-scores."""
+    with np.errstate(over='ignore', invalid='ignore'):
+        spread = scores.std() if len(scores) else 0.0
+    return (scores - scores.min()) / spread if 0 < spread < np.inf else np.zeros_like(scores)
 
 
 class SequenceMatcher:
