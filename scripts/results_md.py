@@ -289,8 +289,7 @@ def main(
             if load_checkpoint(shipped['weights'])[1]['head_conf'].get('norm_prior')
             else '.'
         ),
-        "`X+seq` is row X through the sequence search (L = 10; each query's scores in standard deviations",
-        'above its lowest candidate, `sequence_score_norm: zscore`) that the matcher runs online with',
+        '`X+seq` is row X through the sequence search (L = 10) that the matcher runs online with',
         '`sequence_length: 10`.',
         '',
         *(

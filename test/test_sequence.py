@@ -198,7 +198,7 @@ def test_standardise_puts_each_query_in_its_own_units():
     assert standardise(np.array([0.7, 0.7])).tolist() == [0, 0]
     assert standardise(np.zeros(0)).shape == (0,)
     assert standardise(np.array([1e308, -1e308])).tolist() == [0, 0]  # no spread in float range: no NaN
-    seq = SequenceMatcher({'length': 2})
+    seq = SequenceMatcher({'length': 2, 'score_norm': 'zscore'})
     seq.push(0, [1, 2], [100.0, 300.0])  # the same ranking at 100x the scale: the same row
     seq.push(1, [2, 3], [1.0, 3.0])
     assert seq.ring[0][2].tolist() == seq.ring[1][2].tolist() == [0, 2]
@@ -222,6 +222,22 @@ def test_zscore_keeps_one_widely_spread_query_from_outvoting_the_route():
             seq.push(q, pos, sc)
         best[norm] = int(seq.search(50, k=1)[0][0])
     assert best == {'none': 42, 'zscore': 14}
+
+
+def test_zscore_gives_frames_that_revisit_nothing_full_weight():
+    """Why 'none' is the default: at a loop's first revisit (map 0..3; two frames of places not in the
+    map, then place 1 again), raw S keeps the two unmatched frames quiet and the revisit answers 1;
+    standardised, their noise weighs as much as the revisit, and a line through it wins (the
+    mapping-mode node test and rtabmap_loop's query 45 show the same, docs/benchmarks.md)."""
+    rows = [[0.10, 0.12, 0.11, 0.13], [0.10, 0.11, 0.14, 0.12], [0.20, 0.90, 0.30, 0.25]]
+    best = {}
+    for norm in ('none', 'zscore'):
+        seq = SequenceMatcher({'length': 3, 'v_min': 1, 'v_max': 1, 'v_steps': 1, 'score_norm': norm})
+        for q, sc in enumerate(rows):
+            seq.push(q, [0, 1, 2, 3], sc)
+        best[norm] = int(seq.search(4, k=1)[0][0])
+    assert best == {'none': 1, 'zscore': 3}
+    assert SequenceMatcher().conf['score_norm'] == 'none'  # the default, literally
 
 
 def test_allowed_ends_and_bad_conf():

@@ -137,8 +137,8 @@ def build_parser() -> argparse.ArgumentParser:
         '--sequence-score-norm',
         choices=SCORE_NORMS,
         default=conf['sequence_score_norm'],
-        help="X+seq rows: each query's scores in standard deviations above its lowest candidate before the "
-        "line search (zscore, the matcher's default) or raw (none); seqslam keeps its own contrast enhancement",
+        help="X+seq rows: each query's raw scores in the line search (none, the matcher's default) or in standard "
+        'deviations above its lowest candidate (zscore); seqslam keeps its own contrast enhancement',
     )
     p.add_argument('--out', required=True, metavar='DIR', help='output folder (results.json, results.md, PNGs)')
     p.add_argument('--range', help='START:END fractions of every aligned dataset (e.g. 0.7:1)')

@@ -18,10 +18,10 @@ Definitions (causal, so the offline figures are what the node publishes):
   [v_min, v_max]. Forward motion only (a route driven backwards is not followed).
 - A row's unscored positions (not among its top-K, excluded, or off the map) count as that row's
   lowest score: a map frame outside a query's top-K is at most as similar as its worst candidate.
-- score_norm 'zscore' (the default): each row is first put in standard deviations above its lowest
-  score (`standardise`), so every query weighs the same in a line and a sequence score compares
-  across queries; 'none' averages the raw scores (OpenSeqSLAM's search after its own contrast
-  enhancement, which `seqslam` keeps).
+- score_norm 'none' (the default) averages the raw scores (OpenSeqSLAM's search after its own
+  contrast enhancement, which `seqslam` keeps); 'zscore' first puts each row in standard deviations
+  above its lowest score (`standardise`), so every query weighs the same in a line and a sequence
+  score compares across queries, including queries whose true place is not in the map.
 - The sequence score of j is max over v of the mean row value along the line; lines through
   no scored entry cannot beat one through a scored entry, so only ends reachable from a scored
   entry are searched (cost O(L * K * V), independent of the map size).
@@ -52,9 +52,10 @@ default_conf = {
     'v_max': 1.2,
     'v_steps': 5,
     'max_gap_s': 1.0,  # online: a stamp gap longer than this starts a new sequence
-    # each query's scores in standard deviations above its lowest candidate before the line search
-    # (SCORE_NORMS): a query whose S happens to spread widely no longer outvotes the others
-    'score_norm': 'zscore',
+    # 'zscore': each query's scores in standard deviations above its lowest candidate before the line
+    # search, so a query whose S spreads widely does not outvote the others; not the default because
+    # it also gives full weight to queries that revisit nothing (a loop's first frames, benchmarks.md)
+    'score_norm': 'none',
 }
 SCORE_NORMS = ('zscore', 'none')
 

@@ -29,8 +29,8 @@ verify=true: keypoints are paired with landmark sets by header stamp and stored 
 top candidates are re-ranked by region-constrained RANSAC inliers (lln_ros.core.reloc.verify_candidates).
 
 sequence_length L > 0 ranks keyframes by sequence agreement over the last L queries (lln_ros.core.sequence,
-the search lln-eval --sequence runs offline; each query's S in standard deviations above its lowest
-candidate with sequence_score_norm zscore): candidates come best sequence_score first, min_score
+the search lln-eval --sequence runs offline; with sequence_score_norm zscore each query's S in
+standard deviations above its lowest candidate): candidates come best sequence_score first, min_score
 applies to sequence_score, and `score` / `holistic_score` are this query's own (0 = the keyframe was
 not among this query's prefilter_k). Out-of-order stamps and gaps longer than sequence_max_gap start a
 new sequence (counted as sequence_reset_out_of_order / sequence_reset_gap).
@@ -184,8 +184,8 @@ PARAMETERS = {
     ),
     'sequence_score_norm': Param(
         LOC['sequence_score_norm'],
-        "each query's S before the line search: zscore (standard deviations above its lowest candidate, "
-        'so sequence_score compares across queries) or none (raw S); a change starts a new sequence',
+        "each query's S in the line search: none (raw S) or zscore (standard deviations above its lowest "
+        'candidate, so sequence_score compares across queries); a change starts a new sequence',
         dynamic=True,
         choices=CHOICES['sequence_score_norm'],
     ),
