@@ -205,6 +205,18 @@ def test_standardise_puts_each_query_in_its_own_units():
     assert (seq.search(5)[1] >= 0).all()
 
 
+def best_end_by_norm(rows: list, map_size: int) -> dict:
+    """{score_norm: the best sequence end} after pushing rows [(positions, scores), ...] in order into a
+    search as long as the rows, at velocity 1 only."""
+    best = {}
+    for norm in ('none', 'zscore'):
+        seq = SequenceMatcher({'length': len(rows), 'v_min': 1, 'v_max': 1, 'v_steps': 1, 'score_norm': norm})
+        for q, (pos, sc) in enumerate(rows):
+            seq.push(q, pos, sc)
+        best[norm] = int(seq.search(map_size, k=1)[0][0])
+    return best
+
+
 def test_zscore_keeps_one_widely_spread_query_from_outvoting_the_route():
     """Five queries on a route (map positions 10..14) whose true frame is their best candidate by a
     small margin, and one query whose S happens to spread widely, with a wrong frame (40) far above its
@@ -215,13 +227,7 @@ def test_zscore_keeps_one_widely_spread_query_from_outvoting_the_route():
         others = [30 + q, 20 + q, 45 - q]
         rows.append(([10 + q, *others], [0.6, 0.5, 0.52, 0.55]))
     rows[2] = ([40, 12, 31, 21], [5.0, 0.6, 0.5, 0.45])
-    best = {}
-    for norm in ('none', 'zscore'):
-        seq = SequenceMatcher({'length': 5, 'v_min': 1, 'v_max': 1, 'v_steps': 1, 'score_norm': norm})
-        for q, (pos, sc) in enumerate(rows):
-            seq.push(q, pos, sc)
-        best[norm] = int(seq.search(50, k=1)[0][0])
-    assert best == {'none': 42, 'zscore': 14}
+    assert best_end_by_norm(rows, 50) == {'none': 42, 'zscore': 14}
 
 
 def test_zscore_gives_frames_that_revisit_nothing_full_weight():
@@ -230,13 +236,7 @@ def test_zscore_gives_frames_that_revisit_nothing_full_weight():
     standardised, their noise weighs as much as the revisit, and a line through it wins (the
     mapping-mode node test and rtabmap_loop's query 45 show the same, docs/benchmarks.md)."""
     rows = [[0.10, 0.12, 0.11, 0.13], [0.10, 0.11, 0.14, 0.12], [0.20, 0.90, 0.30, 0.25]]
-    best = {}
-    for norm in ('none', 'zscore'):
-        seq = SequenceMatcher({'length': 3, 'v_min': 1, 'v_max': 1, 'v_steps': 1, 'score_norm': norm})
-        for q, sc in enumerate(rows):
-            seq.push(q, [0, 1, 2, 3], sc)
-        best[norm] = int(seq.search(4, k=1)[0][0])
-    assert best == {'none': 1, 'zscore': 3}
+    assert best_end_by_norm([([0, 1, 2, 3], sc) for sc in rows], 4) == {'none': 1, 'zscore': 3}
     assert SequenceMatcher().conf['score_norm'] == 'none'  # the default, literally
 
 
