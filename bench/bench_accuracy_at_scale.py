@@ -3,7 +3,8 @@
     python bench/bench_accuracy_at_scale.py [--sizes 0,10000,100000] [--data /work/shared/data]
                                             [--cache cache/features] [--sequence 10] [--dir /tmp/lln_scale]
                                             [--landmark-knn K] [--landmark-alpha A] [--similarity raw|whiten|fuse]
-                                            [--sequence-carry 0,10] [--sequence-prefilter-k K] [--range 0.7:1]
+                                            [--sequence-carry 0,10] [--sequence-prefilter-k K] [--prefilter-k K]
+                                            [--range 0.7:1]
 
 The map: the summer references of the Nordland test split (lln-eval's docs/results.md split:
 aligned summer/winter, range 0.7:1, tolerance 1 frame; --range 0.6:0.7 is the validation part,
@@ -23,9 +24,11 @@ stage, rerank by S), single frame (lln) and with sequence_length --sequence (lln
 the fraction of queries whose best answer is a reference within tolerance (every test query has
 one); with --sequence-carry N,M one lln+seq column per value of the Localizer's sequence_carry
 (the best N sequence ends' next places scored beside the first stage's candidates; 0 = off), and
---sequence-prefilter-k the first-stage candidates it reranks (the matcher's sequence_prefilter_k).
-'first stage' is the recall of a correct reference in the landmark index's shortlist of
-prefilter_k keyframes (the map's index, as MapStore.query calls it).
+--sequence-prefilter-k the first-stage candidates it reranks (the matcher's sequence_prefilter_k; the
+Localizer reranks max(prefilter_k, sequence_prefilter_k) with a sequence, so fewer than prefilter_k
+takes --prefilter-k too). --prefilter-k: the first-stage candidates a single frame reranks (the
+matcher's prefilter_k). 'first stage' is the recall of a correct reference in the landmark index's
+shortlist of prefilter_k keyframes (the map's index, as MapStore.query calls it).
 
 --landmark-knn / --landmark-alpha: the map's first stage (landmark_index.default_conf, as the map
 store's conf). --similarity: the reranker S on raw sets (the default), on centred and whitened sets
@@ -87,10 +90,10 @@ def augmented(path: Path, k: int, rng) -> np.ndarray:
 
 def score(store, sets, gt, ref_ids, seq_len, carries, loc_conf: dict) -> dict:
     """P@100%R of lln and lln+seq (per sequence_carry) and the first stage's recall, over the queries in order.
-    loc_conf: the Localizer settings every row shares (similarity, sequence_prefilter_k)."""
+    loc_conf: the Localizer settings every row shares (similarity, prefilter_k, sequence_prefilter_k)."""
     id_to_ref = {int(k): i for i, k in enumerate(ref_ids)}
     out = {}
-    k = int(retrieval_conf['prefilter_k'])
+    k = int(loc_conf['prefilter_k'])
     hits = 0
     for qi, lset in enumerate(sets):
         ids, _ = store._landmarks.shortlist(lset, k, below=None, scale=1.0)
@@ -142,11 +145,21 @@ def main(argv=None) -> int:
         help="lln+seq: the Localizer's sequence_prefilter_k (first-stage candidates reranked)",
     )
     ap.add_argument(
+        '--prefilter-k',
+        type=int,
+        default=LOC['prefilter_k'],
+        help="the Localizer's prefilter_k (first-stage candidates a single frame reranks)",
+    )
+    ap.add_argument(
         '--similarity', choices=CHOICES['similarity'], default='raw', help="the reranker S's sets (similarity center)"
     )
     args = ap.parse_args(argv)
     args.carries = [int(c) for c in args.sequence_carry.split(',')]
-    loc_conf = {'similarity': args.similarity, 'sequence_prefilter_k': args.sequence_prefilter_k}
+    loc_conf = {
+        'similarity': args.similarity,
+        'prefilter_k': args.prefilter_k,
+        'sequence_prefilter_k': args.sequence_prefilter_k,
+    }
     map_conf = {'landmark_knn': args.landmark_knn, 'landmark_alpha': args.landmark_alpha}
     data = Path(args.data)
     if not (data / 'nordland_trimmed' / 'summer').is_dir():
@@ -210,11 +223,12 @@ def row_line(r: dict, carries) -> str:
 
 
 def table(rows, args, used, rate) -> str:
-    k = retrieval_conf['prefilter_k']
+    k = args.prefilter_k
     lines = [
         f'Nordland summer refs {args.range}, winter queries, tol 1: lln / lln+seq (L={args.sequence}) P@100%R',
         f'first stage: landmark_knn {args.landmark_knn}, landmark_alpha {args.landmark_alpha:g}; S: {args.similarity}; '
-        f'sequence_carry {args.sequence_carry}, sequence_prefilter_k {args.sequence_prefilter_k}',
+        f'sequence_carry {args.sequence_carry}, prefilter_k {args.prefilter_k}, '
+        f'sequence_prefilter_k {args.sequence_prefilter_k}',
         f'distractors used: {used}',
         f'{"keyframes":>9} {"lln":>7}'
         + ''.join(f' {seq_name(c, args.carries):>8}' for c in args.carries)

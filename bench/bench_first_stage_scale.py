@@ -2,7 +2,7 @@
 
     python bench/bench_first_stage_scale.py [--map /tmp/lln_scale/map.db] [--range 0.7:1]
                                             [--kinds ivfpq-fs,exact] [--cache cache/features]
-                                            [--settings NAME,...] [--votes KNN:ALPHA,...]
+                                            [--settings NAME,...] [--votes KNN:ALPHA,...] [--nprobe N,...]
 
 Reads the map bench_accuracy_at_scale.py leaves in its --dir (the Nordland test references first,
 then its real distractors, all as the shipped Extractor made them) and asks of the first stage
@@ -16,7 +16,9 @@ alone (landmark_index.LandmarkIndex.shortlist, k = prefilter_k, no holistic top-
 - whose keyframes win: the kinds of the top-1 keyframe (a reference, or a distractor by source);
 - how many hits a query landmark takes and how they vote (--votes: landmark_knn, landmark_alpha,
   on the default descriptors), and what the search and the scoring of its hits cost (median ms per
-  query, one thread; only ratios within one run mean anything on a shared machine).
+  query, one thread; only ratios within one run mean anything on a shared machine);
+- how many IVF cells a query landmark probes (--nprobe: landmark_nprobe, on the default descriptors):
+  what the compressed index's speed costs in references found.
 
 --range 0.6:0.7 swaps the test references for the validation part of the route (summer 0.6:0.7,
 winter queries), with the same distractors: the split the shipped landmark_center and tau were
@@ -115,6 +117,11 @@ def main(argv=None) -> int:
         help='extra rows on the default descriptors, KNN:ALPHA,... (landmark_knn: hits per query landmark; '
         'landmark_alpha: vote exponent), e.g. 20:3,200:1',
     )
+    ap.add_argument(
+        '--nprobe',
+        default='',
+        help='extra rows on the default descriptors, IVF cells probed (landmark_nprobe), e.g. 8,32',
+    )
     args = ap.parse_args(argv)
     data = Path(args.data)
     if not Path(args.map).exists():
@@ -140,6 +147,8 @@ def main(argv=None) -> int:
     for vote in filter(None, args.votes.split(',')):
         knn, alpha = vote.split(':')
         settings[f'knn {knn}, alpha {alpha}'] = {'landmark_knn': int(knn), 'landmark_alpha': float(alpha)}
+    for nprobe in filter(None, args.nprobe.split(',')):
+        settings[f'nprobe {int(nprobe)}'] = {'landmark_nprobe': int(nprobe)}
     print(
         f'{"index":>9} {"descriptors":>20} {"map":>14} {"R@1":>6} {"R@" + str(k):>6} {"search":>7} {"score":>6}'
         '  top-1 keyframes by kind'

@@ -2,8 +2,8 @@
 
     python bench/bench_frame_to_answer.py [--sizes 1000,10000,100000] [--frames 60] [--threads 2]
                                           [--runtimes onnxruntime,onnxruntime-int8]
-                                          [--sequence 0 [--sequence-prefilter-k K]] [--dir /tmp/lln_bench_f2a]
-                                          [--json]
+                                          [--prefilter-k K] [--sequence 0 [--sequence-prefilter-k K]]
+                                          [--dir /tmp/lln_bench_f2a] [--json]
 
 Per frame, in this process and in the nodes' order: Extractor.__call__ (the extractor node's
 runtime and threads: ONNX Runtime by default) on a 384x288 RGB frame, then Localizer.query (the
@@ -105,6 +105,9 @@ def main(argv=None) -> int:
     ap.add_argument(
         '--runtimes', default='onnxruntime,onnxruntime-int8', help="the extractor's runtimes, one row set each"
     )
+    ap.add_argument(
+        '--prefilter-k', type=int, default=LOC['prefilter_k'], help="the matcher's prefilter_k (candidates reranked)"
+    )
     ap.add_argument('--sequence', type=int, default=0, help="the matcher's sequence_length (0 = single frame)")
     ap.add_argument(
         '--sequence-prefilter-k',
@@ -134,7 +137,12 @@ def main(argv=None) -> int:
         for size in sizes:
             grow(store, size, rng)
             loc = Localizer(
-                store, {'sequence_length': args.sequence, 'sequence_prefilter_k': args.sequence_prefilter_k}
+                store,
+                {
+                    'prefilter_k': args.prefilter_k,
+                    'sequence_length': args.sequence,
+                    'sequence_prefilter_k': args.sequence_prefilter_k,
+                },
             )
             loc.query(extractor(queries[0]), T0)  # first query builds what the open left lazy
             for runtime, ex in extractors.items():
@@ -153,7 +161,8 @@ def main(argv=None) -> int:
 
 def table(rows: list[dict], args) -> str:
     lines = [
-        f'frame to answer, 384x288, {args.threads} runtime threads, sequence_length {args.sequence}'
+        f'frame to answer, 384x288, {args.threads} runtime threads, prefilter_k {args.prefilter_k}, '
+        f'sequence_length {args.sequence}'
         + (f' (sequence_prefilter_k {args.sequence_prefilter_k})' if args.sequence else '')
         + ', '
         f'{args.frames} frames per row ({os.cpu_count()} cores)',
