@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core import metrics
+from ..core.landmark_index import check_prefilter
 from ..core.landmarks import METHODS as LOCAL_METHODS
 from ..core.landmarks import stack_landmarks
 from ..core.similarity import match_batch, match_pair
@@ -319,6 +320,8 @@ def write_figures(
     ranked, scores = run.rankings[row]
     picked = pick_examples(ranked, scores, ds.gt, ds.query_paths, int(conf['examples']))
     k = ranked.shape[1]
+    # the holistic rank decides candidacy only when the holistic top-k was the first stage
+    holistic_first = check_prefilter(conf['prefilter'], int(conf['prefilter_k']))[0] == 'holistic'
     for kind, queries in picked.items():
         for j, q in enumerate(queries, 1):
             r = int(ranked[q, 0])
@@ -338,7 +341,11 @@ def write_figures(
             line2 = (
                 f'S = {scores[q, 0]:.2f}, {len(res.pairs(0)["weight"])} mutual pairs; first true match at '
                 f'holistic rank {hol_rank}'
-                + (f' (outside the top-{k}: no rerank can recover it)' if hol_rank and hol_rank > k else '')
+                + (
+                    f' (outside the top-{k}: no rerank can recover it)'
+                    if holistic_first and hol_rank and hol_rank > k
+                    else ''
+                )
             )
             caption = f'{line1}, {line2}'
             plot_matches(
