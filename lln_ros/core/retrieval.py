@@ -26,12 +26,17 @@ from .similarity import match_batch, match_sets
 
 default_conf = {
     'prefilter': 'landmarks',  # first stage: landmarks | holistic | exhaustive (the one default of all paths)
-    'prefilter_k': 100,  # first-stage candidates reranked by S (the paper's holistic: 30); 0 = every map entry
+    # first-stage candidates reranked by S; 0 = every map entry. 30, the paper's top-30, since
+    # 2026-12-06: fewer candidates give S fewer distractors to prefer. Nordland validation 0.6:0.7,
+    # plain / in a 10k-keyframe map (bench_accuracy_at_scale --range 0.6:0.7 --prefilter-k K
+    # --sequence-prefilter-k K), lln 0.443 / 0.171 at 100, 0.451 / 0.179 at 50, 0.459 / 0.179 at 30
+    # (docs/benchmarks.md, Fewer candidates)
+    'prefilter_k': 30,
     # first-stage candidates reranked when a sequence search follows (lln-eval --sequence, the
-    # matcher's sequence_length): never fewer than prefilter_k; 0 = every map entry. With carried
-    # places (below) 100 do as well as 500: Nordland validation 0.6:0.7 in a 10k-keyframe map,
-    # lln+seq 0.908 at 100 and 0.905 at 500 (docs/benchmarks.md, Carried places)
-    'sequence_prefilter_k': 100,
+    # matcher's sequence_length): never fewer than prefilter_k; 0 = every map entry. Same runs,
+    # lln+seq 0.927 / 0.908 at 100, 0.933 / 0.910 at 50, 0.933 / 0.924 at 30; with carried places
+    # (below) 100 did as well as 500 (0.908 against 0.905; docs/benchmarks.md, Carried places)
+    'sequence_prefilter_k': 30,
     # the sequence search also scores where the previous query's N best sequence ends go next (route
     # position + 0..2), beside the first stage's candidates; 0 = off. Same validation map: 0.821 (0),
     # 0.908 (10), 0.899 (30) with 100 candidates
