@@ -2,7 +2,7 @@
 
     python bench/bench_first_stage_scale.py [--map /tmp/lln_scale/map.db] [--range 0.7:1]
                                             [--kinds ivfpq-fs,exact] [--cache cache/features]
-                                            [--settings NAME,...] [--votes KNN:ALPHA,...] [--nprobe N,...]
+                                            [--settings 'NAME;...'] [--votes KNN:ALPHA,...] [--nprobe N,...]
 
 Reads the map bench_accuracy_at_scale.py leaves in its --dir (the Nordland test references first,
 then its real distractors, all as the shipped Extractor made them) and asks of the first stage
@@ -110,7 +110,11 @@ def main(argv=None) -> int:
     ap.add_argument('--cache', default=os.environ.get('LLN_FEATURES', 'cache/features'))
     ap.add_argument('--range', default='0.7:1', help='Nordland part the references and queries come from')
     ap.add_argument('--kinds', default='ivfpq-fs', help='index types: exact, ivfpq-fs, ivfpq')
-    ap.add_argument('--settings', default=','.join(SETTINGS), help=f'descriptor settings, of: {", ".join(SETTINGS)}')
+    ap.add_argument(
+        '--settings',
+        default=';'.join(SETTINGS),
+        help=f'descriptor settings, separated by ";" (their names hold commas), of: {"; ".join(SETTINGS)}',
+    )
     ap.add_argument(
         '--votes',
         default='',
@@ -143,7 +147,7 @@ def main(argv=None) -> int:
         f'Nordland {args.range}: {len(refs)} references, {len(queries)} winter queries, '
         f'{len(distractors)} distractors; first stage alone, top {k}'
     )
-    settings = {name: SETTINGS[name] for name in args.settings.split(',') if name}
+    settings = {name.strip(): SETTINGS[name.strip()] for name in args.settings.split(';') if name.strip()}
     for vote in filter(None, args.votes.split(',')):
         knn, alpha = vote.split(':')
         settings[f'knn {knn}, alpha {alpha}'] = {'landmark_knn': int(knn), 'landmark_alpha': float(alpha)}
