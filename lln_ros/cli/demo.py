@@ -2,7 +2,7 @@
 
     lln-demo --out DIR [--dataset SPEC] [--range START:END] [--download] [--fps HZ]
              [--method lln|act|rand|all|holistic] [--top-n 50] [--prefilter landmarks|holistic|exhaustive]
-             [--prefilter-k 100]
+             [--prefilter-k 30]
              [--offline | --no-offline] [--check]
 
 Without --dataset: the Nordland test split (summer = map, winter = queries, +-1 frame, the last 30%

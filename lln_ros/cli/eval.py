@@ -2,7 +2,7 @@
 
     lln-eval --dataset SPEC [--dataset SPEC ...] --out DIR [--methods holistic,lln,act,rand,all]
              [--top-n 50] [--prefilter landmarks|holistic|exhaustive] [--prefilter-k 30|0]
-             [--range START:END] [--sequence L [--sequence-prefilter-k 100] [--sequence-carry 10]
+             [--range START:END] [--sequence L [--sequence-prefilter-k 30] [--sequence-carry 10]
              [--sequence-score-norm none|zscore]]
              [--weights [LABEL=]CKPT ...] [--label NAME ...] [--heads LABEL=CKPT,LABEL=,...]
              [--backbone NAME] [--layer LAYER] [--cache DIR] [--download [--download-url URL]]
