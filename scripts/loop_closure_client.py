@@ -43,9 +43,11 @@ def main(argv=None) -> int:
 
     import rclpy
     from rclpy.executors import ExternalShutdownException
+    from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import PointCloud2
 
     from lln_ros.core.loop_closure import LoopClosureFilter
+    from lln_ros.nodes.common import stop_on_signals
     from lln_ros.ros import msgs
 
     select = LoopClosureFilter(
@@ -57,7 +59,9 @@ def main(argv=None) -> int:
         }
     )
     out = open(args.out, 'a') if args.out else sys.stdout
-    rclpy.init(args=['loop_closure_client', *ros_args])
+    # Ctrl-C as the nodes take it: rclpy's handler races the teardown (see stop_on_signals)
+    rclpy.init(args=['loop_closure_client', *ros_args], signal_handler_options=SignalHandlerOptions.NO)
+    stop = stop_on_signals()
     node = rclpy.create_node('lln_loop_closure_client')
     pending: dict[int, dict] = {}
     state = {'answers': 0, 'accepted': 0}
@@ -86,7 +90,7 @@ def main(argv=None) -> int:
     node.create_subscription(PointCloud2, 'lln/candidates', lambda m: on_answer(m, 'candidates'), 100)
     node.create_subscription(PointCloud2, 'lln/matches', lambda m: on_answer(m, 'matches'), 100)
     try:
-        while rclpy.ok() and not (args.count and state['answers'] >= args.count):
+        while rclpy.ok() and not stop.is_set() and not (args.count and state['answers'] >= args.count):
             rclpy.spin_once(node, timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -98,21 +98,24 @@ def failed_response(self, request, response):
 def run_node(make_node, name: str, args=None) -> int:
     """init / spin / shutdown. A node that cannot start (corrupt map, bad parameter, missing
     weights) logs one fatal line naming the problem and exits 1, without a traceback.
+    SIGINT and SIGTERM end the spin (stop_on_signals; a callback that runs then finishes first).
     At the end the node's own state is released first (node.close(): the map closed, the worker
     joined); only then is the DDS teardown run, under a watchdog (lln_ros.ros.dds.exit_if_teardown_hangs)."""
     import faulthandler
 
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
 
     from ..errors import LLNError
     from ..ros.dds import apply_large_data_profile, exit_if_teardown_hangs
 
     # a crash in native code (DDS, FAISS, ONNX Runtime) prints every thread's Python stack to stderr,
-    # so a node that exits -11 says where (CI saw the matcher exit -11 at SIGINT, with no trace)
+    # so a node that exits -11 says where
     faulthandler.enable()
     dds_level, dds_note = apply_large_data_profile()  # before rclpy.init: Fast DDS reads it then
-    rclpy.init(args=args)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = stop_on_signals()
     node, executor, status = None, None, 0
     try:
         node = make_node()
@@ -122,7 +125,7 @@ def run_node(make_node, name: str, args=None) -> int:
             node.get_logger().info(dds_note)
         # a node may ask for its own executor (the matcher: sensor callbacks beside the answers)
         executor = node.make_executor() if hasattr(node, 'make_executor') else SingleThreadedExecutor()
-        rclpy.spin(node, executor=executor)
+        spin_until(executor, node, stop)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (LLNError, ValueError, OSError) as e:
@@ -138,6 +141,39 @@ def run_node(make_node, name: str, args=None) -> int:
             node.destroy_node()
         rclpy.try_shutdown()
     return status
+
+
+# how soon the spin notices SIGINT / SIGTERM when no message wakes it (Python runs a signal's handler
+# only when the main thread is back in Python, not while rcl_wait blocks)
+SIGNAL_POLL_S = 0.1
+
+
+def stop_on_signals():
+    """SIGINT and SIGTERM set the returned threading.Event, in place of rclpy's handlers (rclpy.init
+    with SignalHandlerOptions.NO). Why not rclpy's: its handler raises KeyboardInterrupt in the main
+    thread at once, while rclpy's signal thread still walks the list of every executor's SIGINT guard
+    condition to trigger them; a teardown that destroys an executor frees that list and the guard
+    condition under the walk: a segfault (CI: the matcher exited -11 at SIGINT, the main thread just
+    past executor.shutdown; test/test_signal_teardown.py's node: 12 of 20 runs with rclpy's handler,
+    0 of 20 with this one). Here no rclpy signal thread runs, and a callback that runs when the
+    signal comes is not cut short."""
+    import signal
+    import threading
+
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
+def spin_until(executor, node, stop) -> None:
+    """rclpy.spin(node, executor) that also ends when `stop` (a threading.Event) is set."""
+    executor.add_node(node)
+    try:
+        while not stop.is_set() and executor.context.ok():
+            executor.spin_once(timeout_sec=SIGNAL_POLL_S)
+    finally:
+        executor.remove_node(node)
 
 
 # a teardown longer than this is the Fast DDS participant-deletion deadlock, not work
