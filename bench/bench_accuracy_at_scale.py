@@ -2,7 +2,8 @@
 
     python bench/bench_accuracy_at_scale.py [--sizes 0,10000,100000] [--data /work/shared/data]
                                             [--cache cache/features] [--sequence 10] [--dir /tmp/lln_scale]
-                                            [--landmark-knn K] [--landmark-alpha A] [--similarity raw|whiten|fuse]
+                                            [--landmark-knn K] [--landmark-alpha A] [--landmark-query-top N]
+                                            [--similarity raw|whiten|fuse]
                                             [--sequence-carry 0,10] [--sequence-prefilter-k K] [--prefilter-k K]
                                             [--range 0.7:1]
 
@@ -30,7 +31,7 @@ takes --prefilter-k too). --prefilter-k: the first-stage candidates a single fra
 matcher's prefilter_k). 'first stage' is the recall of a correct reference in the landmark index's
 shortlist of prefilter_k keyframes (the map's index, as MapStore.query calls it).
 
---landmark-knn / --landmark-alpha: the map's first stage (landmark_index.default_conf, as the map
+--landmark-knn / --landmark-alpha / --landmark-query-top: the map's first stage (landmark_index.default_conf, as the map
 store's conf). --similarity: the reranker S on raw sets (the default), on centred and whitened sets
 ('whiten'), or raw + fusion_weight x whitened ('fuse'): the matcher's `similarity` (docs/method.md).
 
@@ -128,6 +129,12 @@ def main(argv=None) -> int:
         '--landmark-knn', type=int, default=retrieval_conf['landmark_knn'], help='first stage: hits per query landmark'
     )
     ap.add_argument(
+        '--landmark-query-top',
+        type=int,
+        default=retrieval_conf['landmark_query_top'],
+        help='first stage: query landmarks (best first) that search the index (0 = all)',
+    )
+    ap.add_argument(
         '--landmark-alpha',
         type=float,
         default=retrieval_conf['landmark_alpha'],
@@ -160,7 +167,11 @@ def main(argv=None) -> int:
         'prefilter_k': args.prefilter_k,
         'sequence_prefilter_k': args.sequence_prefilter_k,
     }
-    map_conf = {'landmark_knn': args.landmark_knn, 'landmark_alpha': args.landmark_alpha}
+    map_conf = {
+        'landmark_knn': args.landmark_knn,
+        'landmark_alpha': args.landmark_alpha,
+        'landmark_query_top': args.landmark_query_top,
+    }
     data = Path(args.data)
     if not (data / 'nordland_trimmed' / 'summer').is_dir():
         print(f'skipped: no Nordland data under {data} (nordland_trimmed/summer, winter)')

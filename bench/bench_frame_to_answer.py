@@ -2,7 +2,8 @@
 
     python bench/bench_frame_to_answer.py [--sizes 1000,10000,100000] [--frames 60] [--threads 2]
                                           [--runtimes onnxruntime,onnxruntime-int8]
-                                          [--prefilter-k K] [--sequence 0 [--sequence-prefilter-k K]]
+                                          [--prefilter-k K] [--landmark-query-top N[,M..]]
+                                          [--sequence 0 [--sequence-prefilter-k K]]
                                           [--dir /tmp/lln_bench_f2a] [--json]
 
 Per frame, in this process and in the nodes' order: Extractor.__call__ (the extractor node's
@@ -19,7 +20,8 @@ says the map still answers.
 
 Each size is measured twice in one run, quiet (no process of ours besides this one) and beside one
 competing CPU-bound process this script starts and stops, for each --runtimes entry (the
-extractor's runtime; the map is built with the first): p50 / p90 / p99 wall ms per frame, the
+extractor's runtime; the map is built with the first) and each --landmark-query-top value (q-top,
+on the same map): p50 / p90 / p99 wall ms per frame, the
 CPU ms per frame (process time, all threads), and the p50 of each stage. The load average at the
 start of each row is printed: on a shared machine "quiet" means "nothing else of ours".
 """
@@ -27,6 +29,7 @@ start of each row is printed: on a shared machine "quiet" means "nothing else of
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import shutil
@@ -44,6 +47,7 @@ from bench_map import synthetic_set  # noqa: E402
 from lln_ros.core.extractor import Extractor  # noqa: E402
 from lln_ros.core.localizer import Localizer  # noqa: E402
 from lln_ros.core.localizer import default_conf as LOC  # noqa: E402
+from lln_ros.core.retrieval import default_conf as MAP  # noqa: E402
 from lln_ros.mapstore import MapStore  # noqa: E402
 
 REAL_KEYFRAMES = 200
@@ -108,6 +112,12 @@ def main(argv=None) -> int:
     ap.add_argument(
         '--prefilter-k', type=int, default=LOC['prefilter_k'], help="the matcher's prefilter_k (candidates reranked)"
     )
+    ap.add_argument(
+        '--landmark-query-top',
+        default=str(MAP['landmark_query_top']),
+        help="the map's landmark_query_top (query landmarks that search the landmark index; 0 = all); "
+        'several, comma-separated: rows for each on the same map',
+    )
     ap.add_argument('--sequence', type=int, default=0, help="the matcher's sequence_length (0 = single frame)")
     ap.add_argument(
         '--sequence-prefilter-k',
@@ -128,7 +138,9 @@ def main(argv=None) -> int:
     rng = np.random.default_rng(0)
     views = photo_views(REAL_KEYFRAMES, 384)
     rows = []
-    with MapStore.open(folder / 'map.db', model=extractor.model_info) as store:
+    tops = [int(t) for t in args.landmark_query_top.split(',')]
+    map_conf = {'landmark_query_top': tops[0]}
+    with MapStore.open(folder / 'map.db', model=extractor.model_info, conf=map_conf) as store:
         real_ids = store.add_many(
             [extractor(v) for v in views], [divmod(T0 + i * 10**8, 10**9) for i in range(len(views))]
         )
@@ -145,14 +157,15 @@ def main(argv=None) -> int:
                 },
             )
             loc.query(extractor(queries[0]), T0)  # first query builds what the open left lazy
-            for runtime, ex in extractors.items():
+            for top, (runtime, ex) in itertools.product(tops, extractors.items()):
+                store._landmarks.conf['landmark_query_top'] = top  # the one map, searched with each value
                 ex(queries[0])  # warm
                 for load in (False, True):
                     start_load = os.getloadavg()[0]
                     with competing_load(load):
                         r = measure(ex, loc, queries, truth)
                     row = {'keyframes': len(store), 'runtime': ex.model_info['runtime'], 'competing': load}
-                    rows.append({**row, 'load_avg': start_load, **r})
+                    rows.append({**row, 'query_top': top, 'load_avg': start_load, **r})
     if args.json:
         print(json.dumps(rows, indent=1))
     print(table(rows, args))
@@ -166,17 +179,19 @@ def table(rows: list[dict], args) -> str:
         + (f' (sequence_prefilter_k {args.sequence_prefilter_k})' if args.sequence else '')
         + ', '
         f'{args.frames} frames per row ({os.cpu_count()} cores)',
-        f'{"keyframes":>9} {"runtime":>16} {"beside":>10} {"load":>5} {"p50 ms":>7} {"p90 ms":>7} {"p99 ms":>7} '
-        f'{"cpu ms":>7} {"extract":>8} {"query":>7} {"top-1":>6} {"p50/quiet":>9}',
+        f'{"keyframes":>9} {"runtime":>16} {"q-top":>5} {"beside":>10} {"load":>5} '
+        f'{"p50 ms":>7} {"p90 ms":>7} {"p99 ms":>7} {"cpu ms":>7} {"extract":>8} {"query":>7} '
+        f'{"top-1":>6} {"p50/quiet":>9}',
     ]
-    quiet = {(r['keyframes'], r['runtime']): r['p50'] for r in rows if not r['competing']}
+    quiet = {(r['keyframes'], r['runtime'], r['query_top']): r['p50'] for r in rows if not r['competing']}
     for r in rows:
         lines.append(
-            f'{r["keyframes"]:>9} {r["runtime"]:>16} {"1 busy" if r["competing"] else "nothing":>10} '
+            f'{r["keyframes"]:>9} {r["runtime"]:>16} {r["query_top"]:>5} '
+            f'{"1 busy" if r["competing"] else "nothing":>10} '
             f'{r["load_avg"]:>5.1f} '
             f'{r["p50"]:>7.1f} {r["p90"]:>7.1f} {r["p99"]:>7.1f} {r["cpu_ms_p50"]:>7.1f} '
             f'{r["extract_ms_p50"]:>8.1f} {r["query_ms_p50"]:>7.1f} {r["top1"]:>6.2f} '
-            f'{r["p50"] / quiet[r["keyframes"], r["runtime"]]:>9.2f}'
+            f'{r["p50"] / quiet[r["keyframes"], r["runtime"], r["query_top"]]:>9.2f}'
         )
     return '\n'.join(lines)
 

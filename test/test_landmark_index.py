@@ -73,6 +73,25 @@ def test_index_add_search_remove_and_below(rng):
     assert index.remove_keyframes([12, 99]) == 50 and 12 not in index.keyframe_counts()
 
 
+def test_query_top_searches_only_the_best_query_landmarks(rng):
+    """landmark_query_top m: the first m query landmarks (the best by score) search, centred on the
+    mean of all of them as without the cap, so their hits are the uncapped search's first m rows."""
+    index = LandmarkIndex(320)
+    sets = [make_set(rng) for _ in range(6)]
+    index.add_sets(list(range(6)), sets)
+    query = make_set(rng, base=sets[2], noise=0.05)
+    sims, kf, cells = index.search(query.descriptors, 5)
+    top_sims, top_kf, top_cells = index.search(query.descriptors, 5, top=10)
+    assert sims.shape == (50, 5) and top_sims.shape == (10, 5)
+    np.testing.assert_allclose(top_sims, sims[:10], rtol=1e-6)
+    assert (top_kf == kf[:10]).all() and (top_cells == cells[:10]).all()
+    capped = LandmarkIndex(320, {'landmark_query_top': 10})
+    capped.add_sets(list(range(6)), sets)
+    ids, scores = capped.shortlist(query, k=3)
+    assert ids[0] == 2 and scores[0] > 0
+    assert scores[0] < index.shortlist(query, k=3)[1][0]  # 10 landmarks vote, not 50
+
+
 @pytest.mark.parametrize('kind', ['exact', 'ivfpq-fs'])
 def test_centering_ignores_what_every_landmark_of_an_image_shares(kind):
     """The query's 12 landmarks are 12 places seen under one strong condition (a component every
