@@ -62,9 +62,11 @@ def test_exhaustive_query_scores_every_allowed_keyframe(uri, rng):
         every = store.query(query, prefilter_k=0, k=12)
         assert sorted(c.keyframe_id for c in every) == ids
         assert [c.score for c in every] == sorted((c.score for c in every), reverse=True)
-        assert [(c.keyframe_id, c.score) for c in every] == [
-            (c.keyframe_id, c.score) for c in store.query(query, prefilter_k=12, k=12)
-        ]
+        # the same ranking and scores; float32 sums of S may differ in the last bits with the batch
+        # (seen on an AVX-only CPU, where BLAS picks other kernels: 0.44473436 against 0.44473442)
+        top12 = store.query(query, prefilter_k=12, k=12)
+        assert [c.keyframe_id for c in every] == [c.keyframe_id for c in top12]
+        assert [c.score for c in every] == pytest.approx([c.score for c in top12], rel=1e-5)
         assert [c.keyframe_id for c in store.query(query, prefilter_k=0, k=3)] == [c.keyframe_id for c in every[:3]]
         allowed = store.query(query, prefilter_k=0, k=12, exclude_recent=5)
         assert sorted(c.keyframe_id for c in allowed) == ids[:7]
