@@ -76,7 +76,7 @@ def test_index_add_search_remove_and_below(rng):
 def test_query_top_searches_only_the_best_query_landmarks(rng):
     """landmark_query_top m: the first m query landmarks (the best by score) search, centred on the
     mean of all of them as without the cap, so their hits are the uncapped search's first m rows."""
-    index = LandmarkIndex(320)
+    index = LandmarkIndex(320, {'landmark_query_top': 0})
     sets = [make_set(rng) for _ in range(6)]
     index.add_sets(list(range(6)), sets)
     query = make_set(rng, base=sets[2], noise=0.05)

@@ -15,7 +15,8 @@ Scoring (score_hits) -- an approximation of the paper's S computed from the kNN 
      its keyframe's landmarks, renormalised (a query: minus its own mean), then whitened (W x,
      core.whitening). What every landmark of an image shares is its condition (snow, dusk), and
      raw cosines let it outvote the place in a map with winter views of other places;
-  1. every query landmark i retrieves its `knn` nearest map landmarks by cosine s (FAISS);
+  1. every query landmark i (the best conf['landmark_query_top'] by score) retrieves its `knn`
+     nearest map landmarks by cosine s (FAISS);
   2. burstiness: a query landmark votes at most once per keyframe (its best hit there), and a map
      landmark takes at most one query landmark (its best); ASMK / DELF limit repeated structure
      the same way, so one textured patch (rails, sky, snow) cannot outvote the rest of the image;
@@ -46,9 +47,10 @@ Index type: exact (IndexIDMap2(IndexFlatIP)) up to conf['landmark_index_threshol
 - 'ivfpq': IndexIVFPQ, D/4 sub-quantisers of 8 bits = D/4 bytes (the oldest maps' format).
 All are trained on (a sample of) the map's own descriptors, those of the keyframes up to the one
 that crossed the threshold (so the index depends on the keyframe order only, not on how adds were
-batched), and probe conf['landmark_nprobe'] (0: the kind's NPROBE) of their IVF cells; all 50 query
-landmarks go to FAISS in one search call. Exact inner products grow with the map (one core: ~120 ms
-per query at 20k landmarks under load 14 on this 2-core machine), so only small maps stay exact.
+batched), and probe conf['landmark_nprobe'] (0: the kind's NPROBE) of their IVF cells; the query
+landmarks that search (landmark_query_top) go to FAISS in one search call. Exact inner products
+grow with the map (one core: ~120 ms per query at 20k landmarks under load 14 on this 2-core
+machine), so only small maps stay exact.
 A compressed index grown past conf['landmark_retrain_factor'] x the landmarks it was trained on is
 rebuilt by its owner (the map store) from the stored descriptors, and so is a file of another kind
 (or centring, whitening, refine codes) than the conf asks for. Recall against exact search on
@@ -74,9 +76,14 @@ PREFILTERS = ('landmarks', 'holistic', 'exhaustive')
 
 default_conf = {
     'landmark_knn': 20,  # map landmarks each query landmark retrieves
-    # query landmarks (the best by score) that search the index; 0 = all. The search scans per query
-    # landmark, so fewer is proportionally faster at 100k keyframes; the rerank still uses them all
-    'landmark_query_top': 0,
+    # Query landmarks (the best by score) that search the index; 0 = all. The search scans per query
+    # landmark and is most of a query at 100k keyframes; the rerank still uses every landmark.
+    # Chosen on Nordland 0.6:0.7 (validation) padded to 10k keyframes with real distractors
+    # (bench/bench_accuracy_at_scale.py --range 0.6:0.7 --sizes 0,10000 --landmark-query-top N),
+    # N = 0 / 35 / 25: lln 0.459 / 0.462 / 0.462 plain, 0.176 / 0.174 / 0.168 at 10k; lln+seq
+    # 0.933 / 0.936 / 0.950 plain, 0.927 / 0.927 / 0.930 at 10k. Frame to answer at 100k keyframes
+    # (bench_frame_to_answer.py, quiet p50, two passes): 37.9 / 34.7, 36.6 / 31.5, 30.4 / 27.7 ms.
+    'landmark_query_top': 25,
     # Centre each keyframe's landmarks (and the query's) on their own mean before indexing, then
     # renormalise: what all landmarks of one image share (snow, dusk, the camera's colour) is the
     # condition, not the place. Chosen with tau on Nordland 0.6:0.7 (validation) among 8,927 real
