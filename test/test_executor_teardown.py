@@ -1,5 +1,5 @@
 """run_node's teardown (lln_ros.nodes.common.join_executor): no callback of a MultiThreadedExecutor
-may still run when the node is closed and destroyed (that race exited the matcher -11 in CI).
+may still run when the node is closed and destroyed (a segfault: rclpy #255/#663).
 A real rclpy executor and node in their own Context; a timer's callback stands in for a query being
 answered when SIGINT arrives."""
 

@@ -184,9 +184,9 @@ def join_executor(executor, timeout_s: float) -> bool:
     """Stop `executor` and wait (at most timeout_s) until no callback of it runs any more; False
     when one is still running then. The node's handles and state must outlive every callback:
     destroying a node while a worker thread takes from its subscription is a segfault (rclpy
-    #255/#663; seen in CI: the matcher exited -11 at SIGINT). rclpy Jazzy's Executor.shutdown does
-    not wait for a MultiThreadedExecutor's pool (its wait is skipped once _is_shutdown is set), so
-    the pool, rclpy's ThreadPoolExecutor in `_executor`, is joined here."""
+    #255/#663; the matcher's -11 at SIGINT in CI had another cause: stop_on_signals). rclpy
+    Jazzy's Executor.shutdown does not wait for a MultiThreadedExecutor's pool (its wait is skipped
+    once _is_shutdown is set), so the pool, rclpy's ThreadPoolExecutor in `_executor`, is joined here."""
     import threading
 
     executor.shutdown(timeout_sec=timeout_s)
