@@ -92,7 +92,7 @@ def main(argv=None) -> int:
     try:
         while rclpy.ok() and not stop.is_set() and not (args.count and state['answers'] >= args.count):
             rclpy.spin_once(node, timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except ExternalShutdownException:  # the context was shut down elsewhere (Ctrl-C: stop_on_signals)
         pass
     finally:
         print(

@@ -126,7 +126,7 @@ def run_node(make_node, name: str, args=None) -> int:
         # a node may ask for its own executor (the matcher: sensor callbacks beside the answers)
         executor = node.make_executor() if hasattr(node, 'make_executor') else SingleThreadedExecutor()
         spin_until(executor, node, stop)
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except ExternalShutdownException:  # the context was shut down elsewhere (signals: stop_on_signals)
         pass
     except (LLNError, ValueError, OSError) as e:
         rclpy.logging.get_logger(name).fatal(f'cannot start: {e}')
