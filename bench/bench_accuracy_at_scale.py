@@ -3,6 +3,7 @@
     python bench/bench_accuracy_at_scale.py [--sizes 0,10000,100000] [--data /work/shared/data]
                                             [--cache cache/features] [--sequence 10] [--dir /tmp/lln_scale]
                                             [--landmark-knn K] [--landmark-alpha A] [--landmark-query-top N]
+                                            [--landmark-index-top N]
                                             [--similarity raw|whiten|fuse]
                                             [--sequence-carry 0,10] [--sequence-prefilter-k K] [--prefilter-k K]
                                             [--range 0.7:1]
@@ -31,9 +32,10 @@ takes --prefilter-k too). --prefilter-k: the first-stage candidates a single fra
 matcher's prefilter_k). 'first stage' is the recall of a correct reference in the landmark index's
 shortlist of prefilter_k keyframes (the map's index, as MapStore.query calls it).
 
---landmark-knn / --landmark-alpha / --landmark-query-top: the map's first stage (landmark_index.default_conf, as the map
-store's conf). --similarity: the reranker S on raw sets (the default), on centred and whitened sets
-('whiten'), or raw + fusion_weight x whitened ('fuse'): the matcher's `similarity` (docs/method.md).
+--landmark-knn / --landmark-alpha / --landmark-query-top / --landmark-index-top: the map's first
+stage (landmark_index.default_conf, as the map store's conf). --similarity: the reranker S on raw
+sets (the default), on centred and whitened sets ('whiten'), or raw + fusion_weight x whitened
+('fuse'): the matcher's `similarity` (docs/method.md).
 
 Skips (exit 0, message) when --data is absent.
 """
@@ -135,6 +137,12 @@ def main(argv=None) -> int:
         help='first stage: query landmarks (best first) that search the index (0 = all)',
     )
     ap.add_argument(
+        '--landmark-index-top',
+        type=int,
+        default=retrieval_conf['landmark_index_top'],
+        help="first stage: each keyframe's landmarks (best first) the index holds (0 = all)",
+    )
+    ap.add_argument(
         '--landmark-alpha',
         type=float,
         default=retrieval_conf['landmark_alpha'],
@@ -171,6 +179,7 @@ def main(argv=None) -> int:
         'landmark_knn': args.landmark_knn,
         'landmark_alpha': args.landmark_alpha,
         'landmark_query_top': args.landmark_query_top,
+        'landmark_index_top': args.landmark_index_top,
     }
     data = Path(args.data)
     if not (data / 'nordland_trimmed' / 'summer').is_dir():

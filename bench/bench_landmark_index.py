@@ -2,6 +2,7 @@
 
     python bench/bench_landmark_index.py [--keyframes 100000] [--cache out/real_landmarks.npz]
                                          [--augment 1] [--queries 500] [--knn 20] [--nprobe 8,16,32]
+                                         [--index-top N] [--query-top N] [--refine SQ8] [--k-factor 8]
 
 The map: the landmark sets (n=50, the default extractor: efficientnet_lite0/stage6, D=192) of every
 image of every real dataset in ../shared/data (nordland_trimmed summer + winter, rtabmap_loop,
@@ -19,8 +20,10 @@ recall@k = |compressed top k  &  exact top k| / k per query landmark (exact = br
 product over the same float32 vectors: the real ones prepared as the shipped index holds them,
 LandmarkIndex.prepare -- centred per set (landmark_center), then whitened with the descriptor space's
 shipped W (landmark_whitening)), at knn (the first stage's k) and 1, per --kinds x --nprobe, with the
-search time per query set (50 landmarks, one call, 1 thread) of each (ivfpq-fs-refine: with its
-re-ranking of landmark_k_factor x knn candidates, --k-factor).
+search time per query set (50 landmarks, or its best --query-top; one call, 1 thread) of each
+(ivfpq-fs-refine: with its re-ranking of landmark_k_factor x knn candidates, --k-factor, on --refine
+codes). --index-top N: the map holds each set's best N landmarks (landmark_index_top, centred on all
+50), --keyframes x N in all; --query-top N: each query set's best N search (landmark_query_top).
 """
 
 from __future__ import annotations
@@ -203,18 +206,20 @@ def index_recall(args, data: dict) -> list[dict]:
 
     shipped = LandmarkIndex(data['descriptors'].shape[-1], {}, descriptor_space(data))
 
-    def held(sets: np.ndarray) -> np.ndarray:
-        """sets (S, n, D) as the shipped index holds them (LandmarkIndex.prepare, one keyframe per set), (S*n, D)."""
+    def held(sets: np.ndarray, top: int) -> np.ndarray:
+        """sets (S, n, D) as the shipped index holds them (LandmarkIndex.prepare, one keyframe per set,
+        centred on all n), the first `top` of each (its best by score; 0 = all): (S*min(n, top), D)."""
         x = unit(sets.reshape(-1, sets.shape[-1]).astype(np.float32))
-        return shipped.prepare(x, np.repeat(np.arange(len(sets)), sets.shape[1]))
+        x = shipped.prepare(x, np.repeat(np.arange(len(sets)), sets.shape[1]))
+        return x[np.tile(np.arange(sets.shape[1]) < (top or sets.shape[1]), len(sets))]
 
     rng = np.random.default_rng(1)
-    real = held(data['descriptors'])
-    total = max(len(real), args.keyframes * 50)
+    real = held(data['descriptors'], args.index_top)
+    total = max(len(real), args.keyframes * min(50, args.index_top or 50))
     x = grow(real, total, args.noise, rng)
     ids = np.arange(len(x), dtype=np.int64)
     qsets = data['query_descriptors'][rng.permutation(len(data['query_descriptors']))[: args.queries]]
-    q = held(qsets)
+    q = held(qsets, args.query_top)
     t = time.perf_counter()
     ex_s, ex_i = exact_knn(x, q, args.knn)
     exact_s = time.perf_counter() - t
@@ -229,6 +234,7 @@ def index_recall(args, data: dict) -> list[dict]:
     rows = []
     for kind in args.kinds.split(','):
         conf = {'landmark_compressed': kind, 'landmark_index_threshold': 0, 'landmark_pq_m': args.pq_m}
+        conf['landmark_refine'] = args.refine or conf.get('landmark_refine', shipped.conf['landmark_refine'])
         if args.k_factor:
             conf['landmark_k_factor'] = args.k_factor
         # x is already what the index holds (held()): no centring, no whitening (no descriptor space)
@@ -247,7 +253,7 @@ def index_recall(args, data: dict) -> list[dict]:
             hit_1 = float(np.mean(got[:, 0] == ex_i[:, 0]))
             rows.append(
                 {
-                    'kind': kind,
+                    'kind': kind + (f' {index.refine.qtype}' if index.refine else ''),
                     'nprobe': int(index.index.nprobe),
                     'lists': int(index.index.nlist),
                     'recall@1': hit_1,
@@ -333,6 +339,13 @@ def main(argv=None) -> int:
     ap.add_argument('--nprobe', default='8,16,32', help='IVF cells probed, each tried (0 = the default of the kind)')
     ap.add_argument('--pq-m', type=int, default=0, help='PQ sub-quantisers (0 = the default of the kind)')
     ap.add_argument('--k-factor', type=int, default=0, help='ivfpq-fs-refine shortlist factor (0 = the default)')
+    ap.add_argument('--refine', default='', help="ivfpq-fs-refine re-ranking codes (SQ6|SQ8|...; '' = the default)")
+    ap.add_argument(
+        '--index-top', type=int, default=0, help="each map set's best N landmarks held (landmark_index_top)"
+    )
+    ap.add_argument(
+        '--query-top', type=int, default=0, help="each query set's best N landmarks search (landmark_query_top)"
+    )
     ap.add_argument('--no-exact', dest='exact', action='store_false', help='--nordland: skip the exact row')
     ap.add_argument('--nordland', action='store_true', help='the first stage on the Nordland test split instead')
     args = ap.parse_args(argv)
@@ -351,7 +364,8 @@ def main(argv=None) -> int:
         return 0
     rows = index_recall(args, data)
     print(f'load average {", ".join(f"{v:.2f}" for v in os.getloadavg())}, 1 thread')
-    print(f'| index | lists | nprobe | recall@1 | recall@{args.knn} | search ms / 50 landmarks | bytes / landmark |')
+    per = min(50, args.query_top or 50)
+    print(f'| index | lists | nprobe | recall@1 | recall@{args.knn} | search ms / {per} landmarks | bytes / landmark |')
     print('|---|---|---|---|---|---|---|')
     for r in rows:
         print(

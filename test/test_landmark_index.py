@@ -92,6 +92,30 @@ def test_query_top_searches_only_the_best_query_landmarks(rng):
     assert scores[0] < index.shortlist(query, k=3)[1][0]  # 10 landmarks vote, not 50
 
 
+def test_index_top_holds_each_keyframes_best_landmarks_centred_on_all(rng):
+    """landmark_index_top m: the index holds the first m stored landmarks of each keyframe (the best by
+    score), each the same vector as an uncapped index holds (centred on all of its keyframe's), and
+    held_count is what the stores check against."""
+    sets = [make_set(rng, n=int(n)) for n in (50, 8, 30)]
+    full, top = LandmarkIndex(320, {'landmark_index_top': 0}), LandmarkIndex(320, {'landmark_index_top': 10})
+    for index in (full, top):
+        index.add_sets([4, 5, 6], sets)
+    assert top.keyframe_counts() == {4: 10, 5: 8, 6: 10} == {i: top.held_count(len(s)) for i, s in zip((4, 5, 6), sets)}
+    held = np.sort(top.landmark_ids())
+    want = np.sort(
+        np.concatenate([encode_ids(np.full(min(len(s), 10), i), s.cells[:10]) for i, s in zip((4, 5, 6), sets)])
+    )
+    assert held.tolist() == want.tolist()
+    np.testing.assert_allclose(
+        [top.index.reconstruct(int(i)) for i in held], [full.index.reconstruct(int(i)) for i in held], atol=1e-6
+    )
+    top.build(
+        np.concatenate([s.descriptors for s in sets]),
+        np.concatenate([encode_ids(np.full(len(s), i), s.cells) for i, s in zip((4, 5, 6), sets)]),
+    )
+    assert np.sort(top.landmark_ids()).tolist() == want.tolist()  # build holds the same rows as add
+
+
 @pytest.mark.parametrize('kind', ['exact', 'ivfpq-fs'])
 def test_centering_ignores_what_every_landmark_of_an_image_shares(kind):
     """The query's 12 landmarks are 12 places seen under one strong condition (a component every
@@ -176,30 +200,40 @@ def test_compressed_index_does_not_depend_on_batching(compressed, rng):
         assert np.array_equal(whole.shortlist(q, k=5)[0], grown.shortlist(q, k=5)[0])
 
 
-@pytest.mark.parametrize('index', ['exact', 'ivfpq-fs'])
+@pytest.mark.parametrize('index', ['exact', 'ivfpq-fs', 'ivfpq-fs top 25'])
 @pytest.mark.parametrize('kind', BACKENDS)
 def test_map_keeps_landmark_index_consistent(kind, index, tmp_path, rng):
-    """add / delete / clear / reopen: the landmark index always holds exactly the stored landmarks,
-    and the landmark first stage answers with the right keyframe -- exact, and compressed (the
-    threshold lowered to 300 landmarks, so the map crosses it while growing and at reopen)."""
+    """add / delete / clear / reopen: the landmark index always holds exactly the stored landmarks
+    (with landmark_index_top 25: each keyframe's best 25), and the landmark first stage answers with
+    the right keyframe -- exact, and compressed (the threshold lowered to 300 landmarks, so the map
+    crosses it while growing and at reopen; 200 with the best 25)."""
     uri = uri_for(kind, tmp_path)
     sets = [make_set(rng, n=int(n)) for n in rng.integers(20, 51, 12)]
-    conf = {} if index == 'exact' else {**SMALL_IVF, 'landmark_index_threshold': 300, 'landmark_compressed': index}
+    index, _, top = index.partition(' top ')
+    threshold = 200 if top else 300  # crossed by the 12 keyframes' ~290 best-25 landmarks too
+    conf = (
+        {} if index == 'exact' else {**SMALL_IVF, 'landmark_index_threshold': threshold, 'landmark_compressed': index}
+    )
+    conf['landmark_index_top'] = int(top or 0)
+
+    def held(chosen):  # info()'s 'landmarks': what the landmark index holds
+        return sum(min(len(s), int(top or len(s))) for s in chosen)
+
     with MapStore.open(uri, model=MODEL, conf=conf) as store:
         ids = store.add_many(sets[:8], [(i, 0) for i in range(8)])
         ids += [store.add(s, (100 + i, 0)) for i, s in enumerate(sets[8:])]
-        assert store.info()['landmarks'] == sum(len(s) for s in sets) and store.check() == []
+        assert store.info()['landmarks'] == held(sets) and store.check() == []
         assert store.info()['landmark_index'] == index
         assert (
             store.query(make_set(rng, n=len(sets[5]), base=sets[5], noise=0.1), prefilter='landmarks')[0].keyframe_id
             == ids[5]
         )
         store.delete([ids[5], ids[9]])
-        assert store.info()['landmarks'] == sum(len(s) for i, s in enumerate(sets) if i not in (5, 9))
+        assert store.info()['landmarks'] == held(s for i, s in enumerate(sets) if i not in (5, 9))
         assert all(c.keyframe_id not in (ids[5], ids[9]) for c in store.query(sets[5], prefilter_k=12, k=12))
         assert store.check() == []
     with MapStore.open(uri, conf=conf) as store:  # restart: rebuilt (or loaded) and checked
-        assert store.info()['landmarks'] == sum(len(s) for i, s in enumerate(sets) if i not in (5, 9))
+        assert store.info()['landmarks'] == held(s for i, s in enumerate(sets) if i not in (5, 9))
         assert store.check() == [] and store.info()['landmark_index'] == index
         assert store.query(sets[3])[0].keyframe_id == ids[3]
         assert store.clear() == 10 and store.info()['landmarks'] == 0 and store.query(sets[3]) == []
@@ -306,6 +340,15 @@ def test_a_file_of_another_kind_still_reads_and_a_map_rebuilds_it(tmp_path, rng,
     assert header['kind'] == 'ivfpq-fs-refine' and back.refine.n == back.ntotal == 30 * 50
     with pytest.raises(MapError, match='re-ranks on SQ6; landmark_refine is SQ8'):
         LandmarkIndex.read(path + '.landmarks', 320, {**new, 'landmark_refine': 'SQ8'})
+    fewer = {**new, 'landmark_index_top': 20}  # another landmark_index_top: refused, rebuilt
+    with pytest.raises(MapError, match='best 0 landmarks of each keyframe .0 = all.; landmark_index_top is 20'):
+        LandmarkIndex.read(path + '.landmarks', 320, fewer)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger='lln_ros.mapstore'):
+        with MapStore.open(path, conf=fewer) as store:
+            assert 'rebuilding it from the map' in caplog.text and store.check() == []
+            assert store.info()['landmarks'] == 30 * 20  # what the index holds
+            assert store.query(make_set(rng, base=sets[9], noise=0.05))[0].keyframe_id == ids[9]
 
 
 def _rtabmap_sets(extractor):

@@ -69,6 +69,7 @@ from . import landmark_index_file, whitening
 from .refine_codes import RefineCodes
 from .similarity import offset_weights, pair_offset_mode
 from .threads import one_faiss_thread
+from .whitening import center
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +85,10 @@ default_conf = {
     # 0.933 / 0.936 / 0.950 plain, 0.927 / 0.927 / 0.930 at 10k. Frame to answer at 100k keyframes
     # (bench_frame_to_answer.py, quiet p50, two passes): 37.9 / 34.7, 36.6 / 31.5, 30.4 / 27.7 ms.
     'landmark_query_top': 25,
+    # Landmarks of each keyframe (its best by score, after centring on all of them) the index holds;
+    # 0 = all. The rerank still uses every stored landmark. Fewer per keyframe: a smaller index
+    # (memory, scan time) that leaves room for finer re-ranking codes (docs/benchmarks.md).
+    'landmark_index_top': 0,
     # Centre each keyframe's landmarks (and the query's) on their own mean before indexing, then
     # renormalise: what all landmarks of one image share (snow, dusk, the camera's colour) is the
     # condition, not the place. Chosen with tau on Nordland 0.6:0.7 (validation) among 8,927 real
@@ -143,6 +148,12 @@ def check_prefilter(prefilter: str, prefilter_k: int) -> tuple[str, int]:
     if int(prefilter_k) < 0:
         raise ValueError(f'need prefilter_k >= 0 (0 = every keyframe), got {prefilter_k}')
     return ('exhaustive' if int(prefilter_k) == 0 else prefilter), int(prefilter_k)
+
+
+def held_count(stored: int, conf: dict) -> int:
+    """Landmarks an index of `conf` holds for a keyframe of `stored` landmarks (landmark_index_top)."""
+    top = int(conf.get('landmark_index_top', default_conf['landmark_index_top']))
+    return min(int(stored), top) if top > 0 else int(stored)
 
 
 def encode_ids(keyframe_ids: np.ndarray, cells: np.ndarray) -> np.ndarray:
@@ -222,31 +233,6 @@ def fill(ids: np.ndarray, scores: np.ndarray, holistic_ids: np.ndarray, k: int) 
     return np.concatenate([ids, extra]).astype(np.int64), np.concatenate(
         [scores, np.zeros(len(extra), np.float32)]
     ).astype(np.float32)
-
-
-def center(descriptors: np.ndarray, keyframe_ids: np.ndarray | None = None) -> np.ndarray:
-    """Descriptors (N, D) minus the mean of their keyframe's (keyframe_ids (N,); None = one set),
-    renormalised to unit length (float32 (N, D)): conf['landmark_center']. A keyframe of one landmark
-    keeps it as it is (its mean is itself)."""
-    x = np.atleast_2d(np.asarray(descriptors, np.float32))
-    if not len(x):
-        return x.copy()
-    kf = np.zeros(len(x), np.int64) if keyframe_ids is None else np.asarray(keyframe_ids, np.int64).reshape(-1)
-    # stored landmarks come keyframe by keyframe, so the stable sort is the identity there; the means
-    # are taken per landmark count as (keyframes, count, D) blocks (np.add.at took 3 s per 200k
-    # landmarks, reduceat 0.45 s: a map rebuild centres millions)
-    order = np.argsort(kf, kind='stable')
-    xs = x[order]
-    starts = np.flatnonzero(np.r_[True, kf[order][1:] != kf[order][:-1]])
-    counts = np.diff(np.r_[starts, len(x)])
-    for c in np.unique(counts[counts > 1]):
-        rows = (starts[counts == c][:, None] + np.arange(c)[None, :]).reshape(-1)
-        block = xs[rows].reshape(-1, c, x.shape[1])
-        xs[rows] = (block - block.mean(axis=1, keepdims=True)).reshape(-1, x.shape[1])
-    xs /= np.maximum(np.sqrt(np.einsum('ij,ij->i', xs, xs)), 1e-12)[:, None]
-    out = np.empty_like(x)
-    out[order] = xs
-    return out
 
 
 class LandmarkIndex:
@@ -336,14 +322,34 @@ class LandmarkIndex:
         if self.refine is not None and isinstance(index, faiss.IndexIVF):
             self.refine.add(x, ids)
 
-    def prepare(self, descriptors: np.ndarray, keyframe_ids: np.ndarray | None = None) -> np.ndarray:
+    def prepare(
+        self, descriptors: np.ndarray, keyframe_ids: np.ndarray | None = None, held: bool = False
+    ) -> np.ndarray:
         """The vectors this index holds for stored descriptors (N, D) of keyframe_ids (N,) (None =
         one keyframe or one query): centre()d when conf['landmark_center'], then whitened (W x,
-        renormalised) when the index has a whitening, else as given."""
+        renormalised) when the index has a whitening, else as given. held: only the rows the index
+        holds (held_rows), after centring on all of them."""
         x = np.ascontiguousarray(descriptors, np.float32).reshape(-1, self.dim)
         if self.conf['landmark_center']:
             x = center(x, keyframe_ids)
+        if held:
+            x = x[self.held_rows(np.zeros(len(x), np.int64) if keyframe_ids is None else keyframe_ids)]
         return x if self.whitening is None else whitening.apply(x, self.whitening)
+
+    def held_rows(self, keyframe_ids: np.ndarray) -> np.ndarray:
+        """bool (N,): which of a keyframe's stored landmarks (N,), in stored order (best score
+        first, as the extractor ranks them), the index holds: the first conf['landmark_index_top']."""
+        kf = np.asarray(keyframe_ids, np.int64).reshape(-1)
+        top = int(self.conf['landmark_index_top'])
+        if top <= 0 or not len(kf):
+            return np.ones(len(kf), bool)
+        starts = np.r_[True, kf[1:] != kf[:-1]]  # a keyframe's landmarks come together
+        first = np.maximum.accumulate(np.where(starts, np.arange(len(kf)), 0))
+        return np.arange(len(kf)) - first < top
+
+    def held_count(self, stored: int) -> int:
+        """Landmarks the index holds for a keyframe of `stored` landmarks (the stores' check)."""
+        return held_count(stored, self.conf)
 
     def needs_rebuild(self) -> bool:
         """An IVF-PQ trained on far fewer landmarks than it now holds (its cells are overfull and
@@ -356,7 +362,8 @@ class LandmarkIndex:
         ids = np.ascontiguousarray(ids, np.int64)
         x = np.ascontiguousarray(x, np.float32).reshape(-1, self.dim)
         if not prepared:
-            x = self.prepare(x, decode_ids(ids)[0])
+            kf = decode_ids(ids)[0]
+            x, ids = self.prepare(x, kf, held=True), ids[self.held_rows(kf)]
         if len(ids) > self.conf['landmark_index_threshold']:
             index = self._compressed(x)
         else:
@@ -368,8 +375,9 @@ class LandmarkIndex:
     def add(self, descriptors: np.ndarray, keyframe_ids: np.ndarray, cells: np.ndarray) -> None:
         """Add landmarks: descriptors (N, D), their keyframe ids (N,) and cells (N, 2)."""
         keyframe_ids = np.asarray(keyframe_ids, np.int64).reshape(-1)
-        x = self.prepare(np.asarray(descriptors, np.float32).reshape(-1, self.dim), keyframe_ids)
-        ids = encode_ids(keyframe_ids, cells)
+        x = self.prepare(np.asarray(descriptors, np.float32).reshape(-1, self.dim), keyframe_ids, held=True)
+        held = self.held_rows(keyframe_ids)
+        keyframe_ids, ids = keyframe_ids[held], encode_ids(keyframe_ids, cells)[held]
         threshold = int(self.conf['landmark_index_threshold'])
         if self.kind == 'exact' and self.ntotal + len(ids) > threshold:
             # Train on the landmarks up to the end of the keyframe that crosses the threshold, not on
@@ -458,20 +466,8 @@ class LandmarkIndex:
         with one_faiss_thread():
             sims, ids = self.index.search(q, wide, params=params)
         if self.refine is not None:
-            sims, ids = self._rerank(q, ids, k)
+            sims, ids = self.refine.rerank(q, ids, k)
         return sims, ids
-
-    def _rerank(self, q: np.ndarray, ids: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """The k best of each query's fast-scan shortlist ids (n, k') by their cosine on the refine
-        codes: sims (n, k), ids (n, k); id -1 where the shortlist held fewer, as FAISS answers."""
-        vec, found = self.refine.reconstruct(ids)
-        sims = np.einsum('nkd,nd->nk', vec, q)
-        sims[~found] = -np.inf
-        top = np.argsort(-sims, axis=1, kind='stable')[:, :k]
-        sims, ids = np.take_along_axis(sims, top, 1), np.take_along_axis(ids, top, 1)
-        missing = ~np.isfinite(sims)
-        ids[missing], sims[missing] = -1, -np.finfo(np.float32).max  # FAISS's empty result
-        return sims.astype(np.float32), ids
 
     def shortlist(self, query, k: int, below: int | None = None, scale: float = 1.0):
         """The first stage: the top k keyframe ids (K,) and their first-stage scores (K,) for a query

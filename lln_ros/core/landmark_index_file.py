@@ -1,7 +1,7 @@
 """The landmark index file (LandmarkIndex.write / LandmarkIndex.read): MAGIC, a 4-byte header
 length, a JSON header (the owner's fields plus D, kind, landmark count, training size, centring,
 whitening fingerprint, refine codes and the CRC-32 of what follows), the FAISS index, then for
-'ivfpq-fs-refine' its refine codes. A file of another kind, centring or whitening than the conf
+'ivfpq-fs-refine' its refine codes. A file of another kind, centring, whitening or landmark_index_top than the conf
 asks for is refused with a MapError, and its owner (a map store) rebuilds it."""
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ def write(index, path: str, header: dict) -> None:
             'landmarks': index.ntotal,
             'trained_on': index.trained_on,
             'center': bool(index.conf['landmark_center']),
+            'index_top': int(index.conf['landmark_index_top']),
             'whitening': whitening.fingerprint(index.whitening),
             **({'refine': index.refine.qtype, 'refine_bytes': len(refine)} if refine else {}),
             'crc32': zlib.crc32(refine, zlib.crc32(blob)),
@@ -100,6 +101,11 @@ def read(cls, path: str, dim: int, conf: dict | None = None, space: str = '') ->
         raise MapError(
             f'landmark index {path} holds {"centred" if header.get("center") else "raw"} descriptors; '
             f'landmark_center is {bool(out.conf["landmark_center"])}'
+        )
+    if int(header.get('index_top', 0)) != int(out.conf['landmark_index_top']):
+        raise MapError(
+            f'landmark index {path} holds the best {header.get("index_top", 0)} landmarks of each keyframe '
+            f'(0 = all); landmark_index_top is {out.conf["landmark_index_top"]}'
         )
     out.index, out.refine = index, refine
     if out.refine is not None and (out.refine.n != index.ntotal or out.kind != 'ivfpq-fs-refine'):

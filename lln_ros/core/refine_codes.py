@@ -84,6 +84,18 @@ class RefineCodes:
             out[found] = self.sq.decode(np.ascontiguousarray(self.codes[pos[found]]))
         return out.reshape(*ids.shape, self.sq.d), found.reshape(ids.shape)
 
+    def rerank(self, q: np.ndarray, ids: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The k best of each query's shortlist ids (n, k') by their cosine with q (n, D) on these
+        codes: sims (n, k), ids (n, k); id -1 where the shortlist held fewer, as FAISS answers."""
+        vec, found = self.reconstruct(ids)
+        sims = np.einsum('nkd,nd->nk', vec, q)
+        sims[~found] = -np.inf
+        top = np.argsort(-sims, axis=1, kind='stable')[:, :k]
+        sims, ids = np.take_along_axis(sims, top, 1), np.take_along_axis(ids, top, 1)
+        missing = ~np.isfinite(sims)
+        ids[missing], sims[missing] = -1, -np.finfo(np.float32).max  # FAISS's empty result
+        return sims.astype(np.float32), ids
+
     def to_bytes(self) -> bytes:
         self._sort()
         trained = faiss.vector_to_array(self.sq.trained).astype(np.float32)

@@ -6,7 +6,7 @@ change between visits (season, light) are shrunk before the landmark index compa
     save(path, W, meta); W, meta = load(path)
     W = shipped('efficientnet_lite0/stage6/192')   # the package's, or None for another space
 
-Why: centring (landmark_index.center) removes what all landmarks of one image share, but winter
+Why: centring (center, conf['landmark_center'] of the index) removes what all landmarks of one image share, but winter
 views of other places still outscore a summer view of the same place in a large map
 (docs/benchmarks.md, Accuracy at scale). The supervised whitening of Radenovic et al. (fine-tuning
 CNN image retrieval, TPAMI 2019; "Lw") takes the covariance C_S of the differences between matching
@@ -37,6 +37,31 @@ default_conf = {
 }
 
 
+def center(descriptors: np.ndarray, keyframe_ids: np.ndarray | None = None) -> np.ndarray:
+    """Descriptors (N, D) minus the mean of their keyframe's (keyframe_ids (N,); None = one set),
+    renormalised to unit length (float32 (N, D)): conf['landmark_center']. A keyframe of one landmark
+    keeps it as it is (its mean is itself)."""
+    x = np.atleast_2d(np.asarray(descriptors, np.float32))
+    if not len(x):
+        return x.copy()
+    kf = np.zeros(len(x), np.int64) if keyframe_ids is None else np.asarray(keyframe_ids, np.int64).reshape(-1)
+    # stored landmarks come keyframe by keyframe, so the stable sort is the identity there; the means
+    # are taken per landmark count as (keyframes, count, D) blocks (np.add.at took 3 s per 200k
+    # landmarks, reduceat 0.45 s: a map rebuild centres millions)
+    order = np.argsort(kf, kind='stable')
+    xs = x[order]
+    starts = np.flatnonzero(np.r_[True, kf[order][1:] != kf[order][:-1]])
+    counts = np.diff(np.r_[starts, len(x)])
+    for c in np.unique(counts[counts > 1]):
+        rows = (starts[counts == c][:, None] + np.arange(c)[None, :]).reshape(-1)
+        block = xs[rows].reshape(-1, c, x.shape[1])
+        xs[rows] = (block - block.mean(axis=1, keepdims=True)).reshape(-1, x.shape[1])
+    xs /= np.maximum(np.sqrt(np.einsum('ij,ij->i', xs, xs)), 1e-12)[:, None]
+    out = np.empty_like(x)
+    out[order] = xs
+    return out
+
+
 def apply(x: np.ndarray, w: np.ndarray) -> np.ndarray:
     """W x renormalised, for vectors x (..., D) (D, D) -> float32 (..., D)."""
     y = np.asarray(x, np.float32) @ w.T
@@ -47,8 +72,6 @@ def landmark_pairs(a, b, max_cell_distance: int = 1) -> tuple[np.ndarray, np.nda
     """Matching landmarks of two LandmarkSets of one place: each set centred on its own mean, then
     the mutual nearest neighbours by cosine among those at most max_cell_distance cells apart.
     Returns (A (M, D), B (M, D)) float32, row i of A matching row i of B."""
-    from .landmark_index import center  # the index's own centring (it imports this module)
-
     ca, cb = center(a.descriptors), center(b.descriptors)
     if not len(ca) or not len(cb):
         d = ca.shape[1] if ca.ndim == 2 else 0

@@ -278,17 +278,22 @@ class MapStore(abc.ABC):
     def _new_landmark_index(self) -> LandmarkIndex:
         return LandmarkIndex(int(self._model['descriptor_dim']), self.conf, self._model['descriptor_space'])
 
+    def _held_total(self, stored: dict) -> int:
+        """Landmarks the landmark index holds for stored {keyframe id: n} (landmark_index_top)."""
+        return sum(landmark_index.held_count(n, self.conf) for n in stored.values())
+
     def _landmark_problems(self, stored: dict) -> list[str]:
         """Disagreements between the landmark index and stored {keyframe id: n}."""
         if self._landmarks is None:
             return [f'no landmark index but {len(stored)} keyframes'] if stored else []
         held = self._landmarks.keyframe_counts()
-        wrong = sorted(i for i in set(held) | set(stored) if held.get(i) != stored.get(i))
+        want = {i: self._landmarks.held_count(n) for i, n in stored.items()}
+        wrong = sorted(i for i in set(held) | set(want) if held.get(i) != want.get(i))
         if not wrong:
             return []
         return [
             f'landmark index disagrees with the stored keyframes on {len(wrong)} keyframes (e.g. '
-            + ', '.join(f'{i}: {held.get(i, 0)} indexed, {stored.get(i, 0)} stored' for i in wrong[:5])
+            + ', '.join(f'{i}: {held.get(i, 0)} indexed, {want.get(i, 0)} expected' for i in wrong[:5])
             + ')'
         ]
 

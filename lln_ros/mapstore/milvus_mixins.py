@@ -79,12 +79,13 @@ class MilvusLandmarks:
             self._ids.extend(r['id'] for r in good)
         self._ids.sort()
         if kept is None:
-            self._build_landmarks(sum(stored.values()))
+            self._build_landmarks(self._held_total(stored))
             self._landmarks_dirty = self._landmarks.kind != 'exact'
         else:
             held = kept.keyframe_counts()
-            stale = [i for i, c in held.items() if stored.get(i) != c]
-            missing = sorted(i for i, n in stored.items() if held.get(i) != n)
+            want = {i: kept.held_count(n) for i, n in stored.items()}
+            stale = [i for i, c in held.items() if want.get(i) != c]
+            missing = sorted(i for i, n in want.items() if held.get(i) != n)
             kept.remove_keyframes(stale)
             self._index_landmarks(missing)
             self._landmarks_dirty = bool(stale or missing)
@@ -102,7 +103,9 @@ class MilvusLandmarks:
             every = max(1, total // max(1, int(self.conf['landmark_train_points'])))
             pick, parts = self._ids[::every], []
             for start in range(0, len(pick), 512):  # from the read cache (the rows were just read)
-                parts += [index.prepare(s.descriptors) for s in self._fetch(pick[start : start + 512]).values()]
+                parts += [
+                    index.prepare(s.descriptors, held=True) for s in self._fetch(pick[start : start + 512]).values()
+                ]
             index.index = index._compressed(np.concatenate(parts), total)
         self._landmarks = index
         self._index_landmarks(self._ids)

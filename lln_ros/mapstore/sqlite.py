@@ -322,7 +322,7 @@ class SQLiteMapStore(
             if self._landmarks.needs_rebuild():
                 t = time.perf_counter()
                 stored = self._stored_counts()
-                self._landmarks = self._build_landmarks(sum(stored.values()), len(stored))
+                self._landmarks = self._build_landmarks(self._held_total(stored), len(stored))
                 log.info(
                     'map %s: landmark index retrained for %d landmarks (%.1f s)',
                     self.path,

@@ -63,7 +63,7 @@ class SQLiteCatchUp:
             self._landmarks_dirty = self._landmarks_dirty or self._landmarks.kind != 'exact'
             if self._landmarks.needs_rebuild():  # the same retrain the writer's add_many does
                 stored = self._stored_counts()
-                self._landmarks = self._build_landmarks(sum(stored.values()), len(stored))
+                self._landmarks = self._build_landmarks(self._held_total(stored), len(stored))
             self._ids = sorted(self._ids + new)
             log.info('map %s: %d keyframes of another process added to the indexes', self.path, len(new))
         self._data_version = version

@@ -92,7 +92,7 @@ class SQLiteLandmarks:
     def _load_landmarks(self) -> None:
         self._unindexed: set[int] = set(self._quarantined)  # damaged at open: never indexed or answered
         stored = self._stored_counts()
-        total = sum(stored.values())
+        total = self._held_total(stored)
         index, why = None, 'missing'
         if total > self.conf['landmark_index_threshold'] and os.path.exists(self.landmark_path):
             try:
@@ -105,8 +105,9 @@ class SQLiteLandmarks:
                 index, why = None, str(e)
         if index is not None:
             held = index.keyframe_counts()
-            stale = [i for i, c in held.items() if stored.get(i) != c]
-            missing = [i for i, n in stored.items() if held.get(i) != n]
+            want = {i: index.held_count(n) for i, n in stored.items()}
+            stale = [i for i, c in held.items() if want.get(i) != c]
+            missing = [i for i, n in want.items() if held.get(i) != n]
             index.remove_keyframes(stale)
             for kf, cells, desc in self._landmark_rows(missing):
                 index.add(desc, kf, cells)
@@ -141,7 +142,7 @@ class SQLiteLandmarks:
         if total > self.conf['landmark_index_threshold']:
             # train on a sample of keyframes, then stream every landmark in: never all of them as float32
             every = max(1, int(total // max(1, self.conf['landmark_train_points'])))
-            sample = np.concatenate([index.prepare(d, kf) for kf, _, d in self._landmark_rows(every=every)])
+            sample = np.concatenate([index.prepare(d, kf, held=True) for kf, _, d in self._landmark_rows(every=every)])
             index.index = index._compressed(sample, total)
             del sample
         for kf, cells, desc in self._landmark_rows():
