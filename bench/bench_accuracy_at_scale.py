@@ -3,7 +3,8 @@
     python bench/bench_accuracy_at_scale.py [--sizes 0,10000,100000] [--data /work/shared/data]
                                             [--cache cache/features] [--sequence 10] [--dir /tmp/lln_scale]
                                             [--landmark-knn K] [--landmark-alpha A] [--landmark-query-top N]
-                                            [--landmark-index-top N]
+                                            [--landmark-index-top N] [--landmark-compressed KIND]
+                                            [--landmark-refine SQ8]
                                             [--similarity raw|whiten|fuse]
                                             [--sequence-carry 0,10] [--sequence-prefilter-k K] [--prefilter-k K]
                                             [--range 0.7:1]
@@ -32,8 +33,9 @@ takes --prefilter-k too). --prefilter-k: the first-stage candidates a single fra
 matcher's prefilter_k). 'first stage' is the recall of a correct reference in the landmark index's
 shortlist of prefilter_k keyframes (the map's index, as MapStore.query calls it).
 
---landmark-knn / --landmark-alpha / --landmark-query-top / --landmark-index-top: the map's first
-stage (landmark_index.default_conf, as the map store's conf). --similarity: the reranker S on raw
+--landmark-knn / --landmark-alpha / --landmark-query-top / --landmark-index-top /
+--landmark-compressed / --landmark-refine: the map's first stage (landmark_index.default_conf, as
+the map store's conf). --similarity: the reranker S on raw
 sets (the default), on centred and whitened sets ('whiten'), or raw + fusion_weight x whitened
 ('fuse'): the matcher's `similarity` (docs/method.md).
 
@@ -143,6 +145,12 @@ def main(argv=None) -> int:
         help="first stage: each keyframe's landmarks (best first) the index holds (0 = all)",
     )
     ap.add_argument(
+        '--landmark-compressed',
+        default=retrieval_conf['landmark_compressed'],
+        help='first stage: the landmark index kind above its threshold (landmark_index.COMPRESSED)',
+    )
+    ap.add_argument('--landmark-refine', default=retrieval_conf['landmark_refine'], help="ivfpq-fs-refine's codes")
+    ap.add_argument(
         '--landmark-alpha',
         type=float,
         default=retrieval_conf['landmark_alpha'],
@@ -180,6 +188,8 @@ def main(argv=None) -> int:
         'landmark_alpha': args.landmark_alpha,
         'landmark_query_top': args.landmark_query_top,
         'landmark_index_top': args.landmark_index_top,
+        'landmark_compressed': args.landmark_compressed,
+        'landmark_refine': args.landmark_refine,
     }
     data = Path(args.data)
     if not (data / 'nordland_trimmed' / 'summer').is_dir():
@@ -246,7 +256,10 @@ def table(rows, args, used, rate) -> str:
     k = args.prefilter_k
     lines = [
         f'Nordland summer refs {args.range}, winter queries, tol 1: lln / lln+seq (L={args.sequence}) P@100%R',
-        f'first stage: landmark_knn {args.landmark_knn}, landmark_alpha {args.landmark_alpha:g}; S: {args.similarity}; '
+        f'first stage: landmark_knn {args.landmark_knn}, landmark_alpha {args.landmark_alpha:g}, query top '
+        f'{args.landmark_query_top}, index top {args.landmark_index_top}, {args.landmark_compressed}'
+        + (f' {args.landmark_refine}' if args.landmark_compressed == 'ivfpq-fs-refine' else '')
+        + f'; S: {args.similarity}; '
         f'sequence_carry {args.sequence_carry}, prefilter_k {args.prefilter_k}, '
         f'sequence_prefilter_k {args.sequence_prefilter_k}',
         f'distractors used: {used}',

@@ -2,7 +2,7 @@
 
     python bench/bench_landmark_index.py [--keyframes 100000] [--cache out/real_landmarks.npz]
                                          [--augment 1] [--queries 500] [--knn 20] [--nprobe 8,16,32]
-                                         [--index-top N] [--query-top N] [--refine SQ8] [--k-factor 8]
+                                         [--index-top 0,25] [--query-top N] [--refine SQ8] [--k-factor 8]
 
 The map: the landmark sets (n=50, the default extractor: efficientnet_lite0/stage6, D=192) of every
 image of every real dataset in ../shared/data (nordland_trimmed summer + winter, rtabmap_loop,
@@ -22,8 +22,9 @@ LandmarkIndex.prepare -- centred per set (landmark_center), then whitened with t
 shipped W (landmark_whitening)), at knn (the first stage's k) and 1, per --kinds x --nprobe, with the
 search time per query set (50 landmarks, or its best --query-top; one call, 1 thread) of each
 (ivfpq-fs-refine: with its re-ranking of landmark_k_factor x knn candidates, --k-factor, on --refine
-codes). --index-top N: the map holds each set's best N landmarks (landmark_index_top, centred on all
-50), --keyframes x N in all; --query-top N: each query set's best N search (landmark_query_top).
+codes). --index-top N[,M]: the map holds each set's best N landmarks (landmark_index_top, centred on
+all 50), --keyframes x N in all (a map per value, the same queries); --query-top N: each query set's
+best N search (landmark_query_top).
 """
 
 from __future__ import annotations
@@ -213,57 +214,61 @@ def index_recall(args, data: dict) -> list[dict]:
         x = shipped.prepare(x, np.repeat(np.arange(len(sets)), sets.shape[1]))
         return x[np.tile(np.arange(sets.shape[1]) < (top or sets.shape[1]), len(sets))]
 
-    rng = np.random.default_rng(1)
-    real = held(data['descriptors'], args.index_top)
-    total = max(len(real), args.keyframes * min(50, args.index_top or 50))
-    x = grow(real, total, args.noise, rng)
-    ids = np.arange(len(x), dtype=np.int64)
-    qsets = data['query_descriptors'][rng.permutation(len(data['query_descriptors']))[: args.queries]]
-    q = held(qsets, args.query_top)
-    t = time.perf_counter()
-    ex_s, ex_i = exact_knn(x, q, args.knn)
-    exact_s = time.perf_counter() - t
-    print(
-        f'map: {len(x):,} landmarks ({len(real):,} real, of {len(data["source"]):,} images x '
-        f'{1 + int(data["augs"])} views); {len(q):,} query landmarks ({len(qsets)} sets); exact search '
-        f'{exact_s / len(qsets) * 1000:.0f} ms per set; median cosine of the exact 1st / {args.knn}th '
-        f'neighbour {np.median(ex_s[:, 0]):.3f} / {np.median(ex_s[:, -1]):.3f}; whitening '
-        f'{"on" if shipped.whitening is not None else "off"}, centring {shipped.conf["landmark_center"]}',
-        flush=True,
-    )
     rows = []
-    for kind in args.kinds.split(','):
-        conf = {'landmark_compressed': kind, 'landmark_index_threshold': 0, 'landmark_pq_m': args.pq_m}
-        conf['landmark_refine'] = args.refine or conf.get('landmark_refine', shipped.conf['landmark_refine'])
-        if args.k_factor:
-            conf['landmark_k_factor'] = args.k_factor
-        # x is already what the index holds (held()): no centring, no whitening (no descriptor space)
-        index = LandmarkIndex(x.shape[1], {**conf, 'landmark_center': False})
+    pick = np.random.default_rng(2).permutation(len(data['query_descriptors']))[: args.queries]
+    qsets = data['query_descriptors'][pick]  # the same queries for every index top
+    q = held(qsets, args.query_top)
+    for index_top in (int(t) for t in str(args.index_top).split(',')):
+        rng = np.random.default_rng(1)
+        real = held(data['descriptors'], index_top)
+        total = max(len(real), args.keyframes * min(50, index_top or 50))
+        x = grow(real, total, args.noise, rng)
+        ids = np.arange(len(x), dtype=np.int64)
         t = time.perf_counter()
-        index.build(x, ids)
-        build_s = time.perf_counter() - t
-        nbytes = len(faiss.serialize_index(index.index)) + (len(index.refine.to_bytes()) if index.refine else 0)
-        for nprobe in (int(v) for v in args.nprobe.split(',')):
-            index.index.nprobe = nprobe or index.nprobe()  # 0: the kind's default
-            index.search_prepared(q[:50], args.knn)  # warm
+        ex_s, ex_i = exact_knn(x, q, args.knn)
+        exact_s = time.perf_counter() - t
+        print(
+            f'map (index top {index_top or "all"}): {len(x):,} landmarks ({len(real):,} real, of '
+            f'{len(data["source"]):,} images x '
+            f'{1 + int(data["augs"])} views); {len(q):,} query landmarks ({len(qsets)} sets); exact search '
+            f'{exact_s / len(qsets) * 1000:.0f} ms per set; median cosine of the exact 1st / {args.knn}th '
+            f'neighbour {np.median(ex_s[:, 0]):.3f} / {np.median(ex_s[:, -1]):.3f}; whitening '
+            f'{"on" if shipped.whitening is not None else "off"}, centring {shipped.conf["landmark_center"]}',
+            flush=True,
+        )
+        for kind in args.kinds.split(','):
+            conf = {'landmark_compressed': kind, 'landmark_index_threshold': 0, 'landmark_pq_m': args.pq_m}
+            conf['landmark_refine'] = args.refine or conf.get('landmark_refine', shipped.conf['landmark_refine'])
+            if args.k_factor:
+                conf['landmark_k_factor'] = args.k_factor
+            # x is already what the index holds (held()): no centring, no whitening (no descriptor space)
+            index = LandmarkIndex(x.shape[1], {**conf, 'landmark_center': False})
             t = time.perf_counter()
-            _, got = index.search_prepared(q, args.knn)  # all query landmarks in one call
-            ms = (time.perf_counter() - t) / len(qsets) * 1000
-            hit_k = np.mean([len(set(a) & set(b)) / args.knn for a, b in zip(got, ex_i)])
-            hit_1 = float(np.mean(got[:, 0] == ex_i[:, 0]))
-            rows.append(
-                {
-                    'kind': kind + (f' {index.refine.qtype}' if index.refine else ''),
-                    'nprobe': int(index.index.nprobe),
-                    'lists': int(index.index.nlist),
-                    'recall@1': hit_1,
-                    f'recall@{args.knn}': float(hit_k),
-                    'ms_per_set': ms,
-                    'build_s': build_s,
-                    'bytes_per_landmark': nbytes / len(x),
-                }
-            )
-            print(rows[-1], flush=True)
+            index.build(x, ids)
+            build_s = time.perf_counter() - t
+            nbytes = len(faiss.serialize_index(index.index)) + (len(index.refine.to_bytes()) if index.refine else 0)
+            for nprobe in (int(v) for v in args.nprobe.split(',')):
+                index.index.nprobe = nprobe or index.nprobe()  # 0: the kind's default
+                index.search_prepared(q[:50], args.knn)  # warm
+                t = time.perf_counter()
+                _, got = index.search_prepared(q, args.knn)  # all query landmarks in one call
+                ms = (time.perf_counter() - t) / len(qsets) * 1000
+                hit_k = np.mean([len(set(a) & set(b)) / args.knn for a, b in zip(got, ex_i)])
+                hit_1 = float(np.mean(got[:, 0] == ex_i[:, 0]))
+                rows.append(
+                    {
+                        'kind': kind + (f' {index.refine.qtype}' if index.refine else ''),
+                        'index_top': index_top,
+                        'nprobe': int(index.index.nprobe),
+                        'lists': int(index.index.nlist),
+                        'recall@1': hit_1,
+                        f'recall@{args.knn}': float(hit_k),
+                        'ms_per_set': ms,
+                        'build_s': build_s,
+                        'bytes_per_landmark': nbytes / len(x),
+                    }
+                )
+                print(rows[-1], flush=True)
     return rows
 
 
@@ -341,7 +346,7 @@ def main(argv=None) -> int:
     ap.add_argument('--k-factor', type=int, default=0, help='ivfpq-fs-refine shortlist factor (0 = the default)')
     ap.add_argument('--refine', default='', help="ivfpq-fs-refine re-ranking codes (SQ6|SQ8|...; '' = the default)")
     ap.add_argument(
-        '--index-top', type=int, default=0, help="each map set's best N landmarks held (landmark_index_top)"
+        '--index-top', default='0', help="each map set's best N landmarks held (landmark_index_top; N,M: a map each)"
     )
     ap.add_argument(
         '--query-top', type=int, default=0, help="each query set's best N landmarks search (landmark_query_top)"
@@ -365,11 +370,15 @@ def main(argv=None) -> int:
     rows = index_recall(args, data)
     print(f'load average {", ".join(f"{v:.2f}" for v in os.getloadavg())}, 1 thread')
     per = min(50, args.query_top or 50)
-    print(f'| index | lists | nprobe | recall@1 | recall@{args.knn} | search ms / {per} landmarks | bytes / landmark |')
-    print('|---|---|---|---|---|---|---|')
+    print(
+        f'| index top | index | lists | nprobe | recall@1 | recall@{args.knn} | search ms / {per} landmarks '
+        '| bytes / landmark |'
+    )
+    print('|---|---|---|---|---|---|---|---|')
     for r in rows:
         print(
-            f'| {r["kind"]} | {r["lists"]} | {r["nprobe"]} | {r["recall@1"]:.3f} | {r[f"recall@{args.knn}"]:.3f} '
+            f'| {r["index_top"] or "all"} | {r["kind"]} | {r["lists"]} | {r["nprobe"]} | {r["recall@1"]:.3f} '
+            f'| {r[f"recall@{args.knn}"]:.3f} '
             f'| {r["ms_per_set"]:.1f} | {r["bytes_per_landmark"]:.0f} |'
         )
     return 0

