@@ -86,8 +86,10 @@ default_conf = {
     # (bench_frame_to_answer.py, quiet p50, two passes): 37.9 / 34.7, 36.6 / 31.5, 30.4 / 27.7 ms.
     'landmark_query_top': 25,
     # Landmarks of each keyframe (its best by score, after centring on all of them) the index holds;
-    # 0 = all. The rerank still uses every stored landmark. Fewer per keyframe: a smaller index
-    # (memory, scan time) that leaves room for finer re-ranking codes (docs/benchmarks.md).
+    # 0 = all. The rerank still uses every stored landmark. 25 at 100k keyframes: half the search
+    # (5.6 vs 10.5 ms per 50 query landmarks) and memory, recall@1 0.609 vs 0.684; with SQ8 refine
+    # codes (583 MB) 0.913 at nprobe 128 (bench_landmark_index --index-top 0,25). Validation part in
+    # a 10k map: lln 0.168 -> 0.182, lln+seq 0.930 -> 0.922 (ivfpq-fs); docs/benchmarks.md.
     'landmark_index_top': 0,
     # Centre each keyframe's landmarks (and the query's) on their own mean before indexing, then
     # renormalise: what all landmarks of one image share (snow, dusk, the camera's colour) is the
