@@ -3,6 +3,7 @@
     python bench/bench_frame_to_answer.py [--sizes 1000,10000,100000] [--frames 60] [--threads 2]
                                           [--runtimes onnxruntime,onnxruntime-int8]
                                           [--prefilter-k K] [--landmark-query-top N[,M..]]
+                                          [--landmark-index KIND[:TOP[:REFINE]][,...]]
                                           [--sequence 0 [--sequence-prefilter-k K]]
                                           [--dir /tmp/lln_bench_f2a] [--json]
 
@@ -21,7 +22,8 @@ says the map still answers.
 Each size is measured twice in one run, quiet (no process of ours besides this one) and beside one
 competing CPU-bound process this script starts and stops, for each --runtimes entry (the
 extractor's runtime; the map is built with the first) and each --landmark-query-top value (q-top,
-on the same map): p50 / p90 / p99 wall ms per frame, the
+on the same map) and each --landmark-index entry (the map's landmark index kind, landmark_index_top
+and refine codes: the map is reopened and its index rebuilt for each): p50 / p90 / p99 wall ms per frame, the
 CPU ms per frame (process time, all threads), and the p50 of each stage. The load average at the
 start of each row is printed: on a shared machine "quiet" means "nothing else of ours".
 """
@@ -118,6 +120,12 @@ def main(argv=None) -> int:
         help="the map's landmark_query_top (query landmarks that search the landmark index; 0 = all); "
         'several, comma-separated: rows for each on the same map',
     )
+    ap.add_argument(
+        '--landmark-index',
+        default=MAP['landmark_compressed'],
+        help="the map's landmark index, KIND[:INDEX_TOP[:REFINE]], or several (one --sizes): one map, its "
+        'index rebuilt for each (e.g. ivfpq-fs,ivfpq-fs-refine:25:SQ8)',
+    )
     ap.add_argument('--sequence', type=int, default=0, help="the matcher's sequence_length (0 = single frame)")
     ap.add_argument(
         '--sequence-prefilter-k',
@@ -139,37 +147,63 @@ def main(argv=None) -> int:
     views = photo_views(REAL_KEYFRAMES, 384)
     rows = []
     tops = [int(t) for t in args.landmark_query_top.split(',')]
-    map_conf = {'landmark_query_top': tops[0]}
-    with MapStore.open(folder / 'map.db', model=extractor.model_info, conf=map_conf) as store:
-        real_ids = store.add_many(
-            [extractor(v) for v in views], [divmod(T0 + i * 10**8, 10**9) for i in range(len(views))]
-        )
-        queries = query_images(views, args.frames)
-        truth = [real_ids[i % len(views)] for i in range(args.frames)]
-        for size in sizes:
-            grow(store, size, rng)
-            loc = Localizer(
-                store,
-                {
-                    'prefilter_k': args.prefilter_k,
-                    'sequence_length': args.sequence,
-                    'sequence_prefilter_k': args.sequence_prefilter_k,
-                },
-            )
-            loc.query(extractor(queries[0]), T0)  # first query builds what the open left lazy
-            for top, (runtime, ex) in itertools.product(tops, extractors.items()):
-                store._landmarks.conf['landmark_query_top'] = top  # the one map, searched with each value
-                ex(queries[0])  # warm
-                for load in (False, True):
-                    start_load = os.getloadavg()[0]
-                    with competing_load(load):
-                        r = measure(ex, loc, queries, truth)
-                    row = {'keyframes': len(store), 'runtime': ex.model_info['runtime'], 'competing': load}
-                    rows.append({**row, 'query_top': top, 'load_avg': start_load, **r})
+    indexes = [landmark_index_conf(spec) for spec in args.landmark_index.split(',')]
+    if len(indexes) > 1 and len(sizes) > 1:
+        sys.exit('bench_frame_to_answer: several --landmark-index entries need one --sizes')
+    queries, real_ids = query_images(views, args.frames), None
+    for label, index_conf in indexes:
+        # one map: the first entry grows it, each later one reopens it and the store rebuilds the
+        # landmark index its conf asks for (a file of another kind is rebuilt from the stored rows)
+        with MapStore.open(
+            folder / 'map.db', model=extractor.model_info, conf={**index_conf, 'landmark_query_top': tops[0]}
+        ) as store:
+            if real_ids is None:
+                real_ids = store.add_many(
+                    [extractor(v) for v in views], [divmod(T0 + i * 10**8, 10**9) for i in range(len(views))]
+                )
+            truth = [real_ids[i % len(views)] for i in range(args.frames)]
+            rows += measure_sizes(store, sizes, tops, extractors, queries, truth, args, rng, label)
     if args.json:
         print(json.dumps(rows, indent=1))
     print(table(rows, args))
     return 0
+
+
+def landmark_index_conf(spec: str) -> tuple[str, dict]:
+    """('KIND[:TOP[:REFINE]]', the map conf it names): --landmark-index's entries."""
+    kind, top, refine = (spec.split(':') + ['', ''])[:3]
+    conf = {'landmark_compressed': kind or MAP['landmark_compressed'], 'landmark_index_top': int(top or 0)}
+    conf['landmark_refine'] = refine or MAP['landmark_refine']
+    label = conf['landmark_compressed'] + (
+        f' {conf["landmark_refine"]}' if conf['landmark_compressed'] == 'ivfpq-fs-refine' else ''
+    )
+    return label + (f' top {conf["landmark_index_top"]}' if conf['landmark_index_top'] else ''), conf
+
+
+def measure_sizes(store, sizes, tops, extractors, queries, truth, args, rng, label: str) -> list[dict]:
+    """The rows of one map (module doc): each size it grows to x query top x runtime, quiet and busy."""
+    rows = []
+    for size in sizes:
+        grow(store, size, rng)
+        loc = Localizer(
+            store,
+            {
+                'prefilter_k': args.prefilter_k,
+                'sequence_length': args.sequence,
+                'sequence_prefilter_k': args.sequence_prefilter_k,
+            },
+        )
+        loc.query(next(iter(extractors.values()))(queries[0]), T0)  # first query builds what the open left lazy
+        for top, (runtime, ex) in itertools.product(tops, extractors.items()):
+            store._landmarks.conf['landmark_query_top'] = top  # the one map, searched with each value
+            ex(queries[0])  # warm
+            for load in (False, True):
+                start_load = os.getloadavg()[0]
+                with competing_load(load):
+                    r = measure(ex, loc, queries, truth)
+                row = {'keyframes': len(store), 'runtime': ex.model_info['runtime'], 'competing': load}
+                rows.append({**row, 'index': label, 'query_top': top, 'load_avg': start_load, **r})
+    return rows
 
 
 def table(rows: list[dict], args) -> str:
@@ -179,19 +213,19 @@ def table(rows: list[dict], args) -> str:
         + (f' (sequence_prefilter_k {args.sequence_prefilter_k})' if args.sequence else '')
         + ', '
         f'{args.frames} frames per row ({os.cpu_count()} cores)',
-        f'{"keyframes":>9} {"runtime":>16} {"q-top":>5} {"beside":>10} {"load":>5} '
+        f'{"keyframes":>9} {"landmark index":>28} {"runtime":>16} {"q-top":>5} {"beside":>10} {"load":>5} '
         f'{"p50 ms":>7} {"p90 ms":>7} {"p99 ms":>7} {"cpu ms":>7} {"extract":>8} {"query":>7} '
         f'{"top-1":>6} {"p50/quiet":>9}',
     ]
-    quiet = {(r['keyframes'], r['runtime'], r['query_top']): r['p50'] for r in rows if not r['competing']}
+    quiet = {(r['index'], r['keyframes'], r['runtime'], r['query_top']): r['p50'] for r in rows if not r['competing']}
     for r in rows:
         lines.append(
-            f'{r["keyframes"]:>9} {r["runtime"]:>16} {r["query_top"]:>5} '
+            f'{r["keyframes"]:>9} {r["index"]:>28} {r["runtime"]:>16} {r["query_top"]:>5} '
             f'{"1 busy" if r["competing"] else "nothing":>10} '
             f'{r["load_avg"]:>5.1f} '
             f'{r["p50"]:>7.1f} {r["p90"]:>7.1f} {r["p99"]:>7.1f} {r["cpu_ms_p50"]:>7.1f} '
             f'{r["extract_ms_p50"]:>8.1f} {r["query_ms_p50"]:>7.1f} {r["top1"]:>6.2f} '
-            f'{r["p50"] / quiet[r["keyframes"], r["runtime"], r["query_top"]]:>9.2f}'
+            f'{r["p50"] / quiet[r["index"], r["keyframes"], r["runtime"], r["query_top"]]:>9.2f}'
         )
     return '\n'.join(lines)
 
