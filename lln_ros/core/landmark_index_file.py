@@ -1,8 +1,9 @@
 """The landmark index file (LandmarkIndex.write / LandmarkIndex.read): MAGIC, a 4-byte header
 length, a JSON header (the owner's fields plus D, kind, landmark count, training size, centring,
 whitening fingerprint, refine codes and the CRC-32 of what follows), the FAISS index, then for
-'ivfpq-fs-refine' its refine codes. A file of another kind, centring, whitening or landmark_index_top than the conf
-asks for is refused with a MapError, and its owner (a map store) rebuilds it."""
+'ivfpq-fs-refine' its refine codes. A file of another kind, centring, whitening or
+landmark_index_top than the conf asks for is refused with a MapError, and its owner (a map store)
+rebuilds it."""
 
 from __future__ import annotations
 

@@ -77,8 +77,8 @@ class RefineCodes:
         self._sort()
         ids = np.asarray(ids, np.int64)
         flat = ids.reshape(-1)
-        # looked up in sorted order: numpy's binary search starts each key where the last ended, so
-        # 8,000 keys in 2.5M ids take ~1 ms instead of ~4 (random order misses the cache every step)
+        # looked up in sorted order: numpy's binary search starts each key where the last one ended
+        # and stays in cache, 3.2 ms instead of 5.8 for 8,000 keys in 2.5M ids (a scratch timing)
         order = np.argsort(flat, kind='stable')
         pos = np.empty(len(flat), np.int64)
         pos[order] = np.minimum(np.searchsorted(self.ids, flat[order]), max(self.n - 1, 0))

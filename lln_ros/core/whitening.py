@@ -6,12 +6,12 @@ change between visits (season, light) are shrunk before the landmark index compa
     save(path, W, meta); W, meta = load(path)
     W = shipped('efficientnet_lite0/stage6/192')   # the package's, or None for another space
 
-Why: centring (center, conf['landmark_center'] of the index) removes what all landmarks of one image share, but winter
-views of other places still outscore a summer view of the same place in a large map
-(docs/benchmarks.md, Accuracy at scale). The supervised whitening of Radenovic et al. (fine-tuning
-CNN image retrieval, TPAMI 2019; "Lw") takes the covariance C_S of the differences between matching
-descriptors and maps x -> C_S^(-beta) x: a direction in which matching landmarks differ much counts
-less. Here the matches are mutual nearest centred landmarks, at most one grid cell apart, of
+Why: centring (center below, the index's conf['landmark_center']) removes what all landmarks of one
+image share, but winter views of other places still outscore a summer view of the same place in a
+large map (docs/benchmarks.md, Accuracy at scale). The supervised whitening of Radenovic et al.
+(fine-tuning CNN image retrieval, TPAMI 2019; "Lw") takes the covariance C_S of the differences
+between matching descriptors and maps x -> C_S^(-beta) x: a direction in which matching landmarks
+differ much counts less. Here the matches are mutual nearest centred landmarks, at most one grid cell apart, of
 ground-truth image pairs of the training data. beta = 0.5 (the full whitening) was chosen on the
 Nordland validation part 0.6:0.7 among 8,927 real distractors (first stage alone, top 100; 0.25,
 0.5, 0.75 and 1.0 tried): R@1 0.104 -> 0.182, R@100 0.546 -> 0.672.
