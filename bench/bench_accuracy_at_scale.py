@@ -35,9 +35,9 @@ shortlist of prefilter_k keyframes (the map's index, as MapStore.query calls it)
 
 --landmark-knn / --landmark-alpha / --landmark-query-top / --landmark-index-top /
 --landmark-compressed / --landmark-refine: the map's first stage (landmark_index.default_conf, as
-the map store's conf). --similarity: the reranker S on raw
-sets (the default), on centred and whitened sets ('whiten'), or raw + fusion_weight x whitened
-('fuse'): the matcher's `similarity` (docs/method.md).
+the map store's conf). --similarity: the reranker S on raw sets (the default), on centred and
+whitened sets ('whiten'), or raw + fusion_weight x whitened ('fuse'): the matcher's `similarity`
+(docs/method.md).
 
 Skips (exit 0, message) when --data is absent.
 """

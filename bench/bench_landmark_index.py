@@ -205,14 +205,15 @@ def index_recall(args, data: dict) -> list[dict]:
 
     from lln_ros.core.landmark_index import LandmarkIndex
 
-    shipped = LandmarkIndex(data['descriptors'].shape[-1], {}, descriptor_space(data))
+    space = descriptor_space(data)
+    shipped = LandmarkIndex(data['descriptors'].shape[-1], {}, space)
 
     def held(sets: np.ndarray, top: int) -> np.ndarray:
-        """sets (S, n, D) as the shipped index holds them (LandmarkIndex.prepare, one keyframe per set,
-        centred on all n), the first `top` of each (its best by score; 0 = all): (S*min(n, top), D)."""
+        """sets (S, n, D) as an index of landmark_index_top `top` holds them (LandmarkIndex.prepare with
+        held=True: one keyframe per set, centred on all n, its first `top`; 0 = all): (S*min(n, top), D)."""
         x = unit(sets.reshape(-1, sets.shape[-1]).astype(np.float32))
-        x = shipped.prepare(x, np.repeat(np.arange(len(sets)), sets.shape[1]))
-        return x[np.tile(np.arange(sets.shape[1]) < (top or sets.shape[1]), len(sets))]
+        index = LandmarkIndex(sets.shape[-1], {'landmark_index_top': top}, space)
+        return index.prepare(x, np.repeat(np.arange(len(sets)), sets.shape[1]), held=True)
 
     rows = []
     pick = np.random.default_rng(2).permutation(len(data['query_descriptors']))[: args.queries]
@@ -238,7 +239,8 @@ def index_recall(args, data: dict) -> list[dict]:
         )
         for kind in args.kinds.split(','):
             conf = {'landmark_compressed': kind, 'landmark_index_threshold': 0, 'landmark_pq_m': args.pq_m}
-            conf['landmark_refine'] = args.refine or conf.get('landmark_refine', shipped.conf['landmark_refine'])
+            if args.refine:
+                conf['landmark_refine'] = args.refine
             if args.k_factor:
                 conf['landmark_k_factor'] = args.k_factor
             # x is already what the index holds (held()): no centring, no whitening (no descriptor space)
