@@ -52,7 +52,9 @@ def center_sets(descriptors: np.ndarray, valid: np.ndarray) -> np.ndarray:
     as landmark_index.center does; padded rows stay as given (they are never matched)."""
     x = np.asarray(descriptors, np.float32)
     count = valid.sum(axis=1)  # (K,)
-    mean = np.einsum('knd,kn->kd', x, valid.astype(np.float32)) / np.maximum(count, 1)[:, None]
+    # a float32 divisor: an int64 one made the mean, and everything after it, float64 (7x slower:
+    # 3.9 vs 0.55 ms for 30 candidates of 50 landmarks, and a float64 cross_match after it)
+    mean = np.einsum('knd,kn->kd', x, valid.astype(np.float32)) / np.maximum(count, 1).astype(np.float32)[:, None]
     mean[count < 2] = 0.0
     out = x - mean[:, None, :]
     out /= np.maximum(np.linalg.norm(out, axis=2, keepdims=True), 1e-12)
