@@ -4,7 +4,7 @@
                                             [--cache cache/features] [--sequence 10] [--dir /tmp/lln_scale]
                                             [--landmark-knn K] [--landmark-alpha A] [--landmark-query-top N]
                                             [--landmark-index-top N] [--landmark-compressed KIND]
-                                            [--landmark-refine SQ8]
+                                            [--landmark-refine SQ8] [--landmark-nprobe N] [--landmark-k-factor K]
                                             [--similarity raw|whiten|fuse]
                                             [--sequence-carry 0,10] [--sequence-prefilter-k K] [--prefilter-k K]
                                             [--range 0.7:1]
@@ -34,10 +34,10 @@ matcher's prefilter_k). 'first stage' is the recall of a correct reference in th
 shortlist of prefilter_k keyframes (the map's index, as MapStore.query calls it).
 
 --landmark-knn / --landmark-alpha / --landmark-query-top / --landmark-index-top /
---landmark-compressed / --landmark-refine: the map's first stage (landmark_index.default_conf, as
-the map store's conf). --similarity: the reranker S on raw sets (the default), on centred and
-whitened sets ('whiten'), or raw + fusion_weight x whitened ('fuse'): the matcher's `similarity`
-(docs/method.md).
+--landmark-compressed / --landmark-refine / --landmark-nprobe / --landmark-k-factor: the map's first
+stage (landmark_index.default_conf, as the map store's conf). --similarity: the reranker S on raw
+sets (the default), on centred and whitened sets ('whiten'), or raw + fusion_weight x whitened
+('fuse'): the matcher's `similarity` (docs/method.md).
 
 Skips (exit 0, message) when --data is absent.
 """
@@ -151,6 +151,15 @@ def main(argv=None) -> int:
     )
     ap.add_argument('--landmark-refine', default=retrieval_conf['landmark_refine'], help="ivfpq-fs-refine's codes")
     ap.add_argument(
+        '--landmark-nprobe', type=int, default=retrieval_conf['landmark_nprobe'], help="IVF cells probed (0: kind's)"
+    )
+    ap.add_argument(
+        '--landmark-k-factor',
+        type=int,
+        default=retrieval_conf['landmark_k_factor'],
+        help="ivfpq-fs-refine's shortlist factor",
+    )
+    ap.add_argument(
         '--landmark-alpha',
         type=float,
         default=retrieval_conf['landmark_alpha'],
@@ -190,6 +199,8 @@ def main(argv=None) -> int:
         'landmark_index_top': args.landmark_index_top,
         'landmark_compressed': args.landmark_compressed,
         'landmark_refine': args.landmark_refine,
+        'landmark_nprobe': args.landmark_nprobe,
+        'landmark_k_factor': args.landmark_k_factor,
     }
     data = Path(args.data)
     if not (data / 'nordland_trimmed' / 'summer').is_dir():
@@ -258,8 +269,12 @@ def table(rows, args, used, rate) -> str:
         f'Nordland summer refs {args.range}, winter queries, tol 1: lln / lln+seq (L={args.sequence}) P@100%R',
         f'first stage: landmark_knn {args.landmark_knn}, landmark_alpha {args.landmark_alpha:g}, query top '
         f'{args.landmark_query_top}, index top {args.landmark_index_top}, {args.landmark_compressed}'
-        + (f' {args.landmark_refine}' if args.landmark_compressed == 'ivfpq-fs-refine' else '')
-        + f'; S: {args.similarity}; '
+        + (
+            f' {args.landmark_refine} k_factor {args.landmark_k_factor}'
+            if args.landmark_compressed == 'ivfpq-fs-refine'
+            else ''
+        )
+        + f', nprobe {args.landmark_nprobe or "default"}; S: {args.similarity}; '
         f'sequence_carry {args.sequence_carry}, prefilter_k {args.prefilter_k}, '
         f'sequence_prefilter_k {args.sequence_prefilter_k}',
         f'distractors used: {used}',

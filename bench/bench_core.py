@@ -275,6 +275,10 @@ def run(repeats: int, threads: int) -> dict:
         per_call = median_time(lambda: match_batch(q, batch), repeats * 3)
         result[f'match_us_per_pair_{key}'] = per_call / len(batch) * 1e6
         result[f'n_{key}'] = len(q)
+    q, batch = prepared['lln_50']
+    for center in ('whiten', 'fuse'):  # the matcher's `similarity` options that cost more than raw S
+        per_call = median_time(lambda: match_batch(q, batch, center=center), repeats * 3)
+        result[f'match_us_per_pair_lln_50_{center}'] = per_call / len(batch) * 1e6
     sets = [q]
     globals_ = batch.globals
     gq = q.global_descriptor
@@ -299,6 +303,14 @@ def table(r: dict) -> str:
             f'match LLN n={r["n_lln_75"]}, per pair (30 batched)',
             f'{r["match_us_per_pair_lln_75"]:.0f} us',
             f'{PAPER_MS["lln_75"]} ms',
+        ),
+        *(
+            (
+                f'match LLN n={r["n_lln_50"]}, S {center}, per pair (30 batched)',
+                f'{r[f"match_us_per_pair_lln_50_{center}"]:.0f} us',
+                '-',
+            )
+            for center in ('whiten', 'fuse')
         ),
         (
             f'match ALL n={r["n_all"]}, per pair (30 batched)',

@@ -3,7 +3,7 @@
     python bench/bench_frame_to_answer.py [--sizes 1000,10000,100000] [--frames 60] [--threads 2]
                                           [--runtimes onnxruntime,onnxruntime-int8]
                                           [--prefilter-k K] [--landmark-query-top N[,M..]]
-                                          [--landmark-index KIND[:TOP[:REFINE]][,...]]
+                                          [--landmark-index KIND[:TOP[:REFINE[:NPROBE[:K]]]][,...]]
                                           [--sequence 0 [--sequence-prefilter-k K]]
                                           [--dir /tmp/lln_bench_f2a] [--json]
 
@@ -123,8 +123,8 @@ def main(argv=None) -> int:
     ap.add_argument(
         '--landmark-index',
         default=MAP['landmark_compressed'],
-        help="the map's landmark index, KIND[:INDEX_TOP[:REFINE]], or several (one --sizes): one map, its "
-        'index rebuilt for each (e.g. ivfpq-fs,ivfpq-fs-refine:25:SQ8)',
+        help="the map's landmark index, KIND[:INDEX_TOP[:REFINE[:NPROBE[:K_FACTOR]]]], or several (one --sizes): "
+        'one map, its index rebuilt for each (e.g. ivfpq-fs,ivfpq-fs-refine:25:SQ8:32:4)',
     )
     ap.add_argument('--sequence', type=int, default=0, help="the matcher's sequence_length (0 = single frame)")
     ap.add_argument(
@@ -170,14 +170,18 @@ def main(argv=None) -> int:
 
 
 def landmark_index_conf(spec: str) -> tuple[str, dict]:
-    """('KIND[:TOP[:REFINE]]', the map conf it names): --landmark-index's entries."""
-    kind, top, refine = (spec.split(':') + ['', ''])[:3]
+    """(label, the map conf it names) of a --landmark-index entry KIND[:TOP[:REFINE[:NPROBE[:K]]]]
+    (empty or 0 fields: the defaults; K: ivfpq-fs-refine's landmark_k_factor)."""
+    kind, top, refine, nprobe, k_factor = (spec.split(':') + [''] * 4)[:5]
     conf = {'landmark_compressed': kind or MAP['landmark_compressed'], 'landmark_index_top': int(top or 0)}
     conf['landmark_refine'] = refine or MAP['landmark_refine']
-    label = conf['landmark_compressed'] + (
-        f' {conf["landmark_refine"]}' if conf['landmark_compressed'] == 'ivfpq-fs-refine' else ''
-    )
-    return label + (f' top {conf["landmark_index_top"]}' if conf['landmark_index_top'] else ''), conf
+    conf['landmark_nprobe'] = int(nprobe or MAP['landmark_nprobe'])
+    conf['landmark_k_factor'] = int(k_factor or MAP['landmark_k_factor'])
+    refined = conf['landmark_compressed'] == 'ivfpq-fs-refine'
+    label = conf['landmark_compressed'] + (f' {conf["landmark_refine"]}' if refined else '')
+    label += f' top {conf["landmark_index_top"]}' if conf['landmark_index_top'] else ''
+    label += f' np{conf["landmark_nprobe"]}' if int(nprobe or 0) else ''
+    return label + (f' k{conf["landmark_k_factor"]}' if refined and int(k_factor or 0) else ''), conf
 
 
 def measure_sizes(store, sizes, tops, extractors, queries, truth, args, rng, label: str) -> list[dict]:

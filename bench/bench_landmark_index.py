@@ -2,7 +2,8 @@
 
     python bench/bench_landmark_index.py [--keyframes 100000] [--cache out/real_landmarks.npz]
                                          [--augment 1] [--queries 500] [--knn 20] [--nprobe 8,16,32]
-                                         [--index-top 0,25] [--query-top N] [--refine SQ8] [--k-factor 8]
+                                         [--index-top 0,25] [--query-top N] [--refine SQ8] [--k-factor 4,8]
+                                         [--hnsw 16:SQ8,32:SQ8 --ef 32,64,128]
 
 The map: the landmark sets (n=50, the default extractor: efficientnet_lite0/stage6, D=192) of every
 image of every real dataset in ../shared/data (nordland_trimmed summer + winter, rtabmap_loop,
@@ -21,10 +22,12 @@ product over the same float32 vectors: the real ones prepared as the shipped ind
 LandmarkIndex.prepare -- centred per set (landmark_center), then whitened with the descriptor space's
 shipped W (landmark_whitening)), at knn (the first stage's k) and 1, per --kinds x --nprobe, with the
 search time per query set (50 landmarks, or its best --query-top; one call, 1 thread) of each
-(ivfpq-fs-refine: with its re-ranking of landmark_k_factor x knn candidates, --k-factor, on --refine
+(ivfpq-fs-refine: with its re-ranking of landmark_k_factor x knn candidates, --k-factor N[,M], on --refine
 codes). --index-top N[,M]: the map holds each set's best N landmarks (landmark_index_top, centred on
 all 50), --keyframes x N in all (a map per value, the same queries); --query-top N: each query set's
-best N search (landmark_query_top).
+best N search (landmark_query_top). --hnsw M:CODES: FAISS HNSW graphs over the same map at each --ef,
+built with OMP_NUM_THREADS threads (1 unless set), searched with one (issue 30's HNSW lever; the map
+stores cannot hold one: FAISS's HNSW has no delete).
 """
 
 from __future__ import annotations
@@ -241,16 +244,17 @@ def index_recall(args, data: dict) -> list[dict]:
             conf = {'landmark_compressed': kind, 'landmark_index_threshold': 0, 'landmark_pq_m': args.pq_m}
             if args.refine:
                 conf['landmark_refine'] = args.refine
-            if args.k_factor:
-                conf['landmark_k_factor'] = args.k_factor
             # x is already what the index holds (held()): no centring, no whitening (no descriptor space)
             index = LandmarkIndex(x.shape[1], {**conf, 'landmark_center': False})
             t = time.perf_counter()
             index.build(x, ids)
             build_s = time.perf_counter() - t
             nbytes = len(faiss.serialize_index(index.index)) + (len(index.refine.to_bytes()) if index.refine else 0)
-            for nprobe in (int(v) for v in args.nprobe.split(',')):
+            factors = [int(v) for v in str(args.k_factor).split(',') if int(v)] if index.refine else []
+            for nprobe, k_factor in ((int(n), f) for n in args.nprobe.split(',') for f in factors or [0]):
                 index.index.nprobe = nprobe or index.nprobe()  # 0: the kind's default
+                if k_factor:  # read at search time: the same index re-ranks a shortlist of k_factor x knn
+                    index.conf['landmark_k_factor'] = k_factor
                 index.search_prepared(q[:50], args.knn)  # warm
                 t = time.perf_counter()
                 _, got = index.search_prepared(q, args.knn)  # all query landmarks in one call
@@ -259,7 +263,8 @@ def index_recall(args, data: dict) -> list[dict]:
                 hit_1 = float(np.mean(got[:, 0] == ex_i[:, 0]))
                 rows.append(
                     {
-                        'kind': kind + (f' {index.refine.qtype}' if index.refine else ''),
+                        'kind': kind
+                        + (f' {index.refine.qtype} k{index.conf["landmark_k_factor"]}' if index.refine else ''),
                         'index_top': index_top,
                         'nprobe': int(index.index.nprobe),
                         'lists': int(index.index.nlist),
@@ -271,6 +276,51 @@ def index_recall(args, data: dict) -> list[dict]:
                     }
                 )
                 print(rows[-1], flush=True)
+        rows += hnsw_recall(args, x, q, ex_i, index_top, len(qsets))
+    return rows
+
+
+def hnsw_recall(args, x: np.ndarray, q: np.ndarray, exact_ids: np.ndarray, index_top: int, sets: int) -> list[dict]:
+    """--hnsw M:CODES,...: FAISS HNSW graphs (M links per node, vectors stored as CODES: SQ8, SQ4 or
+    Flat) over the same prepared map x (N, D), searched by q (n, D) at each --ef (efSearch), against
+    the exact ids (n, knn). Not a kind the map stores can hold: FAISS's HNSW cannot delete."""
+    import faiss
+
+    from lln_ros.core.threads import one_faiss_thread
+
+    rows = []
+    for spec in filter(None, args.hnsw.split(',')):
+        m, codes = spec.split(':')
+        t = time.perf_counter()
+        index = faiss.index_factory(x.shape[1], f'HNSW{int(m)},{codes}', faiss.METRIC_INNER_PRODUCT)
+        index.hnsw.efConstruction = 40
+        index.train(x[:: max(1, len(x) // 200_000)])
+        index.add(x)
+        build_s = time.perf_counter() - t
+        nbytes = len(faiss.serialize_index(index))
+        for ef in (int(v) for v in args.ef.split(',')):
+            params = faiss.SearchParametersHNSW(efSearch=ef)
+            index.search(q[:50], args.knn, params=params)  # warm
+            t = time.perf_counter()
+            with one_faiss_thread():
+                _, got = index.search(q, args.knn, params=params)
+            rows.append(
+                {
+                    'kind': f'hnsw M{m} {codes}',
+                    'index_top': index_top,
+                    'nprobe': f'ef {ef}',
+                    'lists': '-',
+                    'recall@1': float(np.mean(got[:, 0] == exact_ids[:, 0])),
+                    f'recall@{args.knn}': float(
+                        np.mean([len(set(a) & set(b)) / args.knn for a, b in zip(got, exact_ids)])
+                    ),
+                    'ms_per_set': (time.perf_counter() - t) / sets * 1000,
+                    'build_s': build_s,
+                    'bytes_per_landmark': nbytes / len(x),
+                }
+            )
+            print(rows[-1], flush=True)
+        del index
     return rows
 
 
@@ -316,8 +366,8 @@ def nordland_first_stage(args, data: dict) -> list[dict]:
         conf = {'landmark_index_threshold': len(x) if kind == 'exact' else 0, 'landmark_nprobe': nprobe}
         if kind != 'exact':
             conf.update({'landmark_compressed': kind, 'landmark_pq_m': args.pq_m})
-            if args.k_factor:
-                conf['landmark_k_factor'] = args.k_factor
+            if int(str(args.k_factor).split(',')[0]):  # --nordland: the first factor given
+                conf['landmark_k_factor'] = int(str(args.k_factor).split(',')[0])
         index = LandmarkIndex(d, conf, space)  # centred and whitened as the shipped index
         index.build(x, ids)
         ranked = np.full((n_q, 100), -1, np.int64)
@@ -345,7 +395,7 @@ def main(argv=None) -> int:
     ap.add_argument('--kinds', default='ivfpq-fs,ivfpq')
     ap.add_argument('--nprobe', default='8,16,32', help='IVF cells probed, each tried (0 = the default of the kind)')
     ap.add_argument('--pq-m', type=int, default=0, help='PQ sub-quantisers (0 = the default of the kind)')
-    ap.add_argument('--k-factor', type=int, default=0, help='ivfpq-fs-refine shortlist factor (0 = the default)')
+    ap.add_argument('--k-factor', default='0', help='ivfpq-fs-refine shortlist factor(s), each tried (0 = the default)')
     ap.add_argument('--refine', default='', help="ivfpq-fs-refine re-ranking codes (SQ6|SQ8|...; '' = the default)")
     ap.add_argument(
         '--index-top', default='0', help="each map set's best N landmarks held (landmark_index_top; N,M: a map each)"
@@ -353,6 +403,10 @@ def main(argv=None) -> int:
     ap.add_argument(
         '--query-top', type=int, default=0, help="each query set's best N landmarks search (landmark_query_top)"
     )
+    ap.add_argument(
+        '--hnsw', default='', help="FAISS HNSW graphs over the same map, M:CODES,... (e.g. 32:SQ8; '' = none)"
+    )
+    ap.add_argument('--ef', default='32,64,128', help='--hnsw: efSearch values, each tried')
     ap.add_argument('--no-exact', dest='exact', action='store_false', help='--nordland: skip the exact row')
     ap.add_argument('--nordland', action='store_true', help='the first stage on the Nordland test split instead')
     args = ap.parse_args(argv)
