@@ -77,7 +77,13 @@ def test_an_index_file_whitened_otherwise_is_rebuilt(tmp_path, caplog, monkeypat
     """A compressed map's landmark file records its whitening; opened where the space has another
     (here: a whitening given to the tests' model), it is refused by name and rebuilt from the map."""
     rng = np.random.default_rng(2)
-    conf = {'landmark_index_threshold': 500, 'landmark_ivf_lists': 8, 'landmark_nprobe': 8}
+    conf = {
+        'landmark_index_threshold': 500,
+        'landmark_ivf_lists': 8,
+        'landmark_nprobe': 8,
+        'landmark_compressed': 'ivfpq-fs',
+        'landmark_index_top': 0,
+    }
     path = str(tmp_path / 'map.db')
     sets = [make_set(rng) for _ in range(20)]
     with MapStore.open(path, model=MODEL, conf=conf) as store:

@@ -35,15 +35,16 @@ keyframe c" is ids < c << 24 (exclude_recent). Grids up to 4096 x 4096 cells, ke
 
 Index type: exact (IndexIDMap2(IndexFlatIP)) up to conf['landmark_index_threshold'] landmarks
 (the switch-over rule, commented in default_conf); above it conf['landmark_compressed']:
-- 'ivfpq-fs-refine': IndexIVFPQFastScan with D/4 sub-quantisers of 4 bits (D/8 bytes per landmark,
-  cheap to scan, so many more IVF cells can be probed: NPROBE) gives a shortlist of
+- 'ivfpq-fs-refine' (the default): IndexIVFPQFastScan with D/4 sub-quantisers of 4 bits (D/8 bytes
+  per landmark, cheap to scan, so many more IVF cells can be probed: NPROBE) gives a shortlist of
   conf['landmark_k_factor'] x k, re-ranked by the cosine on a scalar-quantised copy of every vector
-  (RefineCodes, conf['landmark_refine'], SQ6: 3D/4 bytes): ~185 bytes per landmark with both ids;
-  at 5M landmarks it finds the exact nearest landmark for 0.83 of query landmarks, 'ivfpq-fs' for
-  0.60, which loses them both to its codes and to its partition (16 of 3,760 cells probed), at 1.3x
-  its search time (default_conf);
-- 'ivfpq-fs' (the default): IndexIVFPQFastScan, D sub-quantisers of 4 bits = D/2 bytes per landmark,
-  scanned with SIMD register look-ups; a 100k-keyframe map (5M landmarks) at ~530 MB with ids;
+  (RefineCodes, conf['landmark_refine'], SQ8: D bytes): ~233 bytes per landmark with both ids; with
+  each keyframe's best 25 (landmark_index_top) a 100k-keyframe map is ~583 MB, and it finds the
+  exact nearest landmark for 0.90 of query landmarks, 'ivfpq-fs' with all 50 for 0.68, which loses
+  them both to its codes and to its partition (16 of 3,760 cells probed), at 1.16x its search time
+  (default_conf);
+- 'ivfpq-fs': IndexIVFPQFastScan, D sub-quantisers of 4 bits = D/2 bytes per landmark, scanned
+  with SIMD register look-ups; a 100k-keyframe map (5M landmarks) at ~530 MB with ids;
 - 'ivfpq': IndexIVFPQ, D/4 sub-quantisers of 8 bits = D/4 bytes (the oldest maps' format).
 All are trained on (a sample of) the map's own descriptors, those of the keyframes up to the one
 that crossed the threshold (so the index depends on the keyframe order only, not on how adds were
@@ -86,11 +87,14 @@ default_conf = {
     # (bench_frame_to_answer.py, quiet p50, two passes): 37.9 / 34.7, 36.6 / 31.5, 30.4 / 27.7 ms.
     'landmark_query_top': 25,
     # Landmarks of each keyframe (its best by score, after centring on all of them) the index holds;
-    # 0 = all. The rerank still uses every stored landmark. 25 at 100k keyframes: half the search
-    # (5.6 vs 10.5 ms per 50 query landmarks) and memory, recall@1 0.609 vs 0.684; with SQ8 refine
-    # codes (583 MB) 0.913 at nprobe 128 (bench_landmark_index --index-top 0,25). Validation part in
-    # a 10k map: lln 0.168 -> 0.182, lln+seq 0.930 -> 0.922 (ivfpq-fs); docs/benchmarks.md.
-    'landmark_index_top': 0,
+    # 0 = all. The rerank still uses every stored landmark. 25 (since 2026-12-07, with the SQ8-refined
+    # kind below): half the memory, which pays for the re-ranking codes. At 100k keyframes, 25 query
+    # landmarks: recall@1 of exact search 0.898 in 5.9 ms against 0.682 in 5.1 ms for all 50 in
+    # 'ivfpq-fs' at nprobe 16, the default before (bench_landmark_index --index-top 0,25 --query-top
+    # 25 --k-factor 2,3,4,8 --nprobe 16,24,32,48). Validation part in a 10k map (bench_accuracy_at_scale
+    # --range 0.6:0.7): lln 0.168 -> 0.185, lln+seq 0.930 -> 0.933, first stage R@30 0.549 -> 0.552;
+    # the 357-keyframe map's unchanged (0.462 / 0.950). docs/benchmarks.md, "HNSW, and a cheaper ...".
+    'landmark_index_top': 25,
     # Centre each keyframe's landmarks (and the query's) on their own mean before indexing, then
     # renormalise: what all landmarks of one image share (snow, dusk, the camera's colour) is the
     # condition, not the place. Chosen with tau on Nordland 0.6:0.7 (validation) among 8,927 real
@@ -111,14 +115,15 @@ default_conf = {
     # above the threshold (module doc, Index type): 'ivfpq-fs' (IVF + 4-bit PQ fast-scan), 'ivfpq-fs-refine'
     # (IVF + a coarser 4-bit PQ fast-scan shortlist of landmark_k_factor x knn, re-ranked on
     # landmark_refine codes) or 'ivfpq' (IVF + 8-bit PQ, the oldest format). A file of another kind
-    # than this is rebuilt by its map store. 'ivfpq-fs' stays the default: at 100k keyframes (5M
-    # landmarks, bench/bench_landmark_index.py --keyframes 100000 --augment 1, one run, load 5-6) it
-    # finds the exact top-1 neighbour of 0.602 of query landmarks (top 20: 0.709) in 20.4 ms per 50
-    # landmarks at 106 bytes each; 'ivfpq-fs-refine' 0.829 (0.804) in 27.1 ms at nprobe 64, 0.863
-    # (0.831) in 35.6 ms at 128, at 185 bytes (925 MB at 5M): more recall, but not issue #30's 0.9 and
-    # not at today's cost; on the Nordland test split both give the exact first stage's R@K within
-    # 0.01 (--nordland), so the first stage does not need it yet.
-    'landmark_compressed': 'ivfpq-fs',
+    # than this is rebuilt by its map store. 'ivfpq-fs-refine' with SQ8 codes, each keyframe's best 25
+    # (landmark_index_top), nprobe 48 and a shortlist of 4 x knn is the default since 2026-12-07: at
+    # 100k keyframes (2.5M landmarks, 233 bytes each, 583 MB) it finds the exact top-1 neighbour of
+    # 0.898 of the 25 query landmarks (top 20: 0.750) in 5.9 ms, where 'ivfpq-fs' with all 50 (5M
+    # landmarks, 106 bytes, 530 MB), the default before, found 0.682 (0.714) in 5.1 ms; frame to
+    # answer at 100k, one run: query p50 16.4 against 17.4 ms (bench_frame_to_answer --landmark-index
+    # ivfpq-fs,ivfpq-fs-refine:25:SQ8:48:4). HNSW reached 0.904 only at 10.7 ms and 464 bytes (and
+    # FAISS's HNSW cannot delete), so it is not a kind here.
+    'landmark_compressed': 'ivfpq-fs-refine',
     'landmark_retrain_factor': 8,  # a compressed index grown past this x its training size is rebuilt
     'landmark_ivf_lists': 0,  # 0 = sqrt(landmarks x sqrt(retrain factor)), in [64, 4096], <= landmarks / 39
     'landmark_nprobe': 0,  # IVF cells visited per query landmark; 0 = the kind's (NPROBE)
@@ -126,15 +131,17 @@ default_conf = {
     # of them lost 2 points of Nordland R@10 against 'ivfpq', D kept every R@K at or above it), D / 4
     # at 8 bits (ivfpq), D / 4 at 4 bits (ivfpq-fs-refine: only a shortlist, re-ranked)
     'landmark_pq_m': 0,
-    'landmark_refine': 'SQ6',  # ivfpq-fs-refine: codes of the re-ranking (FAISS scalar quantiser: SQ4|SQ6|SQ8|fp16)
-    'landmark_k_factor': 8,  # ivfpq-fs-refine: the fast-scan shortlist is k_factor x the k asked for
+    'landmark_refine': 'SQ8',  # ivfpq-fs-refine: the re-ranking's codes (FAISS SQ: SQ4|SQ6|SQ8|fp16)
+    # ivfpq-fs-refine: the fast-scan shortlist is k_factor x the k asked for. 4: recall@1 0.898 in
+    # 5.9 ms at nprobe 48, 3: 0.888 / 5.3, 8: 0.920 / 7.7 (benchmarks.md, the scan)
+    'landmark_k_factor': 4,
     'landmark_pq_bits': 8,  # bits per sub-quantiser code of 'ivfpq' (fast-scan codes are always 4 bits)
     'landmark_train_points': 100_000,  # sample the compressed index is trained on
 }
 COMPRESSED = ('ivfpq-fs-refine', 'ivfpq-fs', 'ivfpq')
-# landmark_nprobe 0: ivfpq-fs-refine 64, where its search at 100k keyframes still cost what it cost at
-# 16 or 32 (27 ms per 50 landmarks, most of it the re-ranking; 128 took 36 ms for R@1 0.863 vs 0.829)
-NPROBE = {'ivfpq-fs-refine': 64, 'ivfpq-fs': 16, 'ivfpq': 16}
+# landmark_nprobe 0: ivfpq-fs-refine 48 (SQ8, best 25, k_factor 4, 100k keyframes: recall@1 0.802 /
+# 0.842 / 0.862 / 0.898 at 16 / 24 / 32 / 48 in 4.0-6.1 ms per 25 query landmarks; benchmarks.md)
+NPROBE = {'ivfpq-fs-refine': 48, 'ivfpq-fs': 16, 'ivfpq': 16}
 PQ_M = {'ivfpq-fs-refine': 4, 'ivfpq-fs': 1, 'ivfpq': 4}  # landmark_pq_m 0: D / this
 
 _CELL_BITS = 12
