@@ -371,7 +371,14 @@ def test_second_connection_sees_new_keyframes(map_path, rng):
         assert len(b) == 0 and b.check() == []
 
 
-SMALL_IVF = {'landmark_index_threshold': 500, 'landmark_ivf_lists': 8, 'landmark_nprobe': 8, 'landmark_pq_bits': 4}
+# every landmark held (landmark_index_top 0): 12 keyframes of 50 pass the threshold of 500
+SMALL_IVF = {
+    'landmark_index_threshold': 500,
+    'landmark_ivf_lists': 8,
+    'landmark_nprobe': 8,
+    'landmark_pq_bits': 4,
+    'landmark_index_top': 0,
+}
 
 
 @pytest.mark.parametrize('conf', [{}, SMALL_IVF], ids=['exact', 'compressed'])
@@ -382,6 +389,7 @@ def test_second_connection_adds_appended_keyframes_without_a_reload(map_path, rn
     to the full reload, so the deleted keyframe is never answered."""
     with MapStore(map_path, model=MODEL, conf=conf) as a, MapStore(map_path, conf=conf) as b:
         sets, ids = fill(a, rng, 12)  # 600 landmarks: compressed from the start with SMALL_IVF
+        assert (a.info()['landmark_index'] != 'exact') == bool(conf)
         b.query(sets[0])
         reloads = []
         full_load = b._load

@@ -514,8 +514,9 @@ def test_trained_landmark_index_is_kept_between_opens(milvus_uri, tmp_path, capl
     import logging
 
     rng = np.random.default_rng(22)
-    conf = {'landmark_index_threshold': 1000, 'landmark_dir': str(tmp_path / 'lm')}
-    sets = [make_set(rng) for _ in range(40)]  # 2,000 landmarks: IVF-PQ
+    # every landmark held (landmark_index_top 0, not the default's best 25): 2,000 landmarks, IVF-PQ
+    conf = {'landmark_index_threshold': 1000, 'landmark_dir': str(tmp_path / 'lm'), 'landmark_index_top': 0}
+    sets = [make_set(rng) for _ in range(40)]
     with MapStore.open(milvus_uri, model=MODEL, conf=conf) as store:
         ids = store.add_many(sets, [(i, 0) for i in range(40)])
         assert store.info()['landmark_index'] in landmark_index.COMPRESSED
