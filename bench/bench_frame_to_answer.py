@@ -171,7 +171,8 @@ def main(argv=None) -> int:
 
 def landmark_index_conf(spec: str) -> tuple[str, dict]:
     """(label, the map conf it names) of a --landmark-index entry KIND[:TOP[:REFINE[:NPROBE[:K]]]]
-    (empty or 0 fields: the defaults; K: ivfpq-fs-refine's landmark_k_factor)."""
+    (empty or 0 fields: the defaults, but an empty TOP is 0, every landmark, as before TOP was a field;
+    K: ivfpq-fs-refine's landmark_k_factor)."""
     kind, top, refine, nprobe, k_factor = (spec.split(':') + [''] * 4)[:5]
     conf = {'landmark_compressed': kind or MAP['landmark_compressed'], 'landmark_index_top': int(top or 0)}
     conf['landmark_refine'] = refine or MAP['landmark_refine']

@@ -23,7 +23,7 @@ product over the same float32 vectors: the real ones prepared as the shipped ind
 LandmarkIndex.prepare -- centred per set (landmark_center), then whitened with the descriptor space's
 shipped W (landmark_whitening)), at knn (the first stage's k) and 1, per --kinds x --nprobe, with the
 search time per query set (50 landmarks, or its best --query-top; one call per set, as a query searches,
-1 thread; 'of which lists': the part that finds the IVF lists to probe) of each
+the fastest of three passes, 1 thread; 'of which lists': the part that finds the IVF lists to probe) of each
 (ivfpq-fs-refine: with its re-ranking of landmark_k_factor x knn candidates, --k-factor N[,M], on --refine
 codes). --index-top N[,M]: the map holds each set's best N landmarks (landmark_index_top, centred on
 all 50), --keyframes x N in all (a map per value, the same queries); --query-top N: each query set's
@@ -267,15 +267,19 @@ def index_recall(args, data: dict) -> list[dict]:
                 index.search_prepared(q[:50], args.knn)  # warm
                 # one call per query set, as a query searches (one batch of 500 costs less per set)
                 per_set = np.array_split(q, len(qsets))
-                t = time.perf_counter()
-                got = np.concatenate([index.search_prepared(part, args.knn)[1] for part in per_set])
-                ms = (time.perf_counter() - t) / len(qsets) * 1000
-                # the part of it that picks the lists: the query against every list's centroid
-                with one_faiss_thread():
+                ms = float('inf')
+                for _ in range(3):  # the fastest of three passes: this host's neighbours come and go
                     t = time.perf_counter()
-                    for part in per_set:
-                        index.index.quantizer.search(part, index.index.nprobe)
-                coarse_ms = (time.perf_counter() - t) / len(qsets) * 1000
+                    got = np.concatenate([index.search_prepared(part, args.knn)[1] for part in per_set])
+                    ms = min(ms, (time.perf_counter() - t) / len(qsets) * 1000)
+                # the part of it that picks the lists: the query against every list's centroid
+                coarse_ms = float('inf')
+                with one_faiss_thread():
+                    for _ in range(3):
+                        t = time.perf_counter()
+                        for part in per_set:
+                            index.index.quantizer.search(part, index.index.nprobe)
+                        coarse_ms = min(coarse_ms, (time.perf_counter() - t) / len(qsets) * 1000)
                 hit_k = np.mean([len(set(a) & set(b)) / args.knn for a, b in zip(got, ex_i)])
                 hit_1 = float(np.mean(got[:, 0] == ex_i[:, 0]))
                 rows.append(
@@ -319,10 +323,12 @@ def hnsw_recall(args, x: np.ndarray, q: np.ndarray, exact_ids: np.ndarray, index
         for ef in (int(v) for v in args.ef.split(',')):
             params = faiss.SearchParametersHNSW(efSearch=ef)
             index.search(q[:50], args.knn, params=params)  # warm
-            t = time.perf_counter()
-            with one_faiss_thread():  # one call per query set, as index_recall times them
-                parts = np.array_split(q, sets)
-                got = np.concatenate([index.search(part, args.knn, params=params)[1] for part in parts])
+            parts, ms = np.array_split(q, sets), float('inf')
+            with one_faiss_thread():  # one call per query set, the fastest of three passes, as index_recall
+                for _ in range(3):
+                    t = time.perf_counter()
+                    got = np.concatenate([index.search(part, args.knn, params=params)[1] for part in parts])
+                    ms = min(ms, (time.perf_counter() - t) / sets * 1000)
             rows.append(
                 {
                     'kind': f'hnsw M{m} {codes}',
@@ -333,7 +339,7 @@ def hnsw_recall(args, x: np.ndarray, q: np.ndarray, exact_ids: np.ndarray, index
                     f'recall@{args.knn}': float(
                         np.mean([len(set(a) & set(b)) / args.knn for a, b in zip(got, exact_ids)])
                     ),
-                    'ms_per_set': (time.perf_counter() - t) / sets * 1000,
+                    'ms_per_set': ms,
                     'coarse_ms_per_set': float('nan'),  # a graph has no lists
                     'build_s': build_s,
                     'bytes_per_landmark': nbytes / len(x),

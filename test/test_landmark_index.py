@@ -313,7 +313,7 @@ def test_refine_kind_recalls_exact_neighbours_better_on_real_landmarks(extractor
     nprobe 64) is the exact one clearly more often than under 'ivfpq-fs' (the fast-scan codes alone,
     nprobe 16), every landmark held, among the knn the first stage asks for (measured 2026-12-06:
     0.80 against 0.72 of 1,200 query landmarks). The shipped refine setting (best 25, SQ8, k_factor
-    4, nprobe 48) is chosen at 100k keyframes by bench/bench_landmark_index.py."""
+    4, nprobe 56) is chosen at 100k keyframes by bench/bench_landmark_index.py."""
     root = shared_data('nordland_trimmed')
     ds = datasets.parse_spec(f'aligned:{root / "summer"},{root / "winter"},1', (0.7, 0.7 + 240 / 3576))
     refs = extractor.extract_batch([load_image(str(p)) for p in ds.ref_paths])

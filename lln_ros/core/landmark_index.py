@@ -88,12 +88,10 @@ default_conf = {
     'landmark_query_top': 25,
     # Landmarks of each keyframe (its best by score, after centring on all of them) the index holds;
     # 0 = all. The rerank still uses every stored landmark. 25 (since 2026-12-07, with the SQ8-refined
-    # kind below): half the memory, which pays for the re-ranking codes. At 100k keyframes, 25 query
-    # landmarks: recall@1 of exact search 0.898 in 5.9 ms against 0.682 in 5.1 ms for all 50 in
-    # 'ivfpq-fs' at nprobe 16, the default before (bench_landmark_index --index-top 0,25 --query-top
-    # 25 --k-factor 2,3,4,8 --nprobe 16,24,32,48). Validation part in a 10k map (bench_accuracy_at_scale
-    # --range 0.6:0.7): lln 0.168 -> 0.185, lln+seq 0.930 -> 0.933, first stage R@30 0.549 -> 0.552;
-    # the 357-keyframe map's unchanged (0.462 / 0.950). docs/benchmarks.md, "HNSW, and a cheaper ...".
+    # kind below): half the memory, which pays for the re-ranking codes (recall and time below).
+    # Validation part in a 10k map (bench_accuracy_at_scale --range 0.6:0.7, nprobe 48): lln 0.168 ->
+    # 0.185, lln+seq 0.930 -> 0.933, first stage R@30 0.549 -> 0.552; the 357-keyframe map's
+    # unchanged (0.462 / 0.950). docs/benchmarks.md, "HNSW, and a cheaper ...".
     'landmark_index_top': 25,
     # Centre each keyframe's landmarks (and the query's) on their own mean before indexing, then
     # renormalise: what all landmarks of one image share (snow, dusk, the camera's colour) is the
@@ -116,12 +114,12 @@ default_conf = {
     # (IVF + a coarser 4-bit PQ fast-scan shortlist of landmark_k_factor x knn, re-ranked on
     # landmark_refine codes) or 'ivfpq' (IVF + 8-bit PQ, the oldest format). A file of another kind
     # than this is rebuilt by its map store. 'ivfpq-fs-refine' with SQ8 codes, each keyframe's best 25
-    # (landmark_index_top), nprobe 48 and a shortlist of 4 x knn is the default since 2026-12-07: at
+    # (landmark_index_top), nprobe 56 and a shortlist of 4 x knn is the default since 2026-12-07: at
     # 100k keyframes (2.5M landmarks, 233 bytes each, 583 MB) it finds the exact top-1 neighbour of
-    # 0.898 of the 25 query landmarks (top 20: 0.750) in 5.9 ms, where 'ivfpq-fs' with all 50 (5M
-    # landmarks, 106 bytes, 530 MB), the default before, found 0.682 (0.714) in 5.1 ms; frame to
-    # answer at 100k, one run: query p50 16.4 against 17.4 ms (bench_frame_to_answer --landmark-index
-    # ivfpq-fs,ivfpq-fs-refine:25:SQ8:48:4). HNSW reached 0.904 only at 10.7 ms and 464 bytes (and
+    # 0.908 of the 25 query landmarks (top 20: 0.755) in 4.7 ms a frame, where 'ivfpq-fs' with all 50
+    # (5M landmarks, 106 bytes, 530 MB), the default before, found 0.682 (0.714) in 4.0 ms, and in
+    # 6.9 ms with all 50 query landmarks, as when issue 30 was filed (bench_landmark_index, one call
+    # per frame, AVX-512 EPYC). HNSW reached 0.904 only at 2x the time and 464 bytes (and
     # FAISS's HNSW cannot delete), so it is not a kind here.
     'landmark_compressed': 'ivfpq-fs-refine',
     'landmark_retrain_factor': 8,  # a compressed index grown past this x its training size is rebuilt
@@ -132,16 +130,16 @@ default_conf = {
     # at 8 bits (ivfpq), D / 4 at 4 bits (ivfpq-fs-refine: only a shortlist, re-ranked)
     'landmark_pq_m': 0,
     'landmark_refine': 'SQ8',  # ivfpq-fs-refine: the re-ranking's codes (FAISS SQ: SQ4|SQ6|SQ8|fp16)
-    # ivfpq-fs-refine: the fast-scan shortlist is k_factor x the k asked for. 4: recall@1 0.898 in
-    # 5.9 ms at nprobe 48, 3: 0.888 / 5.3, 8: 0.920 / 7.7 (benchmarks.md, the scan)
+    # ivfpq-fs-refine: the fast-scan shortlist is k_factor x the k asked for. At nprobe 56, 4: recall@1
+    # 0.908 in 4.7 ms, 3: 0.898 / 4.4 (benchmarks.md, the scan)
     'landmark_k_factor': 4,
     'landmark_pq_bits': 8,  # bits per sub-quantiser code of 'ivfpq' (fast-scan codes are always 4 bits)
     'landmark_train_points': 100_000,  # sample the compressed index is trained on
 }
 COMPRESSED = ('ivfpq-fs-refine', 'ivfpq-fs', 'ivfpq')
-# landmark_nprobe 0: ivfpq-fs-refine 48 (SQ8, best 25, k_factor 4, 100k keyframes: recall@1 0.802 /
-# 0.842 / 0.862 / 0.898 at 16 / 24 / 32 / 48 in 4.0-6.1 ms per 25 query landmarks; benchmarks.md)
-NPROBE = {'ivfpq-fs-refine': 48, 'ivfpq-fs': 16, 'ivfpq': 16}
+# landmark_nprobe 0: ivfpq-fs-refine 56 (SQ8, best 25, k_factor 4, 100k keyframes: recall@1 0.802 /
+# 0.896 / 0.908 / 0.916 at 16 / 48 / 56 / 64 in 2.7-5.0 ms per 25 query landmarks; benchmarks.md)
+NPROBE = {'ivfpq-fs-refine': 56, 'ivfpq-fs': 16, 'ivfpq': 16}
 PQ_M = {'ivfpq-fs-refine': 4, 'ivfpq-fs': 1, 'ivfpq': 4}  # landmark_pq_m 0: D / this
 
 _CELL_BITS = 12
