@@ -196,6 +196,18 @@ def grow(real: np.ndarray, total: int, noise: float, rng) -> np.ndarray:
     return np.concatenate(out)
 
 
+def per_set_search(search, q: np.ndarray, sets: int, passes: int = 3) -> tuple[np.ndarray, float]:
+    """search(part) -> ids (n, k) called once per query set of q (sets parts), as a query searches (one
+    batch of them all costs less per set): (the ids of every part stacked, ms per set of the fastest
+    of `passes` passes: this host's neighbours come and go)."""
+    parts, ms = np.array_split(q, sets), float('inf')
+    for _ in range(passes):
+        t = time.perf_counter()
+        got = np.concatenate([search(part) for part in parts])
+        ms = min(ms, (time.perf_counter() - t) / sets * 1000)
+    return got, ms
+
+
 def exact_knn(x: np.ndarray, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Brute-force top k by inner product: sims (Q, k), rows of x (Q, k); x is not copied."""
     import faiss
@@ -265,21 +277,12 @@ def index_recall(args, data: dict) -> list[dict]:
                 if k_factor:  # read at search time: the same index re-ranks a shortlist of k_factor x knn
                     index.conf['landmark_k_factor'] = k_factor
                 index.search_prepared(q[:50], args.knn)  # warm
-                # one call per query set, as a query searches (one batch of 500 costs less per set)
-                per_set = np.array_split(q, len(qsets))
-                ms = float('inf')
-                for _ in range(3):  # the fastest of three passes: this host's neighbours come and go
-                    t = time.perf_counter()
-                    got = np.concatenate([index.search_prepared(part, args.knn)[1] for part in per_set])
-                    ms = min(ms, (time.perf_counter() - t) / len(qsets) * 1000)
+                got, ms = per_set_search(lambda part: index.search_prepared(part, args.knn)[1], q, len(qsets))
                 # the part of it that picks the lists: the query against every list's centroid
-                coarse_ms = float('inf')
                 with one_faiss_thread():
-                    for _ in range(3):
-                        t = time.perf_counter()
-                        for part in per_set:
-                            index.index.quantizer.search(part, index.index.nprobe)
-                        coarse_ms = min(coarse_ms, (time.perf_counter() - t) / len(qsets) * 1000)
+                    _, coarse_ms = per_set_search(
+                        lambda part: index.index.quantizer.search(part, index.index.nprobe)[1], q, len(qsets)
+                    )
                 hit_k = np.mean([len(set(a) & set(b)) / args.knn for a, b in zip(got, ex_i)])
                 hit_1 = float(np.mean(got[:, 0] == ex_i[:, 0]))
                 rows.append(
@@ -323,12 +326,8 @@ def hnsw_recall(args, x: np.ndarray, q: np.ndarray, exact_ids: np.ndarray, index
         for ef in (int(v) for v in args.ef.split(',')):
             params = faiss.SearchParametersHNSW(efSearch=ef)
             index.search(q[:50], args.knn, params=params)  # warm
-            parts, ms = np.array_split(q, sets), float('inf')
-            with one_faiss_thread():  # one call per query set, the fastest of three passes, as index_recall
-                for _ in range(3):
-                    t = time.perf_counter()
-                    got = np.concatenate([index.search(part, args.knn, params=params)[1] for part in parts])
-                    ms = min(ms, (time.perf_counter() - t) / sets * 1000)
+            with one_faiss_thread():
+                got, ms = per_set_search(lambda part, g=index, p=params: g.search(part, args.knn, params=p)[1], q, sets)
             rows.append(
                 {
                     'kind': f'hnsw M{m} {codes}',
