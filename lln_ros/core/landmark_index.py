@@ -274,6 +274,17 @@ class LandmarkIndex:
         return self.ntotal
 
     # ------------------------------------------------------------------ building
+    def train_stride(self, total: int) -> int:
+        """Every how many-th keyframe a store samples to train the index of `total` landmarks: about
+        conf['landmark_train_points'] of them."""
+        return max(1, int(total) // max(1, int(self.conf['landmark_train_points'])))
+
+    def train(self, sample: list[np.ndarray], total: int) -> None:
+        """Make this index an empty compressed one, trained on prepare()d sample parts (each (n, D))
+        and sized for `total` landmarks; the stores then add every stored landmark. Never all of
+        them at once as float32: a 100k-keyframe map holds millions."""
+        self.index = self._compressed(np.concatenate(sample), total)
+
     def _compressed(self, x: np.ndarray, total: int | None = None):
         """An empty compressed index (conf['landmark_compressed']) trained on x (N, D) (a sample of
         what it will hold: prepare()d vectors), sized for `total` landmarks (N)."""

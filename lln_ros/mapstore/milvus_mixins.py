@@ -100,13 +100,12 @@ class MilvusLandmarks:
         and trained again as they came, with fewer IVF lists: every query scanned more codes."""
         index = self._new_landmark_index()
         if total > self.conf['landmark_index_threshold']:
-            every = max(1, total // max(1, int(self.conf['landmark_train_points'])))
-            pick, parts = self._ids[::every], []
+            pick, parts = self._ids[:: index.train_stride(total)], []
             for start in range(0, len(pick), 512):  # from the read cache (the rows were just read)
                 parts += [
                     index.prepare(s.descriptors, held=True) for s in self._fetch(pick[start : start + 512]).values()
                 ]
-            index.index = index._compressed(np.concatenate(parts), total)
+            index.train(parts, total)
         self._landmarks = index
         self._index_landmarks(self._ids)
 

@@ -144,11 +144,9 @@ class SQLiteLandmarks:
     def _build_landmarks(self, total: int, keyframes: int) -> LandmarkIndex:
         index = self._new_landmark_index()
         if total > self.conf['landmark_index_threshold']:
-            # train on a sample of keyframes, then stream every landmark in: never all of them as float32
-            every = max(1, int(total // max(1, self.conf['landmark_train_points'])))
-            sample = np.concatenate([index.prepare(d, kf, held=True) for kf, _, d in self._landmark_rows(every=every)])
-            index.index = index._compressed(sample, total)
-            del sample
+            # train on a sample of keyframes, then stream every landmark in
+            every = index.train_stride(total)
+            index.train([index.prepare(d, kf, held=True) for kf, _, d in self._landmark_rows(every=every)], total)
         for kf, cells, desc in self._landmark_rows():
             index.add(desc, kf, cells)  # prepared and encoded as every add; trained above, so no retrain here
         return index
