@@ -4,7 +4,7 @@
                                           [--runtimes onnxruntime,onnxruntime-int8]
                                           [--prefilter-k K] [--landmark-query-top N[,M..]]
                                           [--landmark-index KIND[:TOP[:REFINE[:NPROBE[:K]]]][,...]]
-                                          [--sequence 0 [--sequence-prefilter-k K]]
+                                          [--sequence 0 [--sequence-prefilter-k K] [--sequence-carry N[,M..]]]
                                           [--dir /tmp/lln_bench_f2a] [--json]
 
 Per frame, in this process and in the nodes' order: Extractor.__call__ (the extractor node's
@@ -22,10 +22,12 @@ says the map still answers.
 Each size is measured twice in one run, quiet (no process of ours besides this one) and beside one
 competing CPU-bound process this script starts and stops, for each --runtimes entry (the
 extractor's runtime; the map is built with the first) and each --landmark-query-top value (q-top,
-on the same map) and each --landmark-index entry (the map's landmark index kind, landmark_index_top
-and refine codes: the map is reopened and its index rebuilt for each): p50 / p90 / p99 wall ms per frame, the
-CPU ms per frame (process time, all threads), and the p50 of each stage. The load average at the
-start of each row is printed: on a shared machine "quiet" means "nothing else of ours".
+on the same map) and each --sequence-carry value (carry: the matcher's sequence_carry, the places
+the best sequences go next scored beside the first stage's candidates; with --sequence) and each
+--landmark-index entry (the map's landmark index kind, landmark_index_top and refine codes: the map
+is reopened and its index rebuilt for each): p50 / p90 / p99 wall ms per frame, the CPU ms per
+frame (process time, all threads), and the p50 of each stage. The load average at the start of
+each row is printed: on a shared machine "quiet" means "nothing else of ours".
 """
 
 from __future__ import annotations
@@ -133,6 +135,11 @@ def main(argv=None) -> int:
         default=LOC['sequence_prefilter_k'],
         help="the matcher's sequence_prefilter_k (first-stage candidates reranked with --sequence)",
     )
+    ap.add_argument(
+        '--sequence-carry',
+        default=str(LOC['sequence_carry']),
+        help="the matcher's sequence_carry with --sequence; several, comma-separated: rows for each on the same map",
+    )
     ap.add_argument('--dir', default='/tmp/lln_bench_f2a')
     ap.add_argument('--json', action='store_true')
     args = ap.parse_args(argv)
@@ -190,24 +197,25 @@ def measure_sizes(store, sizes, tops, extractors, queries, truth, args, rng, lab
     rows = []
     for size in sizes:
         grow(store, size, rng)
-        loc = Localizer(
-            store,
-            {
-                'prefilter_k': args.prefilter_k,
-                'sequence_length': args.sequence,
-                'sequence_prefilter_k': args.sequence_prefilter_k,
-            },
-        )
-        loc.query(next(iter(extractors.values()))(queries[0]), T0)  # first query builds what the open left lazy
-        for top, (runtime, ex) in itertools.product(tops, extractors.items()):
+        carries = [int(c) for c in args.sequence_carry.split(',')] if args.sequence else [0]
+        for top, carry, (runtime, ex) in itertools.product(tops, carries, extractors.items()):
+            loc = Localizer(
+                store,
+                {
+                    'prefilter_k': args.prefilter_k,
+                    'sequence_length': args.sequence,
+                    'sequence_prefilter_k': args.sequence_prefilter_k,
+                    'sequence_carry': carry,
+                },
+            )
+            loc.query(ex(queries[0]), T0)  # warm: the first query builds what the open left lazy
             store._landmarks.conf['landmark_query_top'] = top  # the one map, searched with each value
-            ex(queries[0])  # warm
             for load in (False, True):
                 start_load = os.getloadavg()[0]
                 with competing_load(load):
                     r = measure(ex, loc, queries, truth)
                 row = {'keyframes': len(store), 'runtime': ex.model_info['runtime'], 'competing': load}
-                rows.append({**row, 'index': label, 'query_top': top, 'load_avg': start_load, **r})
+                rows.append({**row, 'index': label, 'query_top': top, 'carry': carry, 'load_avg': start_load, **r})
     return rows
 
 
@@ -218,19 +226,20 @@ def table(rows: list[dict], args) -> str:
         + (f' (sequence_prefilter_k {args.sequence_prefilter_k})' if args.sequence else '')
         + ', '
         f'{args.frames} frames per row ({os.cpu_count()} cores)',
-        f'{"keyframes":>9} {"landmark index":>28} {"runtime":>16} {"q-top":>5} {"beside":>10} {"load":>5} '
+        f'{"keyframes":>9} {"landmark index":>28} {"runtime":>16} {"q-top":>5} {"carry":>5} {"beside":>10} {"load":>5} '
         f'{"p50 ms":>7} {"p90 ms":>7} {"p99 ms":>7} {"cpu ms":>7} {"extract":>8} {"query":>7} '
         f'{"top-1":>6} {"p50/quiet":>9}',
     ]
-    quiet = {(r['index'], r['keyframes'], r['runtime'], r['query_top']): r['p50'] for r in rows if not r['competing']}
+    key = ('index', 'keyframes', 'runtime', 'query_top', 'carry')
+    quiet = {tuple(r[k] for k in key): r['p50'] for r in rows if not r['competing']}
     for r in rows:
         lines.append(
-            f'{r["keyframes"]:>9} {r["index"]:>28} {r["runtime"]:>16} {r["query_top"]:>5} '
+            f'{r["keyframes"]:>9} {r["index"]:>28} {r["runtime"]:>16} {r["query_top"]:>5} {r["carry"]:>5} '
             f'{"1 busy" if r["competing"] else "nothing":>10} '
             f'{r["load_avg"]:>5.1f} '
             f'{r["p50"]:>7.1f} {r["p90"]:>7.1f} {r["p99"]:>7.1f} {r["cpu_ms_p50"]:>7.1f} '
             f'{r["extract_ms_p50"]:>8.1f} {r["query_ms_p50"]:>7.1f} {r["top1"]:>6.2f} '
-            f'{r["p50"] / quiet[r["index"], r["keyframes"], r["runtime"], r["query_top"]]:>9.2f}'
+            f'{r["p50"] / quiet[tuple(r[k] for k in key)]:>9.2f}'
         )
     return '\n'.join(lines)
 
