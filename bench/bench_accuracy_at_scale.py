@@ -7,7 +7,7 @@
                                             [--landmark-refine SQ8] [--landmark-nprobe N] [--landmark-k-factor K]
                                             [--similarity raw|whiten|fuse]
                                             [--sequence-carry 0,10] [--sequence-prefilter-k K] [--prefilter-k K]
-                                            [--range 0.7:1]
+                                            [--range 0.7:1] [--distractor-seasons summer,winter]
 
 The map: the summer references of the Nordland test split (lln-eval's docs/results.md split:
 aligned summer/winter, range 0.7:1, tolerance 1 frame; --range 0.6:0.7 is the validation part,
@@ -17,7 +17,8 @@ Extractor (backbone features from the on-disk FeatureCache, --cache, shared with
 order: Nordland summer and winter from 0 to 0.1 of the route before --range starts (0:0.6, the
 training part, for the test split; it ends 358 frames before the test range starts and Nordland
 never revisits a place, so with a 1-frame tolerance no distractor can be a true match), then every image of
-rtabmap_loop, essex3in1 and tum_fr1rpy. When more are needed, horizontal flips of those images
+rtabmap_loop, essex3in1 and tum_fr1rpy (--distractor-seasons summer: Nordland's summer only, the
+references' season, as in a map built in one season). When more are needed, horizontal flips of those images
 (through the same extractor, not cached), then seeded random crops (70-90% of the image, resized
 back by the extractor). A distractor is never counted correct: ground truth covers references only.
 
@@ -31,7 +32,9 @@ one); with --sequence-carry N,M one lln+seq column per value of the Localizer's 
 Localizer reranks max(prefilter_k, sequence_prefilter_k) with a sequence, so fewer than prefilter_k
 takes --prefilter-k too). --prefilter-k: the first-stage candidates a single frame reranks (the
 matcher's prefilter_k). 'first stage' is the recall of a correct reference in the landmark index's
-shortlist of prefilter_k keyframes (the map's index, as MapStore.query calls it).
+shortlist of prefilter_k keyframes (the map's index, as MapStore.query calls it). Under the table,
+the single frame's wrong answers by what they are: another reference (place of the route) or a
+distractor by kind (real, flip, crop) and origin (Nordland summer / winter, the other sets).
 
 --landmark-knn / --landmark-alpha / --landmark-query-top / --landmark-index-top /
 --landmark-compressed / --landmark-refine / --landmark-nprobe / --landmark-k-factor: the map's first
@@ -68,11 +71,11 @@ T0 = 1_700_000_000 * 10**9
 OTHER_SETS = ('rtabmap_loop', 'essex3in1', 'tum_fr1rpy')
 
 
-def distractor_paths(data: Path, route_end: float = 0.6) -> list[Path]:
-    """Real images that are never a queried place: Nordland 0:route_end of both seasons (none when
+def distractor_paths(data: Path, route_end: float = 0.6, seasons=('summer', 'winter')) -> list[Path]:
+    """Real images that are never a queried place: Nordland 0:route_end of `seasons` (none when
     route_end <= 0), the other sets."""
     out = []
-    for season in ('summer', 'winter') if route_end > 0 else ():
+    for season in seasons if route_end > 0 else ():
         imgs = list_images(data / 'nordland_trimmed' / season)
         out += imgs[_select(len(imgs), (0.0, route_end))]
     for name in OTHER_SETS:
@@ -93,11 +96,18 @@ def augmented(path: Path, k: int, rng) -> np.ndarray:
     return np.ascontiguousarray(img[y : y + ch, x : x + cw])
 
 
-def score(store, sets, gt, ref_ids, seq_len, carries, loc_conf: dict) -> dict:
+def origin(path: Path) -> str:
+    """What a distractor image shows: 'nordland summer' / 'nordland winter' or 'other sets'."""
+    return f'nordland {path.parent.name}' if 'nordland_trimmed' in path.parts else 'other sets'
+
+
+def score(store, sets, gt, ref_ids, seq_len, carries, loc_conf: dict, source: dict) -> dict:
     """P@100%R of lln and lln+seq (per sequence_carry) and the first stage's recall, over the queries in order.
-    loc_conf: the Localizer settings every row shares (similarity, prefilter_k, sequence_prefilter_k)."""
+    loc_conf: the Localizer settings every row shares (similarity, prefilter_k, sequence_prefilter_k).
+    source: {distractor keyframe id: what it is}; out['lln_wrong']: the single frame's wrong answers
+    counted by what they are ('reference': another place of the route)."""
     id_to_ref = {int(k): i for i, k in enumerate(ref_ids)}
-    out = {}
+    out = {'lln_wrong': {}}
     k = int(loc_conf['prefilter_k'])
     hits = 0
     for qi, lset in enumerate(sets):
@@ -110,7 +120,11 @@ def score(store, sets, gt, ref_ids, seq_len, carries, loc_conf: dict) -> dict:
         for qi, lset in enumerate(sets):
             answer = loc.query(lset, T0 + 10**13 + qi * 10**9)
             best = int(answer.rows[0]['keyframe_id']) if answer and answer.rows else -1
-            good += best in id_to_ref and bool(gt[qi, id_to_ref[best]])
+            right = best in id_to_ref and bool(gt[qi, id_to_ref[best]])
+            good += right
+            if not length and not right:
+                what = 'reference' if best in id_to_ref else source.get(best, 'no answer')
+                out['lln_wrong'][what] = out['lln_wrong'].get(what, 0) + 1
         out[name] = good / len(sets)
         out[name + '_ms'] = (time.perf_counter() - t) * 1e3 / len(sets)
     return out
@@ -128,6 +142,12 @@ def main(argv=None) -> int:
     ap.add_argument('--sequence', type=int, default=10, help="lln+seq's sequence_length")
     ap.add_argument('--dir', default='/tmp/lln_scale')
     ap.add_argument('--range', default='0.7:1', help='the Nordland part queried (0.6:0.7: the validation part)')
+    ap.add_argument(
+        '--distractor-seasons',
+        default='summer,winter',
+        help="Nordland seasons among the distractors: 'summer' pads the map only with the references' season "
+        '(a map built in one season, queried in another)',
+    )
     ap.add_argument('--max-seconds', type=float, default=0, help='stop growing the map after this long (0 = never)')
     ap.add_argument(
         '--landmark-knn', type=int, default=retrieval_conf['landmark_knn'], help='first stage: hits per query landmark'
@@ -218,9 +238,12 @@ def main(argv=None) -> int:
     cache = FeatureCache(args.cache, extractor)
     refs = cache.landmark_sets(ds.ref_paths, height)
     queries = cache.landmark_sets(ds.query_paths, height)
-    pool = distractor_paths(data, round(part[0] - 0.1, 6))  # a tenth of the route apart: no true match
+    seasons = tuple(args.distractor_seasons.split(','))
+    if not set(seasons) <= {'summer', 'winter'}:
+        sys.exit(f'--distractor-seasons: summer and/or winter, got {args.distractor_seasons!r}')
+    pool = distractor_paths(data, round(part[0] - 0.1, 6), seasons)  # a tenth of the route apart: no true match
     print(f'{len(refs)} references, {len(queries)} queries, {len(pool)} real distractor images', flush=True)
-    rows, used, rng = [], {'real': 0, 'flip': 0, 'crop': 0}, np.random.default_rng(0)
+    rows, used, rng, source = [], {'real': 0, 'flip': 0, 'crop': 0}, np.random.default_rng(0), {}
     rate = []
     with MapStore.open(folder / 'map.db', model=extractor.model_info, conf=map_conf) as store:
         ref_ids = store.add_many(refs, [divmod(T0 + i * 10**8, 10**9) for i in range(len(refs))])
@@ -243,10 +266,12 @@ def main(argv=None) -> int:
                     used['flip' if round_ == 1 else 'crop'] += len(sets)
                 rate.append(((time.perf_counter() - t) * 1e3 / len(chunk), round_))
                 start = len(store)
-                store.add_many(sets, [divmod(T0 + (10**6 + start + i) * 10**8, 10**9) for i in range(len(sets))])
+                ids = store.add_many(sets, [divmod(T0 + (10**6 + start + i) * 10**8, 10**9) for i in range(len(sets))])
+                kind = ('real', 'flip', 'crop')[min(round_, 2)]
+                source.update((int(i), f'{kind} {origin(p)}') for i, p in zip(ids, chunk))
                 cursor += len(chunk)
                 print(f'  map {len(store)} keyframes ({used}), {rate[-1][0]:.1f} ms/image', flush=True)
-            r = score(store, queries, ds.gt, ref_ids, args.sequence, args.carries, loc_conf)
+            r = score(store, queries, ds.gt, ref_ids, args.sequence, args.carries, loc_conf, source)
             rows.append({'keyframes': len(store), 'target': size, 'stopped': stopped, 'load': os.getloadavg()[0], **r})
             print(row_line(rows[-1], args.carries), flush=True)
             if stopped:
@@ -277,12 +302,15 @@ def table(rows, args, used, rate) -> str:
         + f', nprobe {args.landmark_nprobe or "default"}; S: {args.similarity}; '
         f'sequence_carry {args.sequence_carry}, prefilter_k {args.prefilter_k}, '
         f'sequence_prefilter_k {args.sequence_prefilter_k}',
-        f'distractors used: {used}',
+        f'distractors used: {used}, Nordland seasons among them: {args.distractor_seasons}',
         f'{"keyframes":>9} {"lln":>7}'
         + ''.join(f' {seq_name(c, args.carries):>8}' for c in args.carries)
         + f' {"1st@" + str(k):>11} {"ms/q":>7} {"load":>5}',
     ]
     lines += [row_line(r, args.carries) for r in rows]
+    for r in rows:  # where the single frame goes wrong: another place of the route, or which distractors
+        wrong = ', '.join(f'{k} {v}' for k, v in sorted(r['lln_wrong'].items(), key=lambda kv: -kv[1]))
+        lines.append(f'lln wrong at {r["keyframes"]} keyframes: {wrong}')
     for kind, name in ((0, 'cached real'), (1, 'flip'), (2, 'crop')):
         ms = [m for m, rnd in rate if min(rnd, 2) == kind]
         if ms:
