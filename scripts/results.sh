@@ -7,6 +7,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DATA=${LLN_DATA:-../shared/data}
+DATA=$(realpath --relative-to=. "$DATA")  # results.md shows its commands: no /home/someone/ in them
 CACHE=${LLN_CACHE:-cache/features}
 if [ ! -d "$DATA/nordland_trimmed" ] || [ ! -d "$DATA/rtabmap_loop" ] || [ ! -d "$DATA/essex3in1" ] || [ ! -d "$DATA/tum_fr1rpy" ]; then
   echo "results: $DATA/nordland_trimmed, rtabmap_loop, essex3in1 and tum_fr1rpy are needed (set LLN_DATA)" >&2

@@ -21,7 +21,7 @@ from lln_ros.core.lln import LLNHead, head_fingerprint, save_checkpoint
 from lln_ros.core.retrieval import rank_all
 from lln_ros.eval import METHODS, REPORT_KEYS, Head, evaluate, figures, parse_head
 from lln_ros.eval.methods import variant
-from lln_ros.eval.report import markdown
+from lln_ros.eval.report import markdown, shown_path
 from lln_ros.io import datasets
 from lln_ros.io.download import fetch_gardenspoint
 
@@ -876,3 +876,14 @@ def test_untrained_head_has_the_checkpoint_architecture(extractor, tmp_path):
         other = 'stage7' if extractor.backbone.layer != 'stage7' else 'stage6'
         save_checkpoint(str(tmp_path / 'wrong.pt'), LLNHead(dim), 'efficientnet_lite0', other)
         load_heads(extractor, [Head('w', str(tmp_path / 'wrong.pt'))])
+
+
+def test_report_shows_paths_inside_the_working_directory_relative(tmp_path, monkeypatch):
+    """results.md is committed: a head's weights under the repo show as a repo path, never as the
+    absolute path of the machine that ran it; paths outside it and relative ones stay as given."""
+    monkeypatch.chdir(tmp_path)
+    assert shown_path(str(tmp_path / 'lln_ros' / 'weights' / 'h.pt')) == 'lln_ros/weights/h.pt'
+    outside = str(tmp_path.parent / 'elsewhere.pt')
+    assert shown_path(outside) == outside
+    assert shown_path('out/best.pt') == 'out/best.pt'
+    assert shown_path(None) is None

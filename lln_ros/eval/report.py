@@ -29,6 +29,15 @@ METRICS = (
 )
 
 
+def shown_path(path: str | None) -> str | None:
+    """A path as a report shows it: relative to the working directory when inside it (the report is
+    committed with the repo; /home/someone/... says nothing to its readers), else as given."""
+    if not path or not os.path.isabs(path):
+        return path
+    rel = os.path.relpath(path)
+    return path if rel.startswith('..') else rel
+
+
 def finite(x):
     """x, or None when x is a non-finite float (JSON has no NaN / inf)."""
     if isinstance(x, float) and not math.isfinite(x):
@@ -244,7 +253,7 @@ def markdown(results: dict) -> str:
                 lines.append(f'- {key}: `{p[key]}`')
         for label, h in p.get('heads', {}).items():
             lines.append(
-                f'- head `{label}`: weights `{h["weights"] or "(Xavier init, seed 0)"}`, '
+                f'- head `{label}`: weights `{shown_path(h["weights"]) or "(Xavier init, seed 0)"}`, '
                 f'trained {h["trained"]}, fingerprint `{h["fingerprint"]}`'
                 + (f', trained on `{h["train_data"]}`' if h.get('train_data') else '')
                 + (f', validated on `{", ".join(h["val_data"])}`' if h.get('val_data') else '')
