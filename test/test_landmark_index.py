@@ -11,7 +11,14 @@ from test_map_backends import BACKENDS, uri_for
 from test_mapstore import MODEL, make_set
 
 from conftest import shared_data
-from lln_ros.core.landmark_index import LandmarkIndex, check_prefilter, decode_ids, encode_ids, score_hits
+from lln_ros.core.landmark_index import (
+    LandmarkIndex,
+    check_prefilter,
+    decode_ids,
+    encode_ids,
+    held_count,
+    score_hits,
+)
 from lln_ros.core.landmarks import stack_landmarks
 from lln_ros.core.metrics import recall_at_k
 from lln_ros.core.retrieval import first_stage
@@ -73,7 +80,7 @@ def test_index_add_search_remove_and_below(rng):
     index = LandmarkIndex(320)
     sets = [make_set(rng) for _ in range(6)]
     index.add_sets([10, 11, 12, 13, 14, 15], sets)
-    held = index.held_count(50)  # the default landmark_index_top (25) of each keyframe's 50
+    held = held_count(50, index.conf)  # the default landmark_index_top (25) of each keyframe's 50
     assert held == 25 and index.ntotal == 6 * held and index.keyframe_counts() == {i: held for i in range(10, 16)}
     ids, scores = index.shortlist(make_set(rng, base=sets[2], noise=0.05), k=3)
     assert ids[0] == 12 and scores[0] > 0
@@ -109,7 +116,8 @@ def test_index_top_holds_each_keyframes_best_landmarks_centred_on_all(rng):
     full, top = LandmarkIndex(320, {'landmark_index_top': 0}), LandmarkIndex(320, {'landmark_index_top': 10})
     for index in (full, top):
         index.add_sets([4, 5, 6], sets)
-    assert top.keyframe_counts() == {4: 10, 5: 8, 6: 10} == {i: top.held_count(len(s)) for i, s in zip((4, 5, 6), sets)}
+    counts = {i: held_count(len(s), top.conf) for i, s in zip((4, 5, 6), sets)}
+    assert top.keyframe_counts() == {4: 10, 5: 8, 6: 10} == counts
     held = np.sort(top.landmark_ids())
     want = np.sort(
         np.concatenate([encode_ids(np.full(min(len(s), 10), i), s.cells[:10]) for i, s in zip((4, 5, 6), sets)])

@@ -38,20 +38,15 @@ Index type: exact (IndexIDMap2(IndexFlatIP)) up to conf['landmark_index_threshol
 - 'ivfpq-fs-refine' (the default): IndexIVFPQFastScan with D/4 sub-quantisers of 4 bits (D/8 bytes
   per landmark, cheap to scan, so many more IVF cells can be probed: NPROBE) gives a shortlist of
   conf['landmark_k_factor'] x k, re-ranked by the cosine on a scalar-quantised copy of every vector
-  (RefineCodes, conf['landmark_refine'], SQ8: D bytes): ~233 bytes per landmark with both ids; with
-  each keyframe's best 25 (landmark_index_top) a 100k-keyframe map is ~583 MB, and it finds the
-  exact nearest landmark for 0.90 of query landmarks, 'ivfpq-fs' with all 50 for 0.68, which loses
-  them both to its codes and to its partition (16 of 3,760 cells probed), at 1.16x its search time
-  (default_conf);
+  (RefineCodes, conf['landmark_refine'], SQ8: D bytes): ~233 bytes per landmark with both ids; its
+  recall against exact search, memory and time: default_conf;
 - 'ivfpq-fs': IndexIVFPQFastScan, D sub-quantisers of 4 bits = D/2 bytes per landmark, scanned
   with SIMD register look-ups; a 100k-keyframe map (5M landmarks) at ~530 MB with ids;
 - 'ivfpq': IndexIVFPQ, D/4 sub-quantisers of 8 bits = D/4 bytes (the oldest maps' format).
 All are trained on (a sample of) the map's own descriptors, those of the keyframes up to the one
 that crossed the threshold (so the index depends on the keyframe order only, not on how adds were
 batched), and probe conf['landmark_nprobe'] (0: the kind's NPROBE) of their IVF cells; the query
-landmarks that search (landmark_query_top) go to FAISS in one search call. Exact inner products
-grow with the map (one core: ~120 ms per query at 20k landmarks under load 14 on this 2-core
-machine), so only small maps stay exact.
+landmarks that search (landmark_query_top) go to FAISS in one search call.
 A compressed index grown past conf['landmark_retrain_factor'] x the landmarks it was trained on is
 rebuilt by its owner (the map store) from the stored descriptors, and so is a file of another kind
 (or centring, whitening, refine codes) than the conf asks for. Recall against exact search on
@@ -275,14 +270,12 @@ class LandmarkIndex:
 
     # ------------------------------------------------------------------ building
     def train_stride(self, total: int) -> int:
-        """Every how many-th keyframe a store samples to train the index of `total` landmarks: about
-        conf['landmark_train_points'] of them."""
+        """A store trains the index of `total` landmarks on every this-th keyframe (~landmark_train_points)."""
         return max(1, int(total) // max(1, int(self.conf['landmark_train_points'])))
 
     def train(self, sample: list[np.ndarray], total: int) -> None:
-        """Make this index an empty compressed one, trained on prepare()d sample parts (each (n, D))
-        and sized for `total` landmarks; the stores then add every stored landmark. Never all of
-        them at once as float32: a 100k-keyframe map holds millions."""
+        """Make this an empty compressed index trained on prepare()d sample parts (each (n, D)), sized
+        for `total` landmarks, that the store then streams every stored landmark into."""
         self.index = self._compressed(np.concatenate(sample), total)
 
     def _compressed(self, x: np.ndarray, total: int | None = None):
@@ -364,10 +357,6 @@ class LandmarkIndex:
         starts = np.r_[True, kf[1:] != kf[:-1]]  # a keyframe's landmarks come together
         first = np.maximum.accumulate(np.where(starts, np.arange(len(kf)), 0))
         return np.arange(len(kf)) - first < top
-
-    def held_count(self, stored: int) -> int:
-        """Landmarks the index holds for a keyframe of `stored` landmarks (the stores' check)."""
-        return held_count(stored, self.conf)
 
     def needs_rebuild(self) -> bool:
         """An IVF-PQ trained on far fewer landmarks than it now holds (its cells are overfull and

@@ -287,7 +287,7 @@ class MapStore(abc.ABC):
         if self._landmarks is None:
             return [f'no landmark index but {len(stored)} keyframes'] if stored else []
         held = self._landmarks.keyframe_counts()
-        want = {i: self._landmarks.held_count(n) for i, n in stored.items()}
+        want = {i: landmark_index.held_count(n, self.conf) for i, n in stored.items()}
         wrong = sorted(i for i in set(held) | set(want) if held.get(i) != want.get(i))
         if not wrong:
             return []

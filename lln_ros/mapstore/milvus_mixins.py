@@ -83,7 +83,7 @@ class MilvusLandmarks:
             self._landmarks_dirty = self._landmarks.kind != 'exact'
         else:
             held = kept.keyframe_counts()
-            want = {i: kept.held_count(n) for i, n in stored.items()}
+            want = {i: landmark_index.held_count(n, kept.conf) for i, n in stored.items()}
             stale = [i for i, c in held.items() if want.get(i) != c]
             missing = sorted(i for i, n in want.items() if held.get(i) != n)
             kept.remove_keyframes(stale)

@@ -9,7 +9,7 @@ import uuid
 
 import numpy as np
 
-from ..core.landmark_index import LandmarkIndex
+from ..core.landmark_index import LandmarkIndex, held_count
 from ..errors import MapError
 from .sqlite_file import _SQL_CHUNK
 
@@ -105,7 +105,7 @@ class SQLiteLandmarks:
                 index, why = None, str(e)
         if index is not None:
             held = index.keyframe_counts()
-            want = {i: index.held_count(n) for i, n in stored.items()}
+            want = {i: held_count(n, index.conf) for i, n in stored.items()}
             stale = [i for i, c in held.items() if want.get(i) != c]
             missing = [i for i, n in want.items() if held.get(i) != n]
             index.remove_keyframes(stale)
