@@ -208,8 +208,8 @@ def measure_sizes(store, sizes, tops, extractors, queries, truth, args, rng, lab
                     'sequence_carry': carry,
                 },
             )
-            loc.query(ex(queries[0]), T0)  # warm: the first query builds what the open left lazy
             store._landmarks.conf['landmark_query_top'] = top  # the one map, searched with each value
+            loc.query(ex(queries[0]), T0)  # warm with this row's settings (builds what the open left lazy)
             for load in (False, True):
                 start_load = os.getloadavg()[0]
                 with competing_load(load):
