@@ -26,6 +26,7 @@ from lln_ros.errors import MapError
 from lln_ros.io import datasets
 from lln_ros.io.image import load_image
 from lln_ros.mapstore import MapStore
+from lln_ros.mapstore.index import landmark_disagreements, stale_and_missing
 
 # every landmark held (landmark_index_top 0): these tests count landmarks of 50 per keyframe; the
 # default's best 25 have their own tests below
@@ -87,6 +88,19 @@ def test_index_add_search_remove_and_below(rng):
     ids, _ = index.shortlist(sets[4], k=3, below=14)  # keyframes 14, 15 are excluded
     assert 14 not in ids and 15 not in ids
     assert index.remove_keyframes([12, 99]) == held and 12 not in index.keyframe_counts()
+
+
+def test_disagreements_name_what_a_store_catches_up(rng):
+    """What both backends catch up at open and the integrity check reports: keyframes held in another
+    number than their stored landmarks are due (stale), stored but not held (missing), held but not
+    stored; a keyframe with nothing due and nothing held agrees."""
+    index = LandmarkIndex(320)
+    index.add_sets([1, 2, 3], [make_set(rng) for _ in range(3)])  # 25 held each (landmark_index_top)
+    stored = {1: 50, 2: 10, 4: 50, 5: 0}  # 2 is due 10, 3 is not stored, 4 is not held, 5 has none
+    wrong = landmark_disagreements(index, stored)
+    assert wrong == {2: (25, 10), 3: (25, 0), 4: (0, 25)}
+    assert stale_and_missing(wrong) == ([2, 3], [2, 4])
+    assert landmark_disagreements(index, {1: 50, 2: 30, 3: 25}) == {}
 
 
 def test_query_top_searches_only_the_best_query_landmarks(rng):

@@ -16,6 +16,7 @@ from ..core.limits import KEYFRAME_ID_MAX, parse_model_json, stamp_problem, vali
 from ..core.retrieval import Candidate, pair_regions, rerank
 from ..core.retrieval import default_conf as retrieval_conf
 from ..errors import DescriptorError, MapError, ModelError
+from .index import landmark_disagreements
 from .uri import backend_for
 
 FORMAT = 'lln_ros-map'
@@ -286,14 +287,12 @@ class MapStore(abc.ABC):
         """Disagreements between the landmark index and stored {keyframe id: n}."""
         if self._landmarks is None:
             return [f'no landmark index but {len(stored)} keyframes'] if stored else []
-        held = self._landmarks.keyframe_counts()
-        want = {i: landmark_index.held_count(n, self.conf) for i, n in stored.items()}
-        wrong = sorted(i for i in set(held) | set(want) if held.get(i) != want.get(i))
+        wrong = landmark_disagreements(self._landmarks, stored)
         if not wrong:
             return []
         return [
             f'landmark index disagrees with the stored keyframes on {len(wrong)} keyframes (e.g. '
-            + ', '.join(f'{i}: {held.get(i, 0)} indexed, {want.get(i, 0)} expected' for i in wrong[:5])
+            + ', '.join(f'{i}: {held} indexed, {due} expected' for i, (held, due) in list(wrong.items())[:5])
             + ')'
         ]
 

@@ -1,5 +1,6 @@
 """The in-memory FAISS index of the keyframes' global descriptors (the holistic first stage);
-the landmark index is lln_ros/core/landmark_index.py."""
+the landmark index is lln_ros/core/landmark_index.py, kept in step with the stored keyframes by
+landmark_disagreements."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import logging
 import faiss
 import numpy as np
 
+from ..core.landmark_index import held_count
 from ..core.threads import one_faiss_thread
 
 log = logging.getLogger(__name__)
@@ -95,3 +97,19 @@ class GlobalIndex:
             if size:
                 out.extend(faiss.rev_swig_ptr(lists.get_ids(cell), size).tolist())
         return sorted(out)
+
+
+def landmark_disagreements(index, stored: dict) -> dict[int, tuple[int, int]]:
+    """Where a LandmarkIndex and the stored keyframes {keyframe id: landmarks stored} disagree:
+    {keyframe id: (landmarks held, landmarks due)} in id order; due = held_count(n, index.conf), 0 for a
+    keyframe not stored. Both backends catch up from it at open (held > 0: stale, removed; due > 0:
+    missing, added again) and the integrity check reports it (MapStore._landmark_problems)."""
+    held = index.keyframe_counts()
+    due = {i: held_count(n, index.conf) for i, n in stored.items()}
+    both = sorted(held.keys() | due.keys())
+    return {i: (held.get(i, 0), due.get(i, 0)) for i in both if held.get(i, 0) != due.get(i, 0)}
+
+
+def stale_and_missing(wrong: dict) -> tuple[list[int], list[int]]:
+    """landmark_disagreements' keyframes to remove from the index (it holds some) and to add (some are due)."""
+    return [i for i, (held, _) in wrong.items() if held], [i for i, (_, due) in wrong.items() if due]

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..core import landmark_index
 from ..errors import DescriptorError, MapError
+from .index import landmark_disagreements, stale_and_missing
 from .milvus_rows import _PIECES, compact_row, pack, row_problem, unpack
 
 log = logging.getLogger(__name__.rsplit('_', 1)[0])  # lln_ros.mapstore.milvus, as the backend logs
@@ -82,10 +83,7 @@ class MilvusLandmarks:
             self._build_landmarks(self._held_total(stored))
             self._landmarks_dirty = self._landmarks.kind != 'exact'
         else:
-            held = kept.keyframe_counts()
-            want = {i: landmark_index.held_count(n, kept.conf) for i, n in stored.items()}
-            stale = [i for i, c in held.items() if want.get(i) != c]
-            missing = sorted(i for i, n in want.items() if held.get(i) != n)
+            stale, missing = stale_and_missing(landmark_disagreements(kept, stored))
             kept.remove_keyframes(stale)
             self._index_landmarks(missing)
             self._landmarks_dirty = bool(stale or missing)

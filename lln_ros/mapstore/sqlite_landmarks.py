@@ -9,8 +9,9 @@ import uuid
 
 import numpy as np
 
-from ..core.landmark_index import LandmarkIndex, held_count
+from ..core.landmark_index import LandmarkIndex
 from ..errors import MapError
+from .index import landmark_disagreements, stale_and_missing
 from .sqlite_file import _SQL_CHUNK
 
 log = logging.getLogger(__name__)
@@ -104,10 +105,7 @@ class SQLiteLandmarks:
             except MapError as e:
                 index, why = None, str(e)
         if index is not None:
-            held = index.keyframe_counts()
-            want = {i: held_count(n, index.conf) for i, n in stored.items()}
-            stale = [i for i, c in held.items() if want.get(i) != c]
-            missing = [i for i, n in want.items() if held.get(i) != n]
+            stale, missing = stale_and_missing(landmark_disagreements(index, stored))
             index.remove_keyframes(stale)
             for kf, cells, desc in self._landmark_rows(missing):
                 index.add(desc, kf, cells)
