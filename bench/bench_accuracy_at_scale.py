@@ -7,7 +7,7 @@
                                             [--landmark-refine SQ8] [--landmark-nprobe N] [--landmark-k-factor K]
                                             [--similarity raw|whiten|fuse]
                                             [--sequence-carry 0,10] [--sequence-prefilter-k K] [--prefilter-k K]
-                                            [--range 0.7:1] [--distractor-seasons summer,winter]
+                                            [--range 0.7:1] [--distractor-seasons summer,winter] [--rescore]
 
 The map: the summer references of the Nordland test split (lln-eval's docs/results.md split:
 aligned summer/winter, range 0.7:1, tolerance 1 frame; --range 0.6:0.7 is the validation part,
@@ -41,6 +41,12 @@ distractor by kind (real, flip, crop) and origin (Nordland summer / winter, the 
 stage (landmark_index.default_conf, as the map store's conf). --similarity: the reranker S on raw
 sets (the default), on centred and whitened sets ('whiten'), or raw + fusion_weight x whitened
 ('fuse'): the matcher's `similarity` (docs/method.md).
+
+--rescore: no map is built; the map a previous run of the same --range and --distractor-seasons
+left in --dir (at its largest size) is scored with this run's settings, the distractors' kinds
+replayed from the same pool order. The first stage's query-time settings (--landmark-knn, -alpha,
+-query-top) and the Localizer's apply as given; an index setting other than the map's rebuilds its
+index first. Minutes at 100k keyframes instead of most of an hour: how settings are compared on one map.
 
 Skips (exit 0, message) when --data is absent.
 """
@@ -148,6 +154,7 @@ def main(argv=None) -> int:
         help="Nordland seasons among the distractors: 'summer' pads the map only with the references' season "
         '(a map built in one season, queried in another)',
     )
+    ap.add_argument('--rescore', action='store_true', help='score the map already in --dir (module doc)')
     ap.add_argument('--max-seconds', type=float, default=0, help='stop growing the map after this long (0 = never)')
     ap.add_argument(
         '--landmark-knn', type=int, default=retrieval_conf['landmark_knn'], help='first stage: hits per query landmark'
@@ -229,8 +236,11 @@ def main(argv=None) -> int:
     t_start = time.perf_counter()
     sizes = sorted(int(s) for s in args.sizes.split(','))
     folder = Path(args.dir)
-    shutil.rmtree(folder, ignore_errors=True)
-    folder.mkdir(parents=True)
+    if not args.rescore:
+        shutil.rmtree(folder, ignore_errors=True)
+        folder.mkdir(parents=True)
+    elif not (folder / 'map.db').is_file():
+        sys.exit(f'--rescore: no map in {folder} (run once without --rescore)')
     part = parse_range(args.range)
     ds = aligned(data / 'nordland_trimmed' / 'summer', data / 'nordland_trimmed' / 'winter', 1, part)
     extractor = Extractor()
@@ -245,6 +255,21 @@ def main(argv=None) -> int:
     print(f'{len(refs)} references, {len(queries)} queries, {len(pool)} real distractor images', flush=True)
     rows, used, rng, source = [], {'real': 0, 'flip': 0, 'crop': 0}, np.random.default_rng(0), {}
     rate = []
+    if args.rescore:
+        with MapStore.open(folder / 'map.db', model=extractor.model_info, conf=map_conf, create=False) as store:
+            ids = store.ids()
+            ref_ids, distractors = ids[: len(refs)], ids[len(refs) :]
+            for i, kid in enumerate(distractors):  # the build's order: pool, then its flips, then crops
+                round_, idx = divmod(i, len(pool))
+                kind = ('real', 'flip', 'crop')[min(round_, 2)]
+                used[kind] += 1
+                source[int(kid)] = f'{kind} {origin(pool[idx])}'
+            r = score(store, queries, ds.gt, ref_ids, args.sequence, args.carries, loc_conf, source)
+            rows.append(
+                {'keyframes': len(store), 'target': len(store), 'stopped': False, 'load': os.getloadavg()[0], **r}
+            )
+        print(table(rows, args, used, rate))
+        return 0
     with MapStore.open(folder / 'map.db', model=extractor.model_info, conf=map_conf) as store:
         ref_ids = store.add_many(refs, [divmod(T0 + i * 10**8, 10**9) for i in range(len(refs))])
         cursor = 0

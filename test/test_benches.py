@@ -63,3 +63,13 @@ def test_accuracy_at_scale_pads_the_map_with_distractors_it_never_counts_correct
         'real nordland winter',
     }, padded
     assert f"'real': {300 - refs}" in text, text  # the padding: real images before any flip or crop
+    # --rescore scores the map this run left with the same settings: the same figures and wrong answers
+    again = run_bench(
+        'bench_accuracy_at_scale.py',
+        *('--data', str(data), '--range', '0.96:1', '--rescore'),
+        *('--cache', str(tmp_path / 'features'), '--dir', str(tmp_path / 'scale')),
+    )
+    assert (
+        re.search(r'^\s+300\s+.*$', again, re.M).group(0)[:38] == re.search(r'^\s+300\s+.*$', text, re.M).group(0)[:38]
+    )
+    assert re.search(r'^lln wrong at 300 keyframes: (.*)$', again, re.M).group(1) == padded
