@@ -7,6 +7,7 @@
                                             [--landmark-refine SQ8] [--landmark-nprobe N] [--landmark-k-factor K]
                                             [--similarity raw|whiten|fuse]
                                             [--sequence-carry 0,10] [--sequence-prefilter-k K] [--prefilter-k K]
+                                            [--sequence-acquire-k K]
                                             [--range 0.7:1] [--distractor-seasons summer,winter] [--rescore]
 
 The map: the summer references of the Nordland test split (lln-eval's docs/results.md split:
@@ -23,18 +24,19 @@ references' season, as in a map built in one season). When more are needed, hori
 back by the extractor). A distractor is never counted correct: ground truth covers references only.
 
 Queries: the winter test frames (lln-eval's drop rule), in route order, through the matcher's own
-decision code (core.localizer.Localizer.query on MapStore.open: shipped defaults, landmark first
-stage, rerank by S), single frame (lln) and with sequence_length --sequence (lln+seq). P@100%R is
-the fraction of queries whose best answer is a reference within tolerance (every test query has
-one); with --sequence-carry N,M one lln+seq column per value of the Localizer's sequence_carry
-(the best N sequence ends' next places scored beside the first stage's candidates; 0 = off), and
---sequence-prefilter-k the first-stage candidates it reranks (the matcher's sequence_prefilter_k; the
-Localizer reranks max(prefilter_k, sequence_prefilter_k) with a sequence, so fewer than prefilter_k
-takes --prefilter-k too). --prefilter-k: the first-stage candidates a single frame reranks (the
+decision code (core.localizer.Localizer.query on MapStore.open: shipped defaults, landmark first stage,
+rerank by S), single frame (lln) and with sequence_length --sequence (lln+seq). P@100%R is the fraction
+of queries whose best answer is a reference within tolerance (every test query has one); with
+--sequence-carry N,M one lln+seq column per value of the Localizer's sequence_carry (the best N sequence
+ends' next places scored beside the first stage's candidates; 0 = off), and --sequence-prefilter-k the
+first-stage candidates it reranks (the matcher's sequence_prefilter_k; the Localizer reranks
+max(prefilter_k, sequence_prefilter_k) with a sequence, so fewer than prefilter_k takes --prefilter-k
+too); --sequence-acquire-k the candidates while the window fills (the Localizer's sequence_acquire_k:
+its first L - 1 queries). --prefilter-k: the first-stage candidates a single frame reranks (the
 matcher's prefilter_k). 'first stage' is the recall of a correct reference in the landmark index's
-shortlist of prefilter_k keyframes (the map's index, as MapStore.query calls it). Under the table,
-the single frame's wrong answers by what they are: another reference (place of the route) or a
-distractor by kind (real, flip, crop) and origin (Nordland summer / winter, the other sets).
+shortlist of prefilter_k keyframes (the map's index, as MapStore.query calls it). Under the table, the
+single frame's wrong answers by what they are: another reference (place of the route) or a distractor by
+kind (real, flip, crop) and origin (Nordland summer / winter, the other sets).
 
 --landmark-knn / --landmark-alpha / --landmark-query-top / --landmark-index-top /
 --landmark-compressed / --landmark-refine / --landmark-nprobe / --landmark-k-factor: the map's first
@@ -204,6 +206,12 @@ def main(argv=None) -> int:
         help="lln+seq: the Localizer's sequence_prefilter_k (first-stage candidates reranked)",
     )
     ap.add_argument(
+        '--sequence-acquire-k',
+        type=int,
+        default=LOC['sequence_acquire_k'],
+        help="lln+seq: the Localizer's sequence_acquire_k (candidates while the window fills; 0 = off)",
+    )
+    ap.add_argument(
         '--prefilter-k',
         type=int,
         default=LOC['prefilter_k'],
@@ -218,6 +226,7 @@ def main(argv=None) -> int:
         'similarity': args.similarity,
         'prefilter_k': args.prefilter_k,
         'sequence_prefilter_k': args.sequence_prefilter_k,
+        'sequence_acquire_k': args.sequence_acquire_k,
     }
     map_conf = {
         'landmark_knn': args.landmark_knn,
@@ -326,7 +335,7 @@ def table(rows, args, used, rate) -> str:
         )
         + f', nprobe {args.landmark_nprobe or "default"}; S: {args.similarity}; '
         f'sequence_carry {args.sequence_carry}, prefilter_k {args.prefilter_k}, '
-        f'sequence_prefilter_k {args.sequence_prefilter_k}',
+        f'sequence_prefilter_k {args.sequence_prefilter_k}, sequence_acquire_k {args.sequence_acquire_k}',
         f'distractors used: {used}, Nordland seasons among them: {args.distractor_seasons}',
         f'{"keyframes":>9} {"lln":>7}'
         + ''.join(f' {seq_name(c, args.carries):>8}' for c in args.carries)

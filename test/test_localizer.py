@@ -212,7 +212,7 @@ def test_sequence_carry_scores_where_the_route_goes_next(map_path, rng):
     route = [make_set(rng) for _ in range(12)]
     with MapStore(map_path, model=MODEL) as store:
         ids = store.add_many(route, [(i, 0) for i in range(12)])
-        one = {'sequence_length': 4, 'k': 5, 'prefilter_k': 1, 'sequence_prefilter_k': 1}
+        one = {'sequence_length': 4, 'k': 5, 'prefilter_k': 1, 'sequence_prefilter_k': 1, 'sequence_acquire_k': 0}
         plain, carried = Localizer(store, {**one, 'sequence_carry': 0}), Localizer(store, {**one, 'sequence_carry': 2})
         for i in range(2, 8):
             view = make_set(rng, base=route[i], noise=0.3)
@@ -225,6 +225,28 @@ def test_sequence_carry_scores_where_the_route_goes_next(map_path, rng):
         invariants(carried.counters.snapshot())
         with pytest.raises(ValueError, match='sequence_carry must be 0'):
             Localizer(store, {'sequence_carry': -1})
+
+
+def test_sequence_acquire_k_reranks_more_while_the_window_fills(map_path, rng):
+    """sequence_acquire_k: the first sequence_length - 1 queries, and those after a reset (a gap), rerank
+    that many candidates, so their answer rows carry more S; a full window reranks sequence_prefilter_k."""
+    route = [make_set(rng) for _ in range(12)]
+    with MapStore(map_path, model=MODEL) as store:
+        ids = store.add_many(route, [(i, 0) for i in range(12)])
+        one = {'sequence_length': 4, 'k': 5, 'prefilter_k': 1, 'sequence_prefilter_k': 1, 'sequence_carry': 0}
+        loc = Localizer(store, {**one, 'sequence_acquire_k': 6})
+        scored = []
+        for i, at in zip(range(1, 11), [1, 2, 3, 4, 5, 6, 40, 41, 42, 43]):  # 6 -> 40: a 1.7 s gap (max 1 s)
+            answer = ask(loc, make_set(rng, base=route[i], noise=0.3), at)
+            scored.append(sum(r['score'] != 0 for r in answer.rows))
+            if i == 1:  # one frame: the line is its best S, found among the 6
+                assert answer.rows[0]['keyframe_id'] == ids[1], answer.rows
+        # while filling, 6 are reranked and several answer rows carry S; a full window reranks 1
+        assert [n > 1 for n in scored] == [True] * 3 + [False] * 3 + [True] * 3 + [False], scored
+        assert max(scored[3:6]) == 1 and scored[9] == 1, scored
+        assert loc.counters.snapshot()['sequence_reset_gap'] == 1
+        with pytest.raises(ValueError, match='sequence_acquire_k must be 0'):
+            Localizer(store, {'sequence_acquire_k': -1})
 
 
 @pytest.mark.parametrize(

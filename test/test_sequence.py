@@ -14,6 +14,7 @@ from lln_ros.core.sequence import (
     KeyframeSequence,
     SequenceError,
     SequenceMatcher,
+    acquiring,
     contrast_enhance,
     rank_sequences,
     sad_descriptors,
@@ -371,6 +372,42 @@ def test_eval_sequence_carry_scores_more_than_the_first_stage(tmp_path, capsys):
     capsys.readouterr()
     assert run_cli('--dataset', 'x', '--out', tmp_path / 'bad', '--sequence-carry', -1) == 2
     assert '--sequence-carry must be at least 0' in capsys.readouterr().err
+
+
+def test_acquiring_takes_the_wider_ranking_while_the_window_fills():
+    """Offline sequence_acquire_k: the first n queries rank K' candidates, the rest K, padded to K'."""
+    base = (np.array([[0, 1], [2, 3], [4, 5]]), np.array([[3, 2], [3, 2], [3, 2]], np.float32))
+    wide = (np.array([[9, 0, 1], [8, 2, 3], [7, 4, 5]]), np.array([[5, 3, 2]] * 3, np.float32))
+    ranked, scores = acquiring(base, wide, 2)
+    assert ranked.tolist() == [[9, 0, 1], [8, 2, 3], [4, 5, -1]]
+    assert scores.tolist() == [[5, 3, 2], [5, 3, 2], [3, 2, -np.inf]]
+    assert acquiring(base, wide, 0)[0].tolist() == [[0, 1, -1], [2, 3, -1], [4, 5, -1]]
+
+
+def test_eval_sequence_acquire_k_echoes_and_leaves_single_frames(tmp_path, capsys):
+    """lln-eval --sequence-acquire-k: the X+seq rows' first L - 1 queries rank more candidates; the
+    single-frame row is the same, the setting is in results.json, a negative value is refused."""
+    root = shared_data('rtabmap_loop')
+    rows = {}
+    for acquire in (0, 20):
+        out = tmp_path / f'a{acquire}'
+        rc = run_cli(
+            *('--dataset', f'loop:{root},{root / "samples_GT.bmp"}', '--out', out, '--methods', 'lln'),
+            *('--sequence', 5, '--prefilter-k', 3, '--sequence-prefilter-k', 3, '--sequence-acquire-k', acquire),
+            *('--cache', tmp_path / 'cache', '--timing-images', 1, '--timing-queries', 1, '--timing-repeats', 1),
+            *('--no-plots', '--quiet'),
+        )
+        assert rc == 0, capsys.readouterr().err
+        results = json.loads((out / 'results.json').read_text())
+        assert results['parameters']['sequence_acquire_k'] == acquire
+        rows[acquire] = {
+            r: {k: v for k, v in m.items() if 'ms' not in k}
+            for r, m in results['datasets']['rtabmap_loop']['methods'].items()
+        }
+    assert rows[0]['lln'] == rows[20]['lln']
+    capsys.readouterr()
+    assert run_cli('--dataset', 'x', '--out', tmp_path / 'bad', '--sequence-acquire-k', -1) == 2
+    assert '--sequence-acquire-k must be at least 0' in capsys.readouterr().err
 
 
 def test_sequence_candidates_are_the_single_frame_first_stage_extended(extractor):

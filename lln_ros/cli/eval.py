@@ -126,6 +126,14 @@ def build_parser() -> argparse.ArgumentParser:
         f'(default {conf["sequence_prefilter_k"]}, as the matcher with sequence_length; 0 = every reference)',
     )
     p.add_argument(
+        '--sequence-acquire-k',
+        type=int,
+        default=conf['sequence_acquire_k'],
+        metavar='K',
+        help='X+seq of local methods: first-stage candidates of the first L - 1 queries, while the window fills, '
+        f"as the matcher's sequence_acquire_k (default {conf['sequence_acquire_k']}; 0 = --sequence-prefilter-k's)",
+    )
+    p.add_argument(
         '--sequence-carry',
         type=int,
         default=conf['sequence_carry'],
@@ -296,6 +304,8 @@ def run(args, argv) -> dict:
         raise UsageError('--reloc-top and --reloc-min-inliers must be at least 1')
     if args.sequence_carry < 0:
         raise UsageError(f'--sequence-carry must be at least 0 (0 = off), got {args.sequence_carry}')
+    if args.sequence_acquire_k < 0:
+        raise UsageError(f'--sequence-acquire-k must be at least 0 (0 = off), got {args.sequence_acquire_k}')
     if args.sequence_prefilter_k < 0:
         raise UsageError(f'--sequence-prefilter-k must be at least 0 (0 = every ref), got {args.sequence_prefilter_k}')
     if args.sequence < 0:
@@ -343,6 +353,7 @@ def run(args, argv) -> dict:
         'sequence': args.sequence,
         'sequence_prefilter_k': args.sequence_prefilter_k,
         'sequence_carry': args.sequence_carry,
+        'sequence_acquire_k': args.sequence_acquire_k,
         'sequence_score_norm': args.sequence_score_norm,
         'timing_images': args.timing_images,
         'timing_queries': args.timing_queries,

@@ -60,6 +60,7 @@ default_conf = {
     'sequence_max_gap': 1.0,
     # with sequence_length: the best N sequence ends' next places (KeyframeSequence.ahead) are reranked too
     'sequence_carry': retrieval_conf['sequence_carry'],
+    'sequence_acquire_k': retrieval_conf['sequence_acquire_k'],  # candidates while the window fills; 0 = off
     'sequence_score_norm': sequence_mod.default_conf['score_norm'],  # each query's S before the line search
     # verify: bytes of keypoints messages waiting for their landmark set (the oldest are evicted, as
     # keypoints_evicted): 100 of 500 keypoints are 2.8 MB; 100 declaring 1 row, 8 MB each were 816 MB
@@ -132,7 +133,7 @@ class Localizer:
             raise ValueError(f'prefilter_k must be 0 (every keyframe) or positive, got {conf["prefilter_k"]}')
         check_prefilter(conf['prefilter'], conf['prefilter_k'])
         candidates_k(conf['prefilter_k'], conf['sequence_prefilter_k'], True)  # ValueError when negative
-        for key in ('sequence_length', 'sequence_carry'):
+        for key in ('sequence_length', 'sequence_carry', 'sequence_acquire_k'):
             if conf[key] < 0:
                 raise ValueError(f'{key} must be 0 (off) or positive, got {conf[key]}')
         return conf
@@ -346,6 +347,8 @@ class Localizer:
         odom = self.reg.odometry_at(stamp_ns)
         sequence = self.sequence is not None  # the sequence search needs every reranked candidate
         prefilter_k = candidates_k(c['prefilter_k'], c['sequence_prefilter_k'], sequence)
+        if sequence and prefilter_k and c['sequence_acquire_k'] and self.sequence.matcher.filling(stamp_ns):
+            prefilter_k = max(prefilter_k, int(c['sequence_acquire_k']))  # too few frames to outvote a wrong line
         recent = self._own(max(c['exclude_recent'], self.reg.recent(stamp_ns, odom))) if self.mapping else 0
         carried = self.sequence.ahead() if sequence and c['sequence_carry'] else ()
         found = self.store.query(

@@ -41,6 +41,12 @@ default_conf = {
     # position + 0..2), beside the first stage's candidates; 0 = off. Same validation map: 0.821 (0),
     # 0.908 (10), 0.899 (30) with 100 candidates
     'sequence_carry': 10,
+    # while the sequence window fills (its first sequence_length - 1 queries after a start or reset)
+    # rerank this many instead (never fewer than the above); 0 = off. A short window has too few frames
+    # to outvote a wrong line through look-alikes. Nordland validation 0.6:0.7, lln+seq plain / 10k /
+    # 100k: 0.950 / 0.933 / 0.894 off, 0.950 / 0.933 / 0.941 with 50 or 100 (docs/benchmarks.md,
+    # Acquiring the route)
+    'sequence_acquire_k': 100,
     'scale': 1.0,  # offset-weight Gaussian width, in grid cells
     **landmark_index.default_conf,
 }

@@ -116,6 +116,21 @@ class SequenceMatcher:
     def reset(self) -> None:
         self.ring.clear()
 
+    def reset_reason(self, stamp_ns: int) -> str | None:
+        """Why pushing a query of stamp_ns would empty the window first ('out_of_order', 'gap'), or None."""
+        if not self.ring:
+            return None
+        last = self.ring[-1][0]
+        if stamp_ns <= last:
+            return 'out_of_order'
+        return 'gap' if stamp_ns - last > float(self.conf['max_gap_s']) * 1e9 else None
+
+    def filling(self, stamp_ns: int) -> bool:
+        """Whether the window will hold fewer than `length` queries once a query of stamp_ns is pushed:
+        the first length - 1 after a start, or after a reset this stamp causes."""
+        held = 0 if self.reset_reason(stamp_ns) else len(self.ring)
+        return held + 1 < self.length
+
     def push(self, stamp_ns: int, positions, scores) -> str | None:
         """Add one query's scored map positions. Returns why the window was emptied first
         ('out_of_order', 'gap') or None."""
@@ -127,13 +142,7 @@ class SequenceMatcher:
         positions, scores = positions[keep], scores[keep]
         if self.conf['score_norm'] == 'zscore':
             scores = standardise(scores)
-        reason = None
-        if self.ring:
-            last = self.ring[-1][0]
-            if stamp_ns <= last:
-                reason = 'out_of_order'
-            elif stamp_ns - last > float(self.conf['max_gap_s']) * 1e9:
-                reason = 'gap'
+        reason = self.reset_reason(stamp_ns)
         if reason:
             self.resets[reason] += 1
             self.ring.clear()
@@ -220,6 +229,18 @@ def rank_sequences(
         carried, ends, s = ends[: int(carry)], ends[:k], s[:k]
         out[q, : len(ends)], out_scores[q, : len(ends)] = ends, s
     return out, out_scores
+
+
+def acquiring(base: tuple, wide: tuple, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Offline, the matcher's sequence_acquire_k: a stream's single-frame ranking (ranked, scores) (Q, K)
+    whose first n queries (the window filling: sequence length - 1) come from the wider ranking wide
+    (Q, K') instead; K' >= K, the rest padded with -1 / -inf to K'."""
+    ranked = np.full(wide[0].shape, -1, np.int64)
+    scores = np.full(wide[1].shape, -np.inf, np.float32)
+    k = base[0].shape[1]
+    ranked[:, :k], scores[:, :k] = base
+    ranked[:n], scores[:n] = wide[0][:n], wide[1][:n]
+    return ranked, scores
 
 
 def dense_to_ranked(

@@ -234,6 +234,7 @@ def markdown(results: dict) -> str:
             'prefilter',
             'prefilter_k',
             'sequence_prefilter_k',
+            'sequence_acquire_k',
             'scale',
             'rand_seed',
             'act_fusion',

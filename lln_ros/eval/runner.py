@@ -63,9 +63,9 @@ from ..core.landmarks import LandmarkSet, l2_normalize, stack_landmarks
 from ..core.lln import head_fingerprint
 from ..core.retrieval import batch_index, candidates_k, rank_all, rank_all_at
 from ..core.retrieval import default_conf as retrieval_defaults
+from ..core.sequence import acquiring, sad_conf
 from ..core.sequence import check_conf as sequence_conf
 from ..core.sequence import default_conf as sequence_defaults
-from ..core.sequence import sad_conf
 from ..core.similarity import default_conf as similarity_defaults
 from ..core.similarity import match_batch
 from ..errors import DatasetError
@@ -106,6 +106,7 @@ default_conf = {
     **{key: landmark_index_defaults[key] for key in LANDMARK_CONF},  # the first stage's, as its index's
     'sequence': 0,  # L > 0: an `X+seq` row per holistic/local row (sequence length L)
     'sequence_carry': retrieval_defaults['sequence_carry'],  # X+seq of local rows: the matcher's sequence_carry
+    'sequence_acquire_k': retrieval_defaults['sequence_acquire_k'],  # ... and its candidates while the window fills
     'sequence_score_norm': sequence_defaults['score_norm'],  # X+seq rows (seqslam keeps its own, sequence.py)
     'seqslam_length': sequence_defaults['length'],  # seqslam's L when 'sequence' is 0
     'timing_images': 5,  # images per dataset the extraction is timed on
@@ -120,6 +121,7 @@ default_conf = {
     **reloc_eval_conf,
 }
 ECHOED = {'top_n': int, 'prefilter_k': int, 'scale': float, 'sequence_carry': int, 'sequence_score_norm': str}
+ECHOED['sequence_acquire_k'] = int
 ECHOED |= LANDMARK_CONF | dict.fromkeys(('similarity_center', 'similarity_whitening', 'similarity_fusion'), bool)
 
 
@@ -214,6 +216,7 @@ def evaluate_dataset(
     seq_len, norm = int(conf['sequence']), conf['sequence_score_norm']
     seq_conf = sequence_conf({'length': seq_len or int(conf['seqslam_length']), 'score_norm': norm})
     k_seq = candidates_k(conf['prefilter_k'], conf['sequence_prefilter_k'], bool(seq_len))
+    k_acq = max(k_seq, int(conf['sequence_acquire_k'])) if k_seq and conf['sequence_acquire_k'] else k_seq
     if (seq_len or 'seqslam' in methods) and seq_conf['length'] > len(ds.ref_paths):
         raise DatasetError(
             f'{ds.name}: sequence length {seq_conf["length"]} is longer than its map ({len(ds.ref_paths)} references)'
@@ -284,18 +287,14 @@ def evaluate_dataset(
             # where one of them searches it (training it is the expensive part on a large map)
             lm_conf = {key: cast(conf[key]) for key, cast in LANDMARK_CONF.items()}
             index = batch_index(batch, lm_conf) if prefilter == 'landmarks' or report_stages else None
-            if seq_len and k_seq != int(conf['prefilter_k']):
-                # one first stage of k_seq candidates, one rerank: the single-frame row is its first K
-                (ranked, scores), seq_bases[row] = rank_all_at(
-                    qs,
-                    batch,
-                    (int(conf['prefilter_k']), k_seq),
-                    ds.candidates,
-                    scale,
-                    prefilter,
-                    index=index,
-                    center=center,
+            if seq_len and (k_seq != int(conf['prefilter_k']) or k_acq != k_seq):
+                # one first stage of k_acq candidates, one rerank: the single-frame row is its first K, the
+                # sequence's its first k_seq but k_acq while the window fills (the Localizer's sequence_acquire_k)
+                ks = (int(conf['prefilter_k']), k_seq, k_acq)
+                (ranked, scores), base, wide = rank_all_at(
+                    qs, batch, ks, ds.candidates, scale, prefilter, index=index, center=center
                 )
+                seq_bases[row] = acquiring(base, wide, seq_len - 1)
             else:
                 ranked, scores = rank_all(
                     qs, batch, k, allowed=ds.candidates, scale=scale, prefilter=prefilter, index=index, center=center

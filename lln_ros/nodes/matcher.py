@@ -77,6 +77,8 @@ from .parameters import Param, declare_all, diagnostics_period
 from .registration_params import KEYS as REG_KEYS
 from .registration_params import PARAMETERS as REGISTRATION_PARAMETERS
 from .registration_params import registration_conf
+from .sequence_params import KEYS as SEQUENCE_KEYS
+from .sequence_params import PARAMETERS as SEQUENCE_PARAMETERS
 
 # defaults come from the ROS-free confs (lln_ros.core.localizer / limits): one source each.
 # dynamic=True: settable at run time (ros2 param set), applied from the next message on
@@ -101,13 +103,6 @@ PARAMETERS = {
         LOC['prefilter_k'],
         'first-stage candidates reranked by the landmark similarity; 0 = every '
         'keyframe (exhaustive, whatever prefilter says; cost grows with the map)',
-        dynamic=True,
-        range=(0, 1_000_000),
-    ),
-    'sequence_prefilter_k': Param(
-        LOC['sequence_prefilter_k'],
-        'with sequence_length > 0: first-stage candidates reranked, at least prefilter_k (the '
-        'sequence search needs a score wherever the route may be); 0 = every keyframe',
         dynamic=True,
         range=(0, 1_000_000),
     ),
@@ -163,32 +158,6 @@ PARAMETERS = {
         range=(0.0, 1e9),
     ),
     'diagnostics_period': diagnostics_period(),
-    'sequence_length': Param(
-        LOC['sequence_length'],
-        'queries in the sequence search (0 = off, single-frame ranking); a change starts a new sequence',
-        dynamic=True,
-        range=(0, 10_000),
-    ),
-    'sequence_max_gap': Param(
-        LOC['sequence_max_gap'],
-        'seconds between query stamps beyond which a new sequence starts',
-        dynamic=True,
-        range=(1e-3, 1e6),
-    ),
-    'sequence_carry': Param(
-        LOC['sequence_carry'],
-        "with sequence_length > 0: the best N sequence ends' next places are scored beside the first "
-        "stage's candidates, so a route the first stage loses stays scored; 0 = off",
-        dynamic=True,
-        range=(0, 10_000),
-    ),
-    'sequence_score_norm': Param(
-        LOC['sequence_score_norm'],
-        "each query's S in the line search: none (raw S) or zscore (standard deviations above its lowest "
-        'candidate, so sequence_score compares across queries); a change starts a new sequence',
-        dynamic=True,
-        choices=CHOICES['sequence_score_norm'],
-    ),
     # input limits (lln_ros.core.limits): a message declaring more is refused and counted, never sized from
     'max_image_pixels': Param(
         LIMITS['max_image_pixels'], 'limit: image width x height a landmark cloud may declare', range=(1, 2**40)
@@ -204,6 +173,7 @@ PARAMETERS = {
     ),
     'max_keypoints': Param(LIMITS['max_keypoints'], 'limit: rows per keypoints cloud (verify)', range=(1, 2**31 - 1)),
     'max_point_fields': Param(LIMITS['max_point_fields'], 'limit: PointFields per cloud', range=(1, 2**16)),
+    **SEQUENCE_PARAMETERS,
     **REGISTRATION_PARAMETERS,
 }
 # the Localizer's own settings among them (updated in place at run time: it reads them per message)
@@ -211,7 +181,6 @@ LOCALIZER_KEYS = (
     'mode',
     'prefilter',
     'prefilter_k',
-    'sequence_prefilter_k',
     'k',
     'min_score',
     'exclude_recent',
@@ -222,10 +191,7 @@ LOCALIZER_KEYS = (
     'verify',
     'verify_min_inliers',
     'verify_margin',
-    'sequence_length',
-    'sequence_max_gap',
-    'sequence_carry',
-    'sequence_score_norm',
+    *SEQUENCE_KEYS,
 )
 
 
