@@ -1,12 +1,15 @@
 """Issue 30's two end-to-end benchmarks run as a user runs them (a subprocess of this Python), on a
 map small enough for CI: they must finish and still measure what they say. Their figures are in
-docs/benchmarks.md and are not asserted here beyond "the map still answers"."""
+docs/benchmarks.md and are not asserted here beyond "the map still answers", and that the online
+answer (bench_accuracy_at_scale: the Localizer on a map) is lln-eval's offline one."""
 
 import json
 import re
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 from conftest import shared_data
 
@@ -73,3 +76,34 @@ def test_accuracy_at_scale_pads_the_map_with_distractors_it_never_counts_correct
         re.search(r'^\s+300\s+.*$', again, re.M).group(0)[:38] == re.search(r'^\s+300\s+.*$', text, re.M).group(0)[:38]
     )
     assert re.search(r'^lln wrong at 300 keyframes: (.*)$', again, re.M).group(1) == padded
+
+
+def test_sequence_acquire_k_offline_equals_online_on_real_frames(tmp_path):
+    """The matcher's sequence_acquire_k (Localizer on an SQLite map, through this bench) and lln-eval's
+    --sequence-acquire-k give the same lln and lln+seq P@100%R on the Nordland test split's last 3%
+    (107 places), with one first-stage candidate so that the first L - 1 queries' 20 change the answer."""
+    data = shared_data('nordland_trimmed').parent
+    same = ('--sequence', '5', '--prefilter-k', '1', '--sequence-prefilter-k', '1')
+    figures = {}
+    for acquire in ('0', '20'):
+        text = run_bench(
+            'bench_accuracy_at_scale.py',
+            *('--data', str(data), '--range', '0.97:1', '--sizes', '0', *same, '--sequence-acquire-k', acquire),
+            *('--cache', str(tmp_path / 'features'), '--dir', str(tmp_path / f'map{acquire}')),
+        )
+        online = tuple(map(float, re.search(r'^\s+107\s+([\d.]+)\s+([\d.]+)', text, re.M).groups()))
+        out = tmp_path / f'eval{acquire}'
+        spec = f'aligned:{data / "nordland_trimmed" / "summer"},{data / "nordland_trimmed" / "winter"},1'
+        subprocess.run(
+            [sys.executable, '-m', 'lln_ros.cli.eval', '--dataset', spec, '--range', '0.97:1', '--methods', 'lln']
+            + [*same, '--sequence-acquire-k', acquire, '--cache', str(tmp_path / 'features'), '--out', str(out)]
+            + ['--timing-images', '1', '--timing-queries', '1', '--timing-repeats', '1', '--no-plots', '--quiet'],
+            check=True,
+            timeout=900,
+            cwd=REPO,
+        )
+        rows = next(iter(json.loads((out / 'results.json').read_text())['datasets'].values()))['methods']
+        offline = (rows['lln']['p_at_100r'], rows['lln+seq']['p_at_100r'])
+        assert online == pytest.approx(offline, abs=5e-4), (acquire, online, offline)  # the bench prints 3 decimals
+        figures[acquire] = online
+    assert figures['0'][0] == figures['20'][0] and figures['0'][1] != figures['20'][1], figures

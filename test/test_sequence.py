@@ -347,31 +347,40 @@ def test_eval_peers_and_sequence_rows_on_rtabmap_loop(tmp_path, capsys):
 TIMED = ('extract_ms', 'match_ms_per_pair')
 
 
-def test_eval_sequence_carry_scores_more_than_the_first_stage(tmp_path, capsys):
-    """lln-eval --sequence-carry: with 3 first-stage candidates the carried ends' next frames are
-    scored too (the matcher's sequence_carry), so the lln+seq row changes and the single-frame row does not."""
+@pytest.mark.parametrize(
+    'flag, values, sequence_moves',
+    [('--sequence-carry', (0, 5), True), ('--sequence-acquire-k', (0, 20), False)],
+)
+def test_eval_sequence_options_move_only_the_sequence_rows(tmp_path, capsys, flag, values, sequence_moves):
+    """lln-eval's X+seq options on rtabmap_loop with 3 first-stage candidates: --sequence-carry also scores
+    the carried ends' next frames (the matcher's sequence_carry), so the lln+seq row changes;
+    --sequence-acquire-k reranks more for the first L - 1 queries (the matcher's sequence_acquire_k; a
+    loop's first queries have nothing to revisit, so it may change nothing here). The single-frame row
+    never changes, results.json echoes the setting, a negative value is refused."""
     root = shared_data('rtabmap_loop')
-    rows = {}
-    for carry in (0, 5):
-        out = tmp_path / f'c{carry}'
+    key, rows = flag[2:].replace('-', '_'), {}
+    for value in values:
+        out = tmp_path / f'{key}{value}'
         rc = run_cli(
             *('--dataset', f'loop:{root},{root / "samples_GT.bmp"}', '--out', out, '--methods', 'lln'),
-            *('--sequence', 5, '--prefilter-k', 3, '--sequence-prefilter-k', 3, '--sequence-carry', carry),
+            *('--sequence', 5, '--prefilter-k', 3, '--sequence-prefilter-k', 3, flag, value),
             *('--cache', tmp_path / 'cache', '--timing-images', 1, '--timing-queries', 1, '--timing-repeats', 1),
             *('--no-plots', '--quiet'),
         )
         assert rc == 0, capsys.readouterr().err
         results = json.loads((out / 'results.json').read_text())
-        assert results['parameters']['sequence_carry'] == carry
-        rows[carry] = {
+        assert results['parameters'][key] == value
+        rows[value] = {
             r: {k: v for k, v in m.items() if 'ms' not in k}
             for r, m in results['datasets']['rtabmap_loop']['methods'].items()
         }
-    assert rows[0]['lln'] == rows[5]['lln']
-    assert rows[0]['lln+seq'] != rows[5]['lln+seq'], rows
+    off, on = (rows[v] for v in values)
+    assert off['lln'] == on['lln']
+    if sequence_moves:
+        assert off['lln+seq'] != on['lln+seq'], rows
     capsys.readouterr()
-    assert run_cli('--dataset', 'x', '--out', tmp_path / 'bad', '--sequence-carry', -1) == 2
-    assert '--sequence-carry must be at least 0' in capsys.readouterr().err
+    assert run_cli('--dataset', 'x', '--out', tmp_path / 'bad', flag, -1) == 2
+    assert f'{flag} must be at least 0' in capsys.readouterr().err
 
 
 def test_acquiring_takes_the_wider_ranking_while_the_window_fills():
@@ -382,32 +391,6 @@ def test_acquiring_takes_the_wider_ranking_while_the_window_fills():
     assert ranked.tolist() == [[9, 0, 1], [8, 2, 3], [4, 5, -1]]
     assert scores.tolist() == [[5, 3, 2], [5, 3, 2], [3, 2, -np.inf]]
     assert acquiring(base, wide, 0)[0].tolist() == [[0, 1, -1], [2, 3, -1], [4, 5, -1]]
-
-
-def test_eval_sequence_acquire_k_echoes_and_leaves_single_frames(tmp_path, capsys):
-    """lln-eval --sequence-acquire-k: the X+seq rows' first L - 1 queries rank more candidates; the
-    single-frame row is the same, the setting is in results.json, a negative value is refused."""
-    root = shared_data('rtabmap_loop')
-    rows = {}
-    for acquire in (0, 20):
-        out = tmp_path / f'a{acquire}'
-        rc = run_cli(
-            *('--dataset', f'loop:{root},{root / "samples_GT.bmp"}', '--out', out, '--methods', 'lln'),
-            *('--sequence', 5, '--prefilter-k', 3, '--sequence-prefilter-k', 3, '--sequence-acquire-k', acquire),
-            *('--cache', tmp_path / 'cache', '--timing-images', 1, '--timing-queries', 1, '--timing-repeats', 1),
-            *('--no-plots', '--quiet'),
-        )
-        assert rc == 0, capsys.readouterr().err
-        results = json.loads((out / 'results.json').read_text())
-        assert results['parameters']['sequence_acquire_k'] == acquire
-        rows[acquire] = {
-            r: {k: v for k, v in m.items() if 'ms' not in k}
-            for r, m in results['datasets']['rtabmap_loop']['methods'].items()
-        }
-    assert rows[0]['lln'] == rows[20]['lln']
-    capsys.readouterr()
-    assert run_cli('--dataset', 'x', '--out', tmp_path / 'bad', '--sequence-acquire-k', -1) == 2
-    assert '--sequence-acquire-k must be at least 0' in capsys.readouterr().err
 
 
 def test_sequence_candidates_are_the_single_frame_first_stage_extended(extractor):
