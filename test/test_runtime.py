@@ -141,6 +141,9 @@ def test_runtime_parameters_and_diagnostic_levels(colcon_install, tmp_path, plac
             ({'k': 2.5}, 'Wrong parameter type'),
             ({'sequence_max_gap': 0.0}, 'out of range'),
             ({'sequence_carry': -1}, 'out of range'),
+            ({'sequence_acquire_k': -1}, 'out of range'),
+            ({'sequence_acquire_k': 10**7}, 'out of range'),
+            ({'sequence_acquire_k': 'many'}, 'Wrong parameter type'),
             ({'similarity': 'cosine'}, 'must be one of raw | center | whiten | fuse'),
             ({'sequence_score_norm': 'mean'}, 'must be one of zscore | none'),
         ):
@@ -158,6 +161,7 @@ def test_runtime_parameters_and_diagnostic_levels(colcon_install, tmp_path, plac
         m.probe.spin_until(lambda: len(answers) >= 3, 30, 'a fused answer')
         assert float(answers[-1]['score'].max()) > raw_best, (answers[-1], raw_best)
         assert m.set(similarity='raw')[0].successful
+        assert m.set(sequence_acquire_k=50)[0].successful  # run time, in range
 
         # WARN: queries older than max_query_age (set at run time) are dropped, and diagnostics say so
         assert m.set(max_query_age=5.0)[0].successful
