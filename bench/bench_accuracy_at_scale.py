@@ -104,6 +104,16 @@ def augmented(path: Path, k: int, rng) -> np.ndarray:
     return np.ascontiguousarray(img[y : y + ch, x : x + cw])
 
 
+def kind_of(round_: int) -> str:
+    """What the pool's round_-th pass adds (augmented's rounds): 'real', 'flip', then 'crop'."""
+    return ('real', 'flip', 'crop')[min(round_, 2)]
+
+
+def result_row(store, target: int, stopped: bool, scores: dict) -> dict:
+    """One size's table row: the map's keyframes, the size asked for, score()'s figures, the load."""
+    return {'keyframes': len(store), 'target': target, 'stopped': stopped, 'load': os.getloadavg()[0], **scores}
+
+
 def origin(path: Path) -> str:
     """What a distractor image shows: 'nordland summer' / 'nordland winter' or 'other sets'."""
     return f'nordland {path.parent.name}' if 'nordland_trimmed' in path.parts else 'other sets'
@@ -270,13 +280,10 @@ def main(argv=None) -> int:
             ref_ids, distractors = ids[: len(refs)], ids[len(refs) :]
             for i, kid in enumerate(distractors):  # the build's order: pool, then its flips, then crops
                 round_, idx = divmod(i, len(pool))
-                kind = ('real', 'flip', 'crop')[min(round_, 2)]
-                used[kind] += 1
-                source[int(kid)] = f'{kind} {origin(pool[idx])}'
+                used[kind_of(round_)] += 1
+                source[int(kid)] = f'{kind_of(round_)} {origin(pool[idx])}'
             r = score(store, queries, ds.gt, ref_ids, args.sequence, args.carries, loc_conf, source)
-            rows.append(
-                {'keyframes': len(store), 'target': len(store), 'stopped': False, 'load': os.getloadavg()[0], **r}
-            )
+            rows.append(result_row(store, len(store), False, r))
         print(table(rows, args, used, rate))
         return 0
     with MapStore.open(folder / 'map.db', model=extractor.model_info, conf=map_conf) as store:
@@ -294,19 +301,17 @@ def main(argv=None) -> int:
                 t = time.perf_counter()
                 if round_ == 0:
                     sets = cache.landmark_sets(chunk, height)
-                    used['real'] += len(sets)
                 else:
                     sets = [extractor(augmented(p, round_, rng)) for p in chunk]
-                    used['flip' if round_ == 1 else 'crop'] += len(sets)
+                used[kind_of(round_)] += len(sets)
                 rate.append(((time.perf_counter() - t) * 1e3 / len(chunk), round_))
                 start = len(store)
                 ids = store.add_many(sets, [divmod(T0 + (10**6 + start + i) * 10**8, 10**9) for i in range(len(sets))])
-                kind = ('real', 'flip', 'crop')[min(round_, 2)]
-                source.update((int(i), f'{kind} {origin(p)}') for i, p in zip(ids, chunk))
+                source.update((int(i), f'{kind_of(round_)} {origin(p)}') for i, p in zip(ids, chunk))
                 cursor += len(chunk)
                 print(f'  map {len(store)} keyframes ({used}), {rate[-1][0]:.1f} ms/image', flush=True)
             r = score(store, queries, ds.gt, ref_ids, args.sequence, args.carries, loc_conf, source)
-            rows.append({'keyframes': len(store), 'target': size, 'stopped': stopped, 'load': os.getloadavg()[0], **r})
+            rows.append(result_row(store, size, stopped, r))
             print(row_line(rows[-1], args.carries), flush=True)
             if stopped:
                 break
