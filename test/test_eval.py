@@ -887,3 +887,13 @@ def test_report_shows_paths_inside_the_working_directory_relative(tmp_path, monk
     assert shown_path(outside) == outside
     assert shown_path('out/best.pt') == 'out/best.pt'
     assert shown_path(None) is None
+
+
+def test_recall_at_k_labels_say_what_each_curve_ranks():
+    """Only a rerank of the first stage (and its sequence search) says 'reranked'; the whole-image
+    peers and holistic+seq rank every reference."""
+    label = figures._recall_label
+    assert label('lln[trained]', 30) == 'lln[trained] (its first-stage top-30, reranked)'
+    assert 'reranked' in label('act+seq', 30) and 'act' in label('act+seq', 30)
+    for row in ('sad', 'seqslam', 'holistic+seq'):
+        assert 'reranked' not in label(row, 30) and 'every reference' in label(row, 30), row

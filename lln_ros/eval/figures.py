@@ -22,6 +22,7 @@ from ..core.landmarks import METHODS as LOCAL_METHODS
 from ..core.landmarks import stack_landmarks
 from ..core.similarity import match_batch, match_pair
 from .methods import parse_methods, row_names, slug, variant
+from .peers import PEER_METHODS
 from .report import pct
 
 
@@ -171,12 +172,23 @@ def online_curves(online: dict, offline: dict | None) -> list[tuple]:
     return curves
 
 
+def _recall_label(row: str, k: int) -> str:
+    """What a recall@K curve ranks: a rerank of the first stage's top k, or every reference (the
+    whole-image peers sad and seqslam, and holistic+seq, whose sequence search sees every one)."""
+    method = row.removesuffix(SEQ)
+    if method in PEER_METHODS or method == 'holistic':
+        return f'{row} ({"sequence search" if row != "sad" else "whole image"}, every reference)'
+    if row.endswith(SEQ):
+        return f"{row} (sequence search over {method}'s reranked list)"
+    return f'{row} (its first-stage top-{k}, reranked)'
+
+
 def plot_recall_at_k(run, gt: np.ndarray, prefilter_k: int, path) -> None:
     """Holistic recall@K against K (the paper's Fig. 4), reranked methods within the top-K dashed
-    (X+seq dash-dotted, in X's colour)."""
+    (X+seq dash-dotted, in X's colour). The legend sits below the axes, as plot_pr's."""
     plt = _pyplot()
     colours = _colours(list(run.rankings))
-    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=110)
+    fig, ax = plt.subplots(figsize=(7.2, 6.4), dpi=110)
     ks = np.arange(1, len(run.recall_curve) + 1)
     ax.plot(
         ks,
@@ -196,7 +208,7 @@ def plot_recall_at_k(run, gt: np.ndarray, prefilter_k: int, path) -> None:
             _line(row, '--'),
             lw=1,
             color=colours[row],
-            label=f'{row} (its first-stage top-{ranked.shape[1]}, reranked)',
+            label=_recall_label(row, ranked.shape[1]),
         )
     if prefilter_k:  # 0: exhaustive, no cut-off to mark
         ax.axvline(prefilter_k, color='k', lw=0.8, ls=':', label=f'K = {prefilter_k}: candidates reranked')
@@ -205,9 +217,9 @@ def plot_recall_at_k(run, gt: np.ndarray, prefilter_k: int, path) -> None:
     ax.set_ylabel('recall@K')
     ax.grid(alpha=0.3)
     ax.set_title(f'{run.name}: a true match among the top K', fontsize=9)
-    ax.legend(fontsize=7, loc='lower right')
+    ax.legend(fontsize=7, loc='upper center', bbox_to_anchor=(0.5, -0.13), ncol=2, frameon=False)
     fig.tight_layout()
-    fig.savefig(path)
+    fig.savefig(path, bbox_inches='tight')
     plt.close(fig)
 
 
