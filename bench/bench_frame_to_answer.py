@@ -4,7 +4,8 @@
                                           [--runtimes onnxruntime,onnxruntime-int8]
                                           [--prefilter-k K] [--landmark-query-top N[,M..]]
                                           [--landmark-index KIND[:TOP[:REFINE[:NPROBE[:K]]]][,...]]
-                                          [--sequence 0 [--sequence-prefilter-k K] [--sequence-carry N[,M..]]]
+                                          [--sequence 0 [--sequence-prefilter-k K] [--sequence-carry N[,M..]]
+                                           [--sequence-acquire-k K[,K..]]]
                                           [--dir /tmp/lln_bench_f2a] [--json]
 
 Per frame, in this process and in the nodes' order: Extractor.__call__ (the extractor node's
@@ -24,9 +25,12 @@ competing CPU-bound process this script starts and stops, for each --runtimes en
 extractor's runtime; the map is built with the first) and each --landmark-query-top value (q-top,
 on the same map) and each --sequence-carry value (carry: the matcher's sequence_carry, the places
 the best sequences go next scored beside the first stage's candidates; with --sequence) and each
---landmark-index entry (the map's landmark index kind, landmark_index_top and refine codes: the map
-is reopened and its index rebuilt for each): p50 / p90 / p99 wall ms per frame, the CPU ms per
-frame (process time, all threads), and the p50 of each stage. The load average at the start of
+--sequence-acquire-k value (acq-k: the matcher's sequence_acquire_k, the candidates reranked while
+the window fills) and each --landmark-index entry (the map's landmark index kind, landmark_index_top
+and refine codes: the map is reopened and its index rebuilt for each): p50 / p90 / p99 wall ms per
+frame, the CPU ms per frame (process time, all threads), and the p50 of each stage. With --sequence
+L, each row's frames come after a gap, so its first L - 1 are the window filling: `filling` is the
+p50 query ms of those, `query` that of all. The load average at the start of
 each row is printed: on a shared machine "quiet" means "nothing else of ours".
 """
 
@@ -81,8 +85,9 @@ def percentiles(values: list[float]) -> dict:
     return {f'p{q}': float(np.percentile(a, q)) for q in (50, 90, 99)}
 
 
-def measure(extractor, loc, images: list, truth: list[int]) -> dict:
-    """Per-frame wall and CPU ms, stage p50s and top-1 of the real keyframe each query shows."""
+def measure(extractor, loc, images: list, truth: list[int], filling: int = 0) -> dict:
+    """Per-frame wall and CPU ms, stage p50s and top-1 of the real keyframe each query shows;
+    filling: how many first frames the sequence window fills in (their query p50 apart)."""
     wall, cpu, extract, query, hits = [], [], [], [], 0
     for i, img in enumerate(images):
         w0, c0 = time.perf_counter(), time.process_time()
@@ -100,6 +105,7 @@ def measure(extractor, loc, images: list, truth: list[int]) -> dict:
         'cpu_ms_p50': float(np.median(cpu)),
         'extract_ms_p50': float(np.median(extract)),
         'query_ms_p50': float(np.median(query)),
+        'filling_ms_p50': float(np.median(query[:filling])) if filling else float('nan'),
         'top1': hits / len(images),
         'frames': len(images),
     }
@@ -139,6 +145,11 @@ def main(argv=None) -> int:
         '--sequence-carry',
         default=str(LOC['sequence_carry']),
         help="the matcher's sequence_carry with --sequence; several, comma-separated: rows for each on the same map",
+    )
+    ap.add_argument(
+        '--sequence-acquire-k',
+        default=str(LOC['sequence_acquire_k']),
+        help="the matcher's sequence_acquire_k with --sequence; several, comma-separated: rows for each, one map",
     )
     ap.add_argument('--dir', default='/tmp/lln_bench_f2a')
     ap.add_argument('--json', action='store_true')
@@ -198,7 +209,8 @@ def measure_sizes(store, sizes, tops, extractors, queries, truth, args, rng, lab
     for size in sizes:
         grow(store, size, rng)
         carries = [int(c) for c in args.sequence_carry.split(',')] if args.sequence else [0]
-        for top, carry, (runtime, ex) in itertools.product(tops, carries, extractors.items()):
+        acquires = [int(c) for c in args.sequence_acquire_k.split(',')] if args.sequence else [0]
+        for top, carry, acquire, (runtime, ex) in itertools.product(tops, carries, acquires, extractors.items()):
             loc = Localizer(
                 store,
                 {
@@ -206,6 +218,7 @@ def measure_sizes(store, sizes, tops, extractors, queries, truth, args, rng, lab
                     'sequence_length': args.sequence,
                     'sequence_prefilter_k': args.sequence_prefilter_k,
                     'sequence_carry': carry,
+                    'sequence_acquire_k': acquire,
                 },
             )
             store._landmarks.conf['landmark_query_top'] = top  # the one map, searched with each value
@@ -213,9 +226,11 @@ def measure_sizes(store, sizes, tops, extractors, queries, truth, args, rng, lab
             for load in (False, True):
                 start_load = os.getloadavg()[0]
                 with competing_load(load):
-                    r = measure(ex, loc, queries, truth)
+                    # the stamps restart (out of order, or a gap after the warm-up): the window fills again
+                    r = measure(ex, loc, queries, truth, max(args.sequence - 1, 0))
                 row = {'keyframes': len(store), 'runtime': ex.model_info['runtime'], 'competing': load}
-                rows.append({**row, 'index': label, 'query_top': top, 'carry': carry, 'load_avg': start_load, **r})
+                row |= {'index': label, 'query_top': top, 'carry': carry, 'acquire_k': acquire}
+                rows.append({**row, 'load_avg': start_load, **r})
     return rows
 
 
@@ -226,19 +241,19 @@ def table(rows: list[dict], args) -> str:
         + (f' (sequence_prefilter_k {args.sequence_prefilter_k})' if args.sequence else '')
         + ', '
         f'{args.frames} frames per row ({os.cpu_count()} cores)',
-        f'{"keyframes":>9} {"landmark index":>28} {"runtime":>16} {"q-top":>5} {"carry":>5} {"beside":>10} {"load":>5} '
-        f'{"p50 ms":>7} {"p90 ms":>7} {"p99 ms":>7} {"cpu ms":>7} {"extract":>8} {"query":>7} '
-        f'{"top-1":>6} {"p50/quiet":>9}',
+        f'{"keyframes":>9} {"landmark index":>28} {"runtime":>16} {"q-top":>5} {"carry":>5} {"acq-k":>5} '
+        f'{"beside":>10} {"load":>5} {"p50 ms":>7} {"p90 ms":>7} {"p99 ms":>7} {"cpu ms":>7} {"extract":>8} '
+        f'{"query":>7} {"filling":>7} {"top-1":>6} {"p50/quiet":>9}',
     ]
-    key = ('index', 'keyframes', 'runtime', 'query_top', 'carry')
+    key = ('index', 'keyframes', 'runtime', 'query_top', 'carry', 'acquire_k')
     quiet = {tuple(r[k] for k in key): r['p50'] for r in rows if not r['competing']}
     for r in rows:
         lines.append(
             f'{r["keyframes"]:>9} {r["index"]:>28} {r["runtime"]:>16} {r["query_top"]:>5} {r["carry"]:>5} '
-            f'{"1 busy" if r["competing"] else "nothing":>10} '
+            f'{r["acquire_k"]:>5} {"1 busy" if r["competing"] else "nothing":>10} '
             f'{r["load_avg"]:>5.1f} '
             f'{r["p50"]:>7.1f} {r["p90"]:>7.1f} {r["p99"]:>7.1f} {r["cpu_ms_p50"]:>7.1f} '
-            f'{r["extract_ms_p50"]:>8.1f} {r["query_ms_p50"]:>7.1f} {r["top1"]:>6.2f} '
+            f'{r["extract_ms_p50"]:>8.1f} {r["query_ms_p50"]:>7.1f} {r["filling_ms_p50"]:>7.1f} {r["top1"]:>6.2f} '
             f'{r["p50"] / quiet[tuple(r[k] for k in key)]:>9.2f}'
         )
     return '\n'.join(lines)

@@ -25,17 +25,21 @@ def run_bench(name: str, *args: str) -> str:
 
 
 def test_frame_to_answer_answers_its_real_keyframes(tmp_path):
-    """Frames in, candidates out through Extractor + Localizer, quiet and beside one busy process: a
-    row each, and the brightened, noisy views of the map's real keyframes are answered with them."""
+    """Frames in, candidates out through Extractor + Localizer with a sequence of 3, quiet and beside
+    one busy process, for two sequence_acquire_k: a row each, the brightened, noisy views of the
+    map's real keyframes are answered with them, and the frames that fill the window are timed apart."""
     text = run_bench(
         'bench_frame_to_answer.py',
         *('--sizes', '300', '--frames', '6', '--runtimes', 'onnxruntime', '--json', '--dir', str(tmp_path / 'f2a')),
+        *('--sequence', '3', '--sequence-acquire-k', '30,100'),
     )
     rows = json.loads(text[: text.rindex(']') + 1])
-    assert [(r['keyframes'], r['competing']) for r in rows] == [(300, False), (300, True)]
+    got = [(r['keyframes'], r['acquire_k'], r['competing']) for r in rows]
+    assert got == [(300, 30, False), (300, 30, True), (300, 100, False), (300, 100, True)]
     for r in rows:
         assert r['top1'] >= 0.8, r
         assert 0 < r['p50'] <= r['p90'] <= r['p99'] and r['extract_ms_p50'] > 0 and r['query_ms_p50'] > 0
+        assert r['filling_ms_p50'] > 0, r
 
 
 def test_accuracy_at_scale_pads_the_map_with_distractors_it_never_counts_correct(tmp_path):
