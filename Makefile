@@ -35,10 +35,14 @@ train: setup
 	  --data $(ESSEX) --val $(ESSEX) --data $(TUM) --val $(TUM) $(ARGS)
 	cp out/train/best.pt lln_ros/weights/lln_efficientnet_lite0_stage6.pt
 
-# the landmark first stage's learned whitening, lln_ros/weights/whiten_efficientnet_lite0_stage6.npz, from
-# Nordland's training part 0:0.6 (summer/winter pairs; docs/method.md, Whitening; ~2 min + features)
+# the learned whitenings (lln_ros/core/whitening.py): the landmark first stage's,
+# lln_ros/weights/whiten_efficientnet_lite0_stage6.npz, from Nordland's training part 0:0.6 (summer/winter
+# pairs), and S's, whiten_similarity_..., from the four training sets, each weighing the same
+# (docs/method.md, Whitening; ~2 min + features)
 whitening: setup
 	$(PY) scripts/learn_whitening.py --data $(NORDLAND) --range 0:0.6 --cache $${LLN_CACHE:-cache/features} $(ARGS)
+	$(PY) scripts/learn_whitening.py --data $(NORDLAND) --data $(RTABMAP) --data $(ESSEX) --data $(TUM) --range 0:0.6 \
+	  --balance --purpose similarity --cache $${LLN_CACHE:-cache/features} $(ARGS)
 
 # leave-one-dataset-out validation of training recipes (docs/generalisation.md; ~1 h on 2 idle cores)
 loo: setup

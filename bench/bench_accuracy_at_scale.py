@@ -228,7 +228,10 @@ def main(argv=None) -> int:
         help="the Localizer's prefilter_k (first-stage candidates a single frame reranks)",
     )
     ap.add_argument(
-        '--similarity', choices=CHOICES['similarity'], default='raw', help="the reranker S's sets (similarity center)"
+        '--similarity',
+        choices=CHOICES['similarity'],
+        default=LOC['similarity'],
+        help="the reranker S's sets (similarity center)",
     )
     args = ap.parse_args(argv)
     args.carries = [int(c) for c in args.sequence_carry.split(',')]

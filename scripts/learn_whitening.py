@@ -1,13 +1,17 @@
-"""Learn the landmark first stage's whitening (lln_ros.core.whitening) from ground-truth image pairs.
+"""Learn a landmark whitening (lln_ros.core.whitening) from ground-truth image pairs.
 
-    python scripts/learn_whitening.py --data SPEC [--data SPEC ...] [--range 0:0.6]
-                                      [--cache cache/features] [--beta 0.5] [--out FILE.npz]
+    python scripts/learn_whitening.py --data SPEC [--data SPEC ...] [--range 0:0.6] [--balance]
+                                      [--purpose index|similarity] [--cache cache/features]
+                                      [--beta 0.5] [--out FILE.npz]
 
 Each query image with a ground-truth reference is paired with its middle reference; their landmarks
 (the shipped Extractor on the cached backbone features) give mutual nearest pairs at most one cell
 apart (whitening.landmark_pairs), and W = C_S^-beta of their differences (whitening.learn). --range
-applies to aligned datasets (the training part; never the test split). `make whitening` writes the
-shipped file, lln_ros/weights/whiten_<backbone>_<layer>.npz, from Nordland's training part 0:0.6.
+applies to aligned datasets (the training part; never the test split). --balance: each --data
+set's pairs weigh the same in C_S (whitening.learn's groups), however many it has. `make whitening`
+writes the two shipped files (whitening.PURPOSES): the first stage's,
+lln_ros/weights/whiten_<backbone>_<layer>.npz, from Nordland's training part 0:0.6, and S's,
+whiten_similarity_<backbone>_<layer>.npz, from the four training sets, balanced.
 """
 
 from __future__ import annotations
@@ -44,7 +48,9 @@ def main(argv=None) -> int:
     ap.add_argument('--range', default=None, help='part of aligned datasets, e.g. 0:0.6')
     ap.add_argument('--cache', default='cache/features')
     ap.add_argument('--beta', type=float, default=whitening.default_conf['beta'])
-    ap.add_argument('--out', default=None, help='default: the shipped file of the default model')
+    ap.add_argument('--balance', action='store_true', help="each --data set's pairs weigh the same")
+    ap.add_argument('--purpose', default='index', choices=list(whitening.PURPOSES), help='which shipped file')
+    ap.add_argument('--out', default=None, help="default: the default model's shipped file for --purpose")
     args = ap.parse_args(argv)
     extractor = Extractor()
     height = int(extractor.conf['input_height'])
@@ -57,12 +63,15 @@ def main(argv=None) -> int:
         a.append(pa)
         b.append(pb)
         images += list(ds.ref_paths) + list(ds.query_paths)
-    w = whitening.learn(np.concatenate(a), np.concatenate(b), args.beta, whitening.default_conf['floor'])
-    out = args.out or str(whitening.default_path(extractor.descriptor_space))
+    groups = np.concatenate([np.full(len(x), i) for i, x in enumerate(a)]) if args.balance else None
+    w = whitening.learn(np.concatenate(a), np.concatenate(b), args.beta, whitening.default_conf['floor'], groups)
+    out = args.out or str(whitening.default_path(extractor.descriptor_space, args.purpose))
     meta = {
         'descriptor_space': extractor.descriptor_space,
         'head': extractor.model_info['head'],
         'beta': args.beta,
+        'purpose': args.purpose,
+        'balance': args.balance,
         'data': ' '.join(args.data),
         'range': args.range or '',
         'landmark_pairs': sum(len(x) for x in a),

@@ -9,6 +9,7 @@ import cv2
 import pytest
 
 from conftest import shared_data
+from lln_ros.core.similarity import default_conf as SIM
 
 LLN_MATCH = str(Path(sys.executable).with_name('lln-match'))
 
@@ -58,4 +59,5 @@ def test_on_shared_images():
     root = shared_data('rtabmap_loop')
     same = json.loads(run(root / '41.jpg', root / '41.jpg', '--json').stdout)
     assert same['pairs'] == same['n'] == 50 and same['offset'] == [0, 0]
-    assert same['similarity'] == pytest.approx(50.0, abs=1e-3)
+    # the default fused S: 50 raw + fusion_weight x 50 whitened (every pair's cosine 1, weight 1)
+    assert same['similarity'] == pytest.approx(50.0 * (1 + SIM['fusion_weight']), abs=3e-3)

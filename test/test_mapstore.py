@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from lln_ros.core.landmarks import LandmarkSet
+from lln_ros.core.similarity import default_conf as SIM
 from lln_ros.errors import MapError
 from lln_ros.mapstore import SCHEMA_VERSION, MapCandidate, MapStore
 
@@ -94,7 +95,8 @@ def test_add_then_query_with_itself_ranks_first(map_path, rng):
             assert top.keyframe_id == ids[i]
             assert top.stamp == (100 + i, 1000 * i)
             assert top.holistic_score == pytest.approx(1.0, abs=1e-5)
-            assert top.score == pytest.approx(50.0, abs=0.05)  # 50 mutual pairs, cosine ~1, weight 1
+            # 50 mutual pairs, cosine ~1, weight 1, in raw S and in the whitened S the default adds
+            assert top.score == pytest.approx(50.0 * (1 + SIM['fusion_weight']), abs=0.15)
             assert top.score > res[1].score + 10
             assert [c.score for c in res] == sorted((c.score for c in res), reverse=True)
             assert top.offset == (0, 0) and top.n_pairs == 50

@@ -62,7 +62,7 @@ def random_set(rng, n=50, d=8, grid=(9, 12)):
 def test_self_match_every_landmark_offset_zero():
     rng = np.random.default_rng(0)
     a = random_set(rng)
-    r = match_pair(a, a)
+    r = match_pair(a, a, center=False)  # the paper's S (the default fuses a whitened S in)
     assert (r.match[0] == np.arange(50)).all()
     assert tuple(r.offsets[0]) == (0, 0)
     np.testing.assert_allclose(r.weight[0], 1.0)
@@ -86,7 +86,7 @@ def test_matches_reference_definition(seed, scale):
     a = random_set(rng, n=20, d=4)
     for _ in range(4):
         b = random_set(rng, n=25, d=4)
-        got = match_pair(a, b, scale)
+        got = match_pair(a, b, scale, center=False)
         want, mode = reference_similarity(a, b, scale)
         assert got.scores[0] == pytest.approx(want, rel=1e-5, abs=1e-6)
         assert tuple(got.offsets[0]) == mode
@@ -147,18 +147,18 @@ def test_similarity_whiten_is_s_on_centred_then_whitened_sets(monkeypatch):
     cands = [make_set(places, cells, space='test/w/64'), make_set(others + shift, cells, space='test/w/64')]
     w = np.eye(d, dtype=np.float32)
     w[5, 5] = 0.05
-    monkeypatch.setitem(whitening._SHIPPED, 'test/w/64', w)
+    monkeypatch.setitem(whitening._SHIPPED, ('test/w/64', 'similarity'), w)
     white = match_sets(query, cands, center='whiten').scores
 
     def transformed(s):
         x = center(s.descriptors) @ w.T
         return make_set(x, s.cells, space='test/x/64')
 
-    plain = match_sets(transformed(query), [transformed(c) for c in cands]).scores
+    plain = match_sets(transformed(query), [transformed(c) for c in cands], center=False).scores
     np.testing.assert_allclose(white, plain, rtol=1e-5, atol=1e-6)
     assert np.argmax(white) == 0
     assert white[0] - white[1] > np.ptp(match_sets(query, cands, center=True).scores)
-    monkeypatch.setitem(whitening._SHIPPED, 'test/w/64', None)
+    monkeypatch.setitem(whitening._SHIPPED, ('test/w/64', 'similarity'), None)
     np.testing.assert_allclose(
         match_sets(query, cands, center='whiten').scores, match_sets(query, cands, center=True).scores
     )
@@ -172,7 +172,7 @@ def test_pairs_and_weights():
     cells[7:] -= [0, 3]  # three are displaced by (0, 3): down-weighted by exp(-(1+9)/2)
     cells = np.clip(cells, 0, [11, 8])
     b = make_set(a.descriptors, cells)
-    r = match_pair(a, b)
+    r = match_pair(a, b, center=False)
     p = r.pairs(0)
     assert tuple(r.offsets[0]) == (1, 0)
     w = dict(zip(p['query_index'], p['weight']))
@@ -206,7 +206,7 @@ def test_similarity_fuse_is_raw_plus_weighted_whitened_with_raw_pairs(monkeypatc
     ]
     w = np.eye(d, dtype=np.float32)
     w[:8] *= 0.1
-    monkeypatch.setitem(whitening._SHIPPED, 'test/f/64', w)
+    monkeypatch.setitem(whitening._SHIPPED, ('test/f/64', 'similarity'), w)
     raw, white = match_sets(query, cands, center=False), match_sets(query, cands, center='whiten')
     for weight in (2.0, 0.5):
         monkeypatch.setitem(similarity.default_conf, 'fusion_weight', weight)

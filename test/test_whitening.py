@@ -90,7 +90,7 @@ def test_an_index_file_whitened_otherwise_is_rebuilt(tmp_path, caplog, monkeypat
         ids = store.add_many(sets, [(i, 0) for i in range(20)])
         assert store.info()['landmark_index'] == 'ivfpq-fs'
     w = np.linalg.qr(rng.normal(size=(320, 320)))[0].astype(np.float32) * np.linspace(0.5, 2, 320)[:, None]
-    monkeypatch.setitem(whitening._SHIPPED, SPACE, w.astype(np.float32))
+    monkeypatch.setitem(whitening._SHIPPED, (SPACE, 'index'), w.astype(np.float32))
     with pytest.raises(MapError, match='whitened with nothing; this conf whitens with'):
         LandmarkIndex.read(path + '.landmarks', 320, conf, SPACE)
     with caplog.at_level(logging.WARNING, logger='lln_ros.mapstore'):

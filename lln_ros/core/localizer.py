@@ -37,7 +37,7 @@ from .limits import LimitError, check_landmark_set, height_change, parse_model_j
 from .pending import Pending, keep_newest
 from .retrieval import candidates_k
 from .retrieval import default_conf as retrieval_conf
-from .similarity import CENTERS
+from .similarity import CENTERS, DEFAULT_SIMILARITY
 from .threads import one_thread
 
 default_conf = {
@@ -50,7 +50,7 @@ default_conf = {
     'min_score': 0.0,  # candidates below this are not answered
     'exclude_recent': 10,  # mapping mode: the newest N keyframes are never answers
     'method': 'lln',  # lln: rerank by landmark similarity S | holistic: global descriptor only
-    'similarity': 'raw',  # S's sets: raw | center | whiten | fuse (similarity.CENTERS; docs/method.md)
+    'similarity': DEFAULT_SIMILARITY,  # S's sets: raw | center | whiten | fuse (similarity.CENTERS; docs/method.md)
     'offset_scale': 1.0,  # Gaussian width of the offset weights, grid cells
     'max_query_age': 0.0,  # seconds; older queries are dropped (queries_stale); 0 = off
     'verify': False,  # re-rank candidates by keypoint inliers
@@ -373,7 +373,7 @@ class Localizer:
             kf_geom = self.store.geometry(kid) if kf_kps is not None else None
             pose = self.reg.pose_of(kps, kf_kps, results.get(kid), kf_geom, best, odom, lset.image_size)
         if self.mapping:  # committed before the answer goes out: an answered keyframe is never lost
-            best = max((m.score for m in found), default=None)  # verify mode reorders by inliers
+            best = registration_mod.best_raw_score(found)  # the gate's threshold is in raw S
             stored = self.reg.gate(stamp_ns, odom, best, lset, c['offset_scale'])
             if stored:
                 self._store_keyframe(lset, stamp_ns, kps, odom)

@@ -58,6 +58,14 @@ default_conf = {
 QUATERNION_TOLERANCE = 1e-3  # |q| must be within this of 1 (drivers normalise; 1e-3 is float32 noise x 100)
 
 
+def best_raw_score(found) -> float | None:
+    """The best raw S (the paper's: sum of weight x cosine over the reported pairs, which are raw S's
+    whatever S ranked them; similarity, center='fuse') of a query's candidates (MapCandidate), the
+    first-stage score of one without pairs; None for no candidate. The novelty gate's input."""
+    raw = [float(np.dot(m.pairs['weight'], m.pairs['similarity'])) if 'weight' in m.pairs else m.score for m in found]
+    return max(raw, default=None)
+
+
 @dataclass
 class PoseAnswer:
     """The relative pose of an answer's best candidate. est: core.geometry.PoseEstimate; accepted:
@@ -225,9 +233,11 @@ class Registration:
     ) -> bool:
         """Store this query as a keyframe? core.gating.KeyframeGate on the camera's odometry pose
         (moved keyframe_min_distance or turned keyframe_min_angle since the last keyframe), or
-        without odometry on novelty: the best S below keyframe_novelty_max_score (0 = every frame),
-        where the best S is that of the answers (best_score, None: no answer) or, when higher, the
-        query landmark set lset's S against the last stored keyframe. Without the latter a camera
+        without odometry on novelty: the best raw S below keyframe_novelty_max_score (0 = every
+        frame), where the best raw S is that of the answers (best_score: best_raw_score, None: no
+        answer) or, when higher, the query landmark set lset's raw S against the last stored
+        keyframe. Raw S (the paper's) whatever S ranks the answers (the matcher's `similarity`): the
+        threshold is in its units. Without the latter a camera
         standing still stores a keyframe per frame until its twins pass exclude_recent, then closes
         loops with itself. Odometry in a new frame_id starts the gate afresh (poses of two frames do
         not compare)."""
@@ -237,7 +247,7 @@ class Registration:
         if T is None and lset is not None and self.last_landmarks is not None and self.gate_.judges_novelty:
             from .similarity import match_pair
 
-            last = float(match_pair(lset, self.last_landmarks, scale).scores[0])
+            last = float(match_pair(lset, self.last_landmarks, scale, center=False).scores[0])
             best_score = last if best_score is None else max(best_score, last)
         return self.gate_.decide(stamp_ns * 1e-9, T, best_score)[0]
 

@@ -100,9 +100,11 @@ default_conf = {
     # X+seq rows of local methods rerank this many first-stage candidates (retrieval.candidates_k)
     'sequence_prefilter_k': retrieval_defaults['sequence_prefilter_k'],
     'scale': retrieval_defaults['scale'],  # offset-weight width in grid cells (similarity)
-    'similarity_center': similarity_defaults['center'],  # S on each set minus its mean (similarity)
-    'similarity_whitening': False,  # S on each set centred, then whitened (similarity, center='whiten')
-    'similarity_fusion': False,  # raw S + fusion_weight x whitened S (similarity, center='fuse')
+    # S's sets, one flag each, similarity's default on: minus each set's mean (center True), then
+    # whitened (center='whiten'), raw S + fusion_weight x whitened S (center='fuse')
+    'similarity_center': similarity_defaults['center'] is True,
+    'similarity_whitening': similarity_defaults['center'] == 'whiten',
+    'similarity_fusion': similarity_defaults['center'] == 'fuse',
     **{key: landmark_index_defaults[key] for key in LANDMARK_CONF},  # the first stage's, as its index's
     'sequence': 0,  # L > 0: an `X+seq` row per holistic/local row (sequence length L)
     'sequence_carry': retrieval_defaults['sequence_carry'],  # X+seq of local rows: the matcher's sequence_carry
