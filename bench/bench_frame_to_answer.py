@@ -2,7 +2,7 @@
 
     python bench/bench_frame_to_answer.py [--sizes 1000,10000,100000] [--frames 60] [--threads 2]
                                           [--runtimes onnxruntime,onnxruntime-int8]
-                                          [--prefilter-k K] [--landmark-query-top N[,M..]]
+                                          [--prefilter-k K] [--landmark-query-top N[,M..]] [--similarity fuse,raw]
                                           [--landmark-index KIND[:TOP[:REFINE[:NPROBE[:K]]]][,...]]
                                           [--sequence 0 [--sequence-prefilter-k K] [--sequence-carry N[,M..]]
                                            [--sequence-acquire-k K[,K..]]]
@@ -25,6 +25,7 @@ competing CPU-bound process this script starts and stops, for each --runtimes en
 extractor's runtime; the map is built with the first) and each --landmark-query-top value (q-top,
 on the same map) and each --sequence-carry value (carry: the matcher's sequence_carry, the places
 the best sequences go next scored beside the first stage's candidates; with --sequence) and each
+--similarity value (S: the matcher's similarity, e.g. fuse,raw) and each
 --sequence-acquire-k value (acq-k: the matcher's sequence_acquire_k, the candidates reranked while
 the window fills) and each --landmark-index entry (the map's landmark index kind, landmark_index_top
 and refine codes: the map is reopened and its index rebuilt for each): p50 / p90 / p99 wall ms per
@@ -134,6 +135,11 @@ def main(argv=None) -> int:
         help="the map's landmark index, KIND[:INDEX_TOP[:REFINE[:NPROBE[:K_FACTOR]]]], or several (one --sizes): "
         'one map, its index rebuilt for each (e.g. ivfpq-fs,ivfpq-fs-refine:25:SQ8:32:4)',
     )
+    ap.add_argument(
+        '--similarity',
+        default=LOC['similarity'],
+        help="the matcher's similarity (S's sets); several, comma-separated: rows for each on the same map",
+    )
     ap.add_argument('--sequence', type=int, default=0, help="the matcher's sequence_length (0 = single frame)")
     ap.add_argument(
         '--sequence-prefilter-k',
@@ -210,7 +216,10 @@ def measure_sizes(store, sizes, tops, extractors, queries, truth, args, rng, lab
         grow(store, size, rng)
         carries = [int(c) for c in args.sequence_carry.split(',')] if args.sequence else [0]
         acquires = [int(c) for c in args.sequence_acquire_k.split(',')] if args.sequence else [0]
-        for top, carry, acquire, (runtime, ex) in itertools.product(tops, carries, acquires, extractors.items()):
+        sims = args.similarity.split(',')
+        for top, sim, carry, acquire, (runtime, ex) in itertools.product(
+            tops, sims, carries, acquires, extractors.items()
+        ):
             loc = Localizer(
                 store,
                 {
@@ -219,6 +228,7 @@ def measure_sizes(store, sizes, tops, extractors, queries, truth, args, rng, lab
                     'sequence_prefilter_k': args.sequence_prefilter_k,
                     'sequence_carry': carry,
                     'sequence_acquire_k': acquire,
+                    'similarity': sim,
                 },
             )
             store._landmarks.conf['landmark_query_top'] = top  # the one map, searched with each value
@@ -229,7 +239,7 @@ def measure_sizes(store, sizes, tops, extractors, queries, truth, args, rng, lab
                     # the stamps restart (out of order, or a gap after the warm-up): the window fills again
                     r = measure(ex, loc, queries, truth, max(args.sequence - 1, 0))
                 row = {'keyframes': len(store), 'runtime': ex.model_info['runtime'], 'competing': load}
-                row |= {'index': label, 'query_top': top, 'carry': carry, 'acquire_k': acquire}
+                row |= {'index': label, 'query_top': top, 'similarity': sim, 'carry': carry, 'acquire_k': acquire}
                 rows.append({**row, 'load_avg': start_load, **r})
     return rows
 
@@ -241,15 +251,16 @@ def table(rows: list[dict], args) -> str:
         + (f' (sequence_prefilter_k {args.sequence_prefilter_k})' if args.sequence else '')
         + ', '
         f'{args.frames} frames per row ({os.cpu_count()} cores)',
-        f'{"keyframes":>9} {"landmark index":>28} {"runtime":>16} {"q-top":>5} {"carry":>5} {"acq-k":>5} '
+        f'{"keyframes":>9} {"landmark index":>28} {"runtime":>16} {"q-top":>5} {"S":>6} {"carry":>5} {"acq-k":>5} '
         f'{"beside":>10} {"load":>5} {"p50 ms":>7} {"p90 ms":>7} {"p99 ms":>7} {"cpu ms":>7} {"extract":>8} '
         f'{"query":>7} {"filling":>7} {"top-1":>6} {"p50/quiet":>9}',
     ]
-    key = ('index', 'keyframes', 'runtime', 'query_top', 'carry', 'acquire_k')
+    key = ('index', 'keyframes', 'runtime', 'query_top', 'similarity', 'carry', 'acquire_k')
     quiet = {tuple(r[k] for k in key): r['p50'] for r in rows if not r['competing']}
     for r in rows:
         lines.append(
-            f'{r["keyframes"]:>9} {r["index"]:>28} {r["runtime"]:>16} {r["query_top"]:>5} {r["carry"]:>5} '
+            f'{r["keyframes"]:>9} {r["index"]:>28} {r["runtime"]:>16} {r["query_top"]:>5} {r["similarity"]:>6} '
+            f'{r["carry"]:>5} '
             f'{r["acquire_k"]:>5} {"1 busy" if r["competing"] else "nothing":>10} '
             f'{r["load_avg"]:>5.1f} '
             f'{r["p50"]:>7.1f} {r["p90"]:>7.1f} {r["p99"]:>7.1f} {r["cpu_ms_p50"]:>7.1f} '
