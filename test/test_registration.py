@@ -12,7 +12,7 @@ import pytest
 from lln_ros.core.counters import Counters
 from lln_ros.core.loop_closure import LoopClosureFilter
 from lln_ros.core.odometry import OdometryBuffer
-from lln_ros.core.registration import POSE_FIELDS, OdomPose, Registration, nan_fields, pose_from_parts
+from lln_ros.core.registration import POSE_FIELDS, OdomPose, Registration, best_raw_score, nan_fields, pose_from_parts
 from lln_ros.errors import CameraError, PoseError
 from lln_ros.io.camera import CameraModel
 
@@ -214,3 +214,16 @@ def test_a_still_camera_without_odometry_closes_no_loop_with_novelty_gating(tmp_
     # a new view is still a keyframe: the gate does not freeze the map
     assert loc.query(make_set(rng), 20 * S) is not None and len(store) == keyframes + 1
     store.close()
+
+
+def test_the_novelty_gate_reads_raw_s_whatever_s_ranked():
+    """best_raw_score: the sum of weight x cosine over a candidate's reported pairs (raw S's, also
+    under the fused S, whose score is about 3x), the best over the candidates; the score of one
+    without pairs; None for none. keyframe_novelty_max_score (25) is in raw S."""
+    from types import SimpleNamespace
+
+    fused = SimpleNamespace(score=140.0, pairs={'weight': np.array([1.0, 0.5]), 'similarity': np.array([0.8, 0.6])})
+    plain = SimpleNamespace(score=0.9, pairs={})
+    assert best_raw_score([fused]) == pytest.approx(1.1)
+    assert best_raw_score([fused, plain]) == pytest.approx(1.1)
+    assert best_raw_score([]) is None

@@ -1,5 +1,5 @@
-"""The landmark first stage's learned whitening (lln_ros/core/whitening.py): what it learns, the
-pairs it learns from, an index file whitened otherwise is rebuilt, and on real Nordland images of
+"""The learned whitenings (lln_ros/core/whitening.py): what it learns (pooled or balanced), the
+pairs it learns from, the two shipped files, an index file whitened otherwise is rebuilt, and on real Nordland images of
 the validation part the shipped whitening finds more of the references than centring alone."""
 
 import logging
@@ -102,6 +102,35 @@ def test_an_index_file_whitened_otherwise_is_rebuilt(tmp_path, caplog, monkeypat
     assert header['whitening'] == whitening.fingerprint(w)
     with pytest.raises(MapError, match='whitens with nothing'):
         LandmarkIndex.read(path + '.landmarks', 320, {**conf, 'landmark_whitening': False}, SPACE)
+
+
+def test_learn_with_groups_weighs_each_group_the_same():
+    """Group 0 (3,000 pairs) differs along axis 0, group 1 (300 pairs) along axis 1, equally much.
+    Pooled, group 0's axis is shrunk about 2.7x more than group 1's; with groups (learn_whitening
+    --balance) both the same; labels that do not match the pairs are refused."""
+    rng = np.random.default_rng(4)
+    d = 8
+    a0, a1 = rng.normal(size=(3000, d)), rng.normal(size=(300, d))
+    b0, b1 = a0 + 0.1 * rng.normal(size=a0.shape), a1 + 0.1 * rng.normal(size=a1.shape)
+    b0[:, 0] += rng.normal(size=3000)
+    b1[:, 1] += rng.normal(size=300)
+    a, b = np.concatenate([a0, a1]), np.concatenate([b0, b1])
+    pooled = whitening.learn(a, b)
+    grouped = whitening.learn(a, b, groups=np.r_[np.zeros(3000), np.ones(300)])
+    assert pooled[1, 1] / pooled[0, 0] > 2.5
+    assert grouped[1, 1] / grouped[0, 0] == pytest.approx(1.0, abs=0.1)
+    with pytest.raises(ModelError, match='group labels'):
+        whitening.learn(a, b, groups=np.zeros(10))
+
+
+def test_two_whitenings_ship_for_the_default_model(extractor):
+    """The first stage's (Nordland's seasons) and S's (the four training sets, balanced): both for the
+    default model's space, not the same matrix, and an unknown purpose is refused by name."""
+    index, sim = (whitening.shipped(extractor.descriptor_space, p) for p in ('index', 'similarity'))
+    assert index is not None and sim is not None and index.shape == sim.shape
+    assert whitening.fingerprint(index) != whitening.fingerprint(sim)
+    with pytest.raises(ModelError, match="purpose 'rerank'"):
+        whitening.default_path(extractor.descriptor_space, 'rerank')
 
 
 def test_shipped_whitening_finds_more_nordland_references(extractor):
