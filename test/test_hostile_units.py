@@ -133,22 +133,24 @@ def test_match_sets_agrees_with_the_padded_batch_in_any_chunking(monkeypatch):
             assert (got.offsets == whole.offsets).all() and (got.match == whole.match).all()
 
 
-def test_one_long_keyframe_and_query_stay_within_the_chunk_bound():
+@pytest.mark.parametrize('center, passes', [(False, 1), ('fuse', 2)], ids=['raw', 'fused'])
+def test_one_long_keyframe_and_query_stay_within_the_chunk_bound(center, passes):
     """The issue's case: 99 candidates of 50 landmarks and one of max_landmarks (4096), queried with
     4096 landmarks (D=192): padded, the similarity tensor alone was 100 x 4096 x 4096 floats (6.7 GB).
     Grouped by count and chunked, the traced peak stays within three chunk blocks plus the K x n_a
-    results (~48 bytes per candidate and query landmark)."""
+    results (~48 bytes per candidate and query landmark) of each pass: the fused S (the default)
+    matches twice, raw then whitened, and holds the raw pass's results during the second."""
     rng = np.random.default_rng(3)
     sets = [big_set(rng, 50) for _ in range(99)] + [big_set(rng, 4096)]
     query = big_set(rng, 4096)
     tracemalloc.start()
-    result = similarity.match_sets(query, sets)
+    result = similarity.match_sets(query, sets, center=center)
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     assert result.scores.shape == (100,) and result.scores[-1] > 0
-    assert peak < 3 * similarity.MATCH_CHUNK_ELEMENTS * 4 + 100 * 4096 * 48, peak / 2**20
+    assert peak < 3 * similarity.MATCH_CHUNK_ELEMENTS * 4 + passes * 100 * 4096 * 48, peak / 2**20
     start = time.perf_counter()
-    small = similarity.match_sets(big_set(rng, 50), sets)
+    small = similarity.match_sets(big_set(rng, 50), sets, center=center)
     assert small.scores.shape == (100,)
     print(f'\npeak {peak / 2**20:.0f} MiB; a 50-landmark query after it {1e3 * (time.perf_counter() - start):.0f} ms')
 
