@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Loop-closure constraints from a running lln_matcher, one JSON object per line (docs/slam_integration.md).
 
-    python scripts/loop_closure_client.py --min-score 17.8 [--min-inliers 15] [--min-gap 5] [--require-pose] \
+    python scripts/loop_closure_client.py --min-score 46.1 [--min-inliers 15] [--min-gap 5] [--require-pose] \
         [--out closures.jsonl] \
         [--ros-args -r candidates:=/robot1/candidates -r matches:=/robot1/matches -p use_sim_time:=true]
 

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from test_mapstore import MODEL, OTHER_MODEL, make_set
 
+from lln_ros.core.similarity import default_conf as SIM
 from lln_ros.errors import MapError
 from lln_ros.mapstore import MapStore, SQLiteMapStore, backend_for
 from lln_ros.mapstore.sessions import Origin
@@ -125,7 +126,7 @@ def test_insert_query_get(uri, rng):
             top = store.query(sets[i], prefilter_k=10, k=3)
             assert len(top) == 3 and top[0].keyframe_id == ids[i]
             assert top[0].holistic_score == pytest.approx(1.0, abs=1e-5)
-            assert top[0].score == pytest.approx(50.0, abs=0.05) and top[0].n_pairs == 50
+            assert top[0].score == pytest.approx(50.0 * (1 + SIM['fusion_weight']), abs=0.15) and top[0].n_pairs == 50
         noisy = make_set(rng, base=sets[5], noise=0.3)
         assert store.query(noisy, prefilter_k=10, k=1)[0].keyframe_id == ids[5]
         assert [c.keyframe_id for c in store.query(sets[24], k=5, exclude_recent=1)] and ids[24] not in [

@@ -50,7 +50,7 @@ HELP = {
     'lln-map info /tmp/run.db': 'the map is the one the launch line above writes',
     "lln-map export /tmp/run.db 'milvus://milvus.example:19530/lln?map=city'": 'needs a Milvus server',
     'lln-map merge robot1.db robot2.db fleet.db': "needs two robots' maps (test/test_map_merge.py merges real ones)",
-    'python scripts/loop_closure_client.py --min-score 17.1 --min-gap 5 --require-pose --out closures.jsonl '
+    'python scripts/loop_closure_client.py --min-score 46.1 --min-gap 5 --require-pose --out closures.jsonl '
     '--ros-args -p use_sim_time:=true': 'needs a running matcher',
 }
 ROS2 = {
@@ -59,7 +59,7 @@ ROS2 = {
     'visualize:=true rviz:=true',
     'ros2 launch lln_ros lln.launch.py mode:=mapping use_sim_time:=true reliability:=reliable frame_queue:=100 '
     'map_path:=/tmp/run.db',
-    'ros2 param set /lln_matcher min_score 17.1',
+    'ros2 param set /lln_matcher min_score 46.1',
     'ros2 service call /lln_matcher/info std_srvs/srv/Trigger',
 }
 NOT_RUN = {

@@ -59,7 +59,7 @@ default_conf = {
     'unknown_scale_variance': 1e6,  # m^2 along t for essential-matrix poses (scale unobservable)
     # acceptance (accept()): the rule lln-eval --geometry chose with depth on the first half of
     # tum_fr1rpy (docs/geometry.md); S is the shipped head's landmark similarity
-    'min_score': 10.0,  # landmark similarity S of the candidate
+    'min_score': 10.0,  # raw landmark similarity S (the paper's) of the candidate, whatever S ranks
     'min_inliers': 20,
     'min_inlier_ratio': 0.0,  # inliers / region-constrained matches
     'max_reproj_px': 2.0,  # median inlier residual, pixels

@@ -298,7 +298,9 @@ class Registration:
             self.agreement.update(None)
             self._count('pose_no_keypoints')
             return None
-        return self.estimate(kps, kf_kps, result.matches, kf_geom, best.score, odom, image_size, best.keyframe_id)
+        # accept()'s min_score is in raw S, whatever S ranked the candidates
+        raw = best_raw_score([best])
+        return self.estimate(kps, kf_kps, result.matches, kf_geom, raw, odom, image_size, best.keyframe_id)
 
     def estimate(self, query_kps, kf_kps, matches, kf_geom: dict | None, score: float, odom, image_size, keyframe_id):
         """PoseAnswer for the best candidate (module doc), or None when it cannot be estimated (no

@@ -57,6 +57,7 @@ def replay(seq, extractor, conf: dict | None = None, progress: bool = False) -> 
     """(records as geometry_score describes them, timing {stage: median ms}) for an RGBDSequence."""
     from ..core.gating import HeldKeyframes, KeyframeGate
     from ..core.localizer import Localizer
+    from ..core.registration import best_raw_score
     from ..core.reloc import Relocalizer, region_boxes
     from ..io.image import load_image
     from ..mapstore import open_for_matcher
@@ -140,7 +141,7 @@ def replay(seq, extractor, conf: dict | None = None, progress: bool = False) -> 
                     ms['essential'].append(est_m.ms)
                     rec.update(
                         keyframe_frame=j,
-                        score=float(best.score),
+                        score=best_raw_score([best]),  # accept()'s min_score is in raw S
                         T_map_keyframe=poses[j],
                         T_gt=geometry.invert(poses[j]) @ poses[i],
                         est_depth=est_d,
