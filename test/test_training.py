@@ -126,7 +126,9 @@ def test_match_tables_reproduce_the_similarity_of_all_cells(traverses, tmp_path)
     partner, value = training.match_tables(local(q), np.stack([local(f) for f in refs]), cells)
     assert partner.shape == value.shape == (10, h * w)
     want = match_batch(
-        ex.from_features(q, (128, 96)), stack_landmarks([ex.from_features(f, (128, 96)) for f in refs])
+        ex.from_features(q, (128, 96)),
+        stack_landmarks([ex.from_features(f, (128, 96)) for f in refs]),
+        center=False,  # the paper's S (the default fuses a whitened S in)
     ).scores
     np.testing.assert_allclose(value.sum(1), want, rtol=2e-3)
     assert value.sum(1).argmax() == 3  # the query's own place wins
